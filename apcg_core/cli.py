@@ -1,0 +1,86 @@
+"""The ``apcg`` command line. Subcommands are plugged in through the ``apcg.commands`` entry
+point group (see pyproject.toml), so that this core package never imports the packages that
+stand on it (dataset_builder, training): the arrows point down only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from importlib.metadata import entry_points
+
+from . import __version__
+from .errors import APCGError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="apcg",
+        description="Aircraft point clouds as a single-photon counting lidar sees them.")
+    parser.add_argument("--version", action="version", version=f"apcg {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for ep in sorted(entry_points(group="apcg.commands"), key=lambda e: e.name):
+        ep.load()(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    try:
+        return int(args.func(args) or 0)
+    except APCGError as exc:  # a clear message, not a traceback, for the user's own mistakes
+        print(f"apcg {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def add_pose_arguments(p: argparse.ArgumentParser) -> None:
+    """The pose options shared by simulate / generate / condition (edges use degrees)."""
+    p.add_argument("--range-m", type=float, required=True, help="slant range r0 in metres")
+    p.add_argument("--elevation-deg", type=float, required=True, help="elevation beta0 (deg)")
+    p.add_argument("--pitch-deg", type=float, default=0.0, help="pitch theta (deg, + nose up)")
+    p.add_argument("--yaw-deg", type=float, default=0.0,
+                   help="yaw phi (deg, + swings the nose toward +X)")
+    p.add_argument("--roll-deg", type=float, default=0.0,
+                   help="roll gamma (deg, + lowers the right wing)")
+
+
+def register_condition(sub) -> None:
+    p = sub.add_parser("condition", help="show a condition's vector nu, q and frames",
+                       description="Encode one condition as the cGAN's vector nu and show the "
+                                   "reference range, q and the target centre in each frame.")
+    p.add_argument("--type-index", type=int, required=True, help="catalog index of the type")
+    p.add_argument("--n-types", type=int, default=80, help="number of types in the catalog")
+    p.add_argument("--drone", action="store_true", help="the type is a drone (range 100-600 m)")
+    add_pose_arguments(p)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=_run_condition)
+
+
+def _run_condition(args) -> int:
+    from .condition import Condition, ConditionSpace
+    from .frames import observation_to_blender, target_centre
+
+    cond = Condition.from_degrees(args.type_index, args.range_m, args.elevation_deg,
+                                  args.pitch_deg, args.yaw_deg, args.roll_deg)
+    space = ConditionSpace(n_types=args.n_types,
+                           drone_types=(args.type_index,) if args.drone else ())
+    centre = target_centre(cond.range_m, cond.elevation)
+    out = {"condition": cond.to_degrees(), "nu": space.encode(cond).round(6).tolist(),
+           "reference_range_m": cond.reference_range_m, "q": cond.q,
+           "centre_observation_m": centre.round(6).tolist(),
+           "centre_blender_lidar_local_m": observation_to_blender(centre).round(6).tolist()}
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        for k, v in out.items():
+            print(f"{k:30s} {v}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,251 @@
+"""A sample's condition (type, range, elevation, attitude) and its vector nu (SPEC section 3).
+
+Inside the code angles are radians and ranges metres; ``Condition.from_degrees`` and
+``ConditionSpace.to_dict`` are the edges where degrees appear.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .errors import InputError, check_finite, check_range
+
+DEG = math.pi / 180.0
+
+# Column order of a condition table and of nu.
+FIELDS = ("type_index", "range_m", "elevation", "pitch", "yaw", "roll")
+
+FAR_REFERENCE_RANGE_M = 3000.0
+NEAR_REFERENCE_RANGE_M = 100.0
+
+
+def reference_range_m(range_m):
+    """r0_ref: 3 km when r0 >= 3 km, else 0.1 km (SPEC section 5; the paper's '>' read as '>=')."""
+    r = np.asarray(range_m, dtype=np.float64)
+    out = np.where(r >= FAR_REFERENCE_RANGE_M, FAR_REFERENCE_RANGE_M, NEAR_REFERENCE_RANGE_M)
+    return float(out) if out.ndim == 0 else out
+
+
+def scale_ratio(range_m):
+    """q = r0 / r0_ref (paper eq. 2 / 16)."""
+    r = np.asarray(range_m, dtype=np.float64)
+    out = r / reference_range_m(r)
+    return float(out) if np.ndim(out) == 0 else out
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One sample's condition. Angles in radians, range in metres.
+
+    Validation here is physical (finite numbers, a target not overhead, angles within a turn);
+    whether a condition lies in a dataset's configured ranges is :meth:`ConditionSpace.check`.
+    """
+
+    type_index: int
+    range_m: float
+    elevation: float
+    pitch: float = 0.0
+    yaw: float = 0.0
+    roll: float = 0.0
+
+    def __post_init__(self) -> None:
+        t = self.type_index
+        if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 0:
+            raise InputError(f"type_index must be an integer >= 0, got {t!r}")
+        object.__setattr__(self, "type_index", int(t))
+        r = check_finite("range_m", self.range_m)
+        if r <= 0:
+            raise InputError(f"range_m = {r!r} is out of range; accepted: range_m > 0 (metres)")
+        b = check_finite("elevation", self.elevation)
+        if abs(b) >= math.pi / 2:
+            raise InputError(
+                f"elevation = {b / DEG:.6g} deg puts the target overhead (or beyond); the "
+                "observation frame's Z axis is the horizontal direction to the target and is "
+                "undefined there. Accepted: -90 deg < elevation < 90 deg")
+        check_range("pitch", self.pitch, -math.pi / 2, math.pi / 2, " deg", 1 / DEG)
+        check_range("yaw", self.yaw, -math.pi, math.pi, " deg", 1 / DEG)
+        check_range("roll", self.roll, -math.pi, math.pi, " deg", 1 / DEG)
+        for name in FIELDS[1:]:
+            object.__setattr__(self, name, float(getattr(self, name)))
+
+    @classmethod
+    def from_degrees(cls, type_index: int, range_m: float, elevation_deg: float,
+                     pitch_deg: float = 0.0, yaw_deg: float = 0.0,
+                     roll_deg: float = 0.0) -> Condition:
+        return cls(type_index, range_m, elevation_deg * DEG, pitch_deg * DEG,
+                   yaw_deg * DEG, roll_deg * DEG)
+
+    def to_degrees(self) -> dict:
+        return {"type_index": self.type_index, "range_m": self.range_m,
+                "elevation_deg": self.elevation / DEG, "pitch_deg": self.pitch / DEG,
+                "yaw_deg": self.yaw / DEG, "roll_deg": self.roll / DEG}
+
+    def as_array(self) -> np.ndarray:
+        """[type, r0, beta0, pitch, yaw, roll] as float64 (one row of a condition table)."""
+        return np.array([getattr(self, f) for f in FIELDS], dtype=np.float64)
+
+    @classmethod
+    def from_array(cls, row) -> Condition:
+        row = np.asarray(row, dtype=np.float64)
+        if row.shape != (6,):
+            raise InputError(f"a condition row has 6 values {FIELDS}, got shape {row.shape}")
+        t = row[0]
+        if not np.isfinite(t) or t != round(t):
+            raise InputError(f"type_index must be an integer, got {t!r}")
+        return cls(int(t), *row[1:])
+
+    @property
+    def reference_range_m(self) -> float:
+        return reference_range_m(self.range_m)
+
+    @property
+    def q(self) -> float:
+        return scale_ratio(self.range_m)
+
+    @property
+    def pose(self) -> tuple[float, float, float, float, float]:
+        """(range_m, elevation, yaw, pitch, roll): the arguments of the frames functions."""
+        return (self.range_m, self.elevation, self.yaw, self.pitch, self.roll)
+
+
+def _deg_pair(lo: float, hi: float) -> tuple[float, float]:
+    return (lo * DEG, hi * DEG)
+
+
+@dataclass(frozen=True)
+class ConditionSpace:
+    """The configured ranges of each condition parameter (the paper's Table 1 by default).
+
+    ``drone_types`` lists the type indices whose range is scaled over ``drone_range_m``;
+    every other type uses ``aircraft_range_m``. ``counts`` is the number of values per
+    parameter in the dataset grid (Table 1), stored here so the table lives in one place.
+    """
+
+    n_types: int = 80
+    drone_types: tuple[int, ...] = ()
+    aircraft_range_m: tuple[float, float] = (3000.0, 18000.0)
+    drone_range_m: tuple[float, float] = (100.0, 600.0)
+    elevation: tuple[float, float] = _deg_pair(3.0, 4.0)
+    pitch: tuple[float, float] = _deg_pair(1.0, 5.0)
+    yaw: tuple[float, float] = _deg_pair(-60.0, 60.0)
+    roll: tuple[float, float] = _deg_pair(-5.0, 5.0)
+    counts: dict = field(default_factory=lambda: {
+        "elevation": 5, "range_m": 10, "yaw": 10, "pitch": 5, "roll": 5})
+
+    def __post_init__(self) -> None:
+        if self.n_types < 1:
+            raise InputError(f"n_types must be >= 1, got {self.n_types}")
+        bad = [t for t in self.drone_types if not 0 <= t < self.n_types]
+        if bad:
+            raise InputError(f"drone_types {bad} are not type indices in [0, {self.n_types - 1}]")
+        object.__setattr__(self, "drone_types", tuple(sorted(int(t) for t in self.drone_types)))
+        for name in ("aircraft_range_m", "drone_range_m", "elevation", "pitch", "yaw", "roll"):
+            lo, hi = getattr(self, name)
+            if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+                raise InputError(f"range of {name} must be finite with lo < hi, got {(lo, hi)}")
+            object.__setattr__(self, name, (float(lo), float(hi)))
+        if self.drone_range_m[0] <= 0 or self.aircraft_range_m[0] <= 0:
+            raise InputError("ranges must be > 0 m")
+
+    def is_drone(self, type_index):
+        t = np.asarray(type_index)
+        return np.isin(t, np.asarray(self.drone_types, dtype=np.int64))
+
+    def range_bounds(self, type_index) -> tuple[np.ndarray, np.ndarray]:
+        drone = self.is_drone(type_index)
+        lo = np.where(drone, self.drone_range_m[0], self.aircraft_range_m[0])
+        hi = np.where(drone, self.drone_range_m[1], self.aircraft_range_m[1])
+        return lo, hi
+
+    def bounds(self, table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per-row (lo, hi) of each of the 6 columns of a condition table (N, 6)."""
+        n = table.shape[0]
+        lo = np.empty((n, 6))
+        hi = np.empty((n, 6))
+        lo[:, 0], hi[:, 0] = 0.0, float(self.n_types - 1)
+        lo[:, 1], hi[:, 1] = self.range_bounds(table[:, 0].astype(np.int64))
+        for j, name in enumerate(FIELDS[2:], start=2):
+            lo[:, j], hi[:, j] = getattr(self, name)
+        return lo, hi
+
+    def check(self, table) -> np.ndarray:
+        """Return the table (N, 6) as float64 if every value lies in its configured range.
+
+        Raises naming the first bad row, field, value and accepted range.
+        """
+        table = np.atleast_2d(np.asarray(table, dtype=np.float64))
+        if table.ndim != 2 or table.shape[1] != 6:
+            raise InputError(f"a condition table has shape (N, 6) {FIELDS}, got {table.shape}")
+        nan = ~np.isfinite(table)
+        if nan.any():
+            i, j = np.argwhere(nan)[0]
+            raise InputError(f"row {i}: {FIELDS[j]} must be finite, got {table[i, j]!r}")
+        types = table[:, 0]
+        bad = (types != np.round(types)) | (types < 0) | (types > self.n_types - 1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(f"row {i}: type_index = {types[i]!r} is not a known type; "
+                             f"accepted: integers 0 .. {self.n_types - 1}")
+        lo, hi = self.bounds(table)
+        # A relative slack of 1e-12 absorbs decode(encode(x)) rounding at the ends of a range.
+        slack = 1e-12 * np.maximum(np.abs(lo), np.abs(hi))
+        out = (table < lo - slack) | (table > hi + slack)
+        if out.any():
+            i, j = np.argwhere(out)[0]
+            scale, unit = (1.0, " m") if j == 1 else ((1 / DEG, " deg") if j > 1 else (1.0, ""))
+            raise InputError(
+                f"row {i}: {FIELDS[j]} = {table[i, j] * scale:.6g}{unit} is outside the "
+                f"configured range [{lo[i, j] * scale:.6g}{unit}, {hi[i, j] * scale:.6g}{unit}]")
+        return table
+
+    def encode(self, table) -> np.ndarray:
+        """Condition table (N, 6) or one Condition -> nu in [-1, 1] (SPEC section 3)."""
+        single = isinstance(table, Condition)
+        table = self.check(table.as_array() if single else table)
+        lo, hi = self.bounds(table)
+        span = np.where(hi > lo, hi - lo, 1.0)  # one type only: its code is -1
+        nu = 2.0 * (table - lo) / span - 1.0
+        nu = np.clip(nu, -1.0, 1.0)
+        return nu[0] if single else nu
+
+    def decode(self, nu) -> np.ndarray:
+        """nu (N, 6) in [-1, 1] -> condition table (N, 6) in physical units (m, rad)."""
+        nu = np.atleast_2d(np.asarray(nu, dtype=np.float64))
+        if nu.shape[-1] != 6:
+            raise InputError(f"nu has 6 values per row, got shape {nu.shape}")
+        if not np.isfinite(nu).all() or (np.abs(nu) > 1.0 + 1e-9).any():
+            raise InputError("nu values must be finite and within [-1, 1]")
+        table = np.empty_like(nu)
+        table[:, 0] = np.rint((nu[:, 0] + 1.0) / 2.0 * (self.n_types - 1))
+        lo, hi = self.bounds(table)
+        table[:, 1:] = lo[:, 1:] + (nu[:, 1:] + 1.0) / 2.0 * (hi[:, 1:] - lo[:, 1:])
+        return table
+
+    def decode_one(self, nu) -> Condition:
+        return Condition.from_array(self.decode(nu)[0])
+
+    def to_dict(self) -> dict:
+        """Edge representation in degrees and metres (configs, dataset headers)."""
+        d = asdict(self)
+        for name in ("elevation", "pitch", "yaw", "roll"):
+            d[f"{name}_deg"] = [v / DEG for v in d.pop(name)]
+        d["drone_types"] = list(self.drone_types)
+        d["aircraft_range_m"] = list(self.aircraft_range_m)
+        d["drone_range_m"] = list(self.drone_range_m)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ConditionSpace:
+        d = dict(d)
+        for name in ("elevation", "pitch", "yaw", "roll"):
+            if f"{name}_deg" in d:
+                lo, hi = d.pop(f"{name}_deg")
+                d[name] = (lo * DEG, hi * DEG)
+        for name in ("aircraft_range_m", "drone_range_m"):
+            if name in d:
+                d[name] = tuple(d[name])
+        d["drone_types"] = tuple(d.get("drone_types", ()))
+        return cls(**d)

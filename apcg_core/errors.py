@@ -1,0 +1,42 @@
+"""Error types shared by the whole project.
+
+Every error names the offending value and what would have been accepted, so that a user who
+passes a bad condition, file or cloud learns how to fix it from the message alone.
+"""
+
+
+class APCGError(Exception):
+    """Base class of the project's own errors."""
+
+
+class InputError(APCGError, ValueError):
+    """A value given by the caller is not acceptable (out of range, NaN, wrong shape...)."""
+
+
+def check_finite(name: str, value: float) -> float:
+    """Return ``value`` as a float, or raise naming ``name`` when it is NaN or infinite."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be a number, got {value!r}") from exc
+    if v != v or v in (float("inf"), float("-inf")):
+        raise InputError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+def check_range(name: str, value: float, lo: float, hi: float, unit: str = "",
+                scale: float = 1.0, open_ends: bool = False) -> float:
+    """Return ``value`` if ``lo <= value <= hi`` (strict when ``open_ends``), else raise.
+
+    ``scale`` converts the internal unit to the one shown in the message (e.g. rad -> deg),
+    so the message speaks the user's units.
+    """
+    v = check_finite(name, value)
+    inside = (lo < v < hi) if open_ends else (lo <= v <= hi)
+    if not inside:
+        br = ("(", ")") if open_ends else ("[", "]")
+        raise InputError(
+            f"{name} = {v * scale:.6g}{unit} is out of range; accepted: "
+            f"{br[0]}{lo * scale:.6g}{unit}, {hi * scale:.6g}{unit}{br[1]}"
+        )
+    return v

@@ -1,0 +1,101 @@
+"""Frames of SPEC section 2: observation (left-handed as numbers), body, Blender lidar-local.
+
+All functions take and return float64 arrays with the coordinate on the last axis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Body (x nose, y left wing, z up) -> observation (X right, Y up, Z away from the lidar) at
+# zero attitude: nose -> -Z, left wing -> +X, up -> +Y. det = -1: the one place where the
+# handedness changes.
+M0 = np.array([[0.0, 1.0, 0.0],
+               [0.0, 0.0, 1.0],
+               [-1.0, 0.0, 0.0]])
+
+
+def _f64(a) -> np.ndarray:
+    return np.asarray(a, dtype=np.float64)
+
+
+def spherical_to_cartesian(alpha, beta, r) -> np.ndarray:
+    """(azimuth, elevation, slant range) -> observation (x, y, z); SPEC section 2."""
+    alpha, beta, r = np.broadcast_arrays(_f64(alpha), _f64(beta), _f64(r))
+    cb = np.cos(beta)
+    return np.stack([r * cb * np.sin(alpha), r * np.sin(beta), r * cb * np.cos(alpha)], axis=-1)
+
+
+def cartesian_to_spherical(xyz):
+    """Observation (x, y, z) -> (azimuth, elevation, slant range), each shaped like xyz[..., 0]."""
+    xyz = _f64(xyz)
+    x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+    horizontal = np.hypot(x, z)
+    return np.arctan2(x, z), np.arctan2(y, horizontal), np.sqrt(horizontal**2 + y**2)
+
+
+def _rot_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def attitude_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """Body-frame attitude R(phi, theta, gamma): intrinsic yaw-pitch-roll (roll applied first).
+
+    Signs by effect: +pitch raises the nose (a rotation about the body's right axis, i.e. -y),
+    +yaw turns the nose toward the left wing (+z axis), +roll lowers the right wing (+x axis).
+    """
+    return _rot_z(yaw) @ _rot_y(-pitch) @ _rot_x(roll)
+
+
+def body_to_observation_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """The linear part M0 @ R of the body -> observation map."""
+    return M0 @ attitude_matrix(yaw, pitch, roll)
+
+
+def target_centre(range_m: float, elevation: float) -> np.ndarray:
+    """Observation-frame position of the centre of mass: (0, r0 sin b0, r0 cos b0)."""
+    return spherical_to_cartesian(0.0, elevation, range_m)
+
+
+def body_to_observation(points, range_m: float, elevation: float,
+                        yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """Body-frame points -> observation frame: C + M0 @ R @ p (SPEC section 2)."""
+    m = body_to_observation_matrix(yaw, pitch, roll)
+    return _f64(points) @ m.T + target_centre(range_m, elevation)
+
+
+def observation_to_body(points, range_m: float, elevation: float,
+                        yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """Inverse of :func:`body_to_observation` (M0 @ R is orthogonal: inverse = transpose)."""
+    m = body_to_observation_matrix(yaw, pitch, roll)
+    return (_f64(points) - target_centre(range_m, elevation)) @ m
+
+
+def directions_to_body(dirs, yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """Observation-frame direction vectors -> body-frame directions (no translation)."""
+    return _f64(dirs) @ body_to_observation_matrix(yaw, pitch, roll)
+
+
+# Blender lidar-local: x = obs X, y = obs Z (the lidar looks along local +Y), z = obs Y (up).
+_SWAP_YZ = [0, 2, 1]
+
+
+def observation_to_blender(points) -> np.ndarray:
+    """Observation frame -> the lidar object's local frame in Blender (right-handed, Z up)."""
+    return _f64(points)[..., _SWAP_YZ]
+
+
+def blender_to_observation(points) -> np.ndarray:
+    """The lidar object's local frame in Blender -> observation frame."""
+    return _f64(points)[..., _SWAP_YZ]

@@ -1,0 +1,1 @@
+"""blender_addon (filled in by later issues)."""

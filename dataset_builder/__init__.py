@@ -1,0 +1,1 @@
+"""dataset_builder (filled in by later issues)."""

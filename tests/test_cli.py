@@ -1,0 +1,46 @@
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+# the installed console script next to this interpreter (what a user runs)
+_SCRIPT = Path(sys.executable).parent / "apcg"
+APCG = str(_SCRIPT) if _SCRIPT.exists() else shutil.which("apcg")
+
+
+def run(*args):
+    return subprocess.run([APCG, *args], capture_output=True, text=True, timeout=120)
+
+
+def test_version_and_help():
+    from apcg_core import __version__
+    v = run("--version")
+    assert v.returncode == 0 and v.stdout.strip() == f"apcg {__version__}"
+    h = run("--help")
+    assert h.returncode == 0 and "condition" in h.stdout
+
+
+def test_condition_json():
+    out = run("condition", "--type-index", "79", "--drone", "--range-m", "600",
+              "--elevation-deg", "4", "--pitch-deg", "5", "--yaw-deg", "60", "--roll-deg", "5",
+              "--json")
+    assert out.returncode == 0, out.stderr
+    d = json.loads(out.stdout)
+    assert d["nu"] == [1, 1, 1, 1, 1, 1]
+    assert d["reference_range_m"] == 100.0 and d["q"] == pytest.approx(6.0)
+    y, z = d["centre_observation_m"][1:]
+    assert d["centre_blender_lidar_local_m"] == [0.0, z, y]
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--elevation-deg", "90"], "overhead"),
+    (["--elevation-deg", "3.5", "--yaw-deg", "nan"], "yaw must be finite"),
+    (["--elevation-deg", "3.5", "--pitch-deg", "2", "--yaw-deg", "70"], "yaw = 70 deg is outside"),
+])
+def test_condition_errors_are_clear(args, needle):
+    out = run("condition", "--type-index", "0", "--range-m", "5000", *args)
+    assert out.returncode == 2
+    assert needle in out.stderr and "Traceback" not in out.stderr
