@@ -1,6 +1,4 @@
 import collections
-import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -10,7 +8,6 @@ import trimesh
 
 from apcg_core.catalog import Catalog, Mesh, sample_surface
 from apcg_core.catalog.builders import build
-from apcg_core.catalog.catalog import USER_INDEX_START
 from apcg_core.catalog.shapes import box
 from apcg_core.errors import InputError
 
@@ -118,7 +115,8 @@ def test_fine_cloud_is_seeded_on_surface_and_area_weighted():
     a, b, c = (m.vertices[m.faces[face, i]] for i in range(3))
     n = np.cross(b - a, c - a)
     # on its triangle's plane, with barycentric coordinates inside [0, 1]
-    assert np.abs(np.einsum("ij,ij->i", pts - a, n / np.linalg.norm(n, axis=1)[:, None])).max() < 1e-9
+    unit = n / np.linalg.norm(n, axis=1)[:, None]
+    assert np.abs(np.einsum("ij,ij->i", pts - a, unit)).max() < 1e-9
     area = np.linalg.norm(n, axis=1)
     w1 = np.linalg.norm(np.cross(pts - a, c - a), axis=1) / area
     w2 = np.linalg.norm(np.cross(b - a, pts - a), axis=1) / area

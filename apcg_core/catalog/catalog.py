@@ -176,7 +176,8 @@ class Catalog:
         try:
             entries = json.loads(reg.read_text())
         except json.JSONDecodeError as exc:
-            raise InputError(f"the user catalog {reg} is corrupt ({exc}); fix or delete it") from exc
+            raise InputError(f"the user catalog {reg} is corrupt ({exc}); fix or delete it"
+                             ) from exc
         return [AircraftType(**e) for e in entries]
 
     def add_user_type(self, name: str, mesh: Mesh, kind: str, category: str,

@@ -118,7 +118,8 @@ def _merge_close(mesh: Mesh) -> Mesh:
     key = np.round(mesh.vertices / (scale * 1e-9)).astype(np.int64)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     faces = inverse.reshape(-1)[mesh.faces]
-    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    f0, f1, f2 = faces.T
+    keep = (f0 != f1) & (f1 != f2) & (f0 != f2)
     return Mesh(mesh.vertices[first], faces[keep])
 
 

@@ -1,0 +1,170 @@
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apcg_core.catalog import Catalog
+from apcg_core.catalog.importer import _merge_close, export_mesh, import_model, read_mesh
+from apcg_core.errors import InputError
+
+REF = Path(__file__).resolve().parents[2] / "shared" / "reference" / "meshes"
+APCG = str(Path(sys.executable).parent / "apcg")
+CAT = Catalog(include_user=False)
+
+# (file, forward, up, kind): axes as ../shared/reference/README.md gives them; the believer's
+# nose points to the file's -X (its fin sits at +X).
+AIRPLANES = [("odedstein_plane.obj", "X", "Z"), ("pyvista_airplane.ply", "X", "Z"),
+             ("px4_believer_body_m.glb", "-X", "Z")]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def reference_meshes_present():
+    assert REF.is_dir(), f"reference meshes not found at {REF}"
+
+
+@pytest.mark.parametrize("name,forward,up", AIRPLANES)
+def test_reference_airplanes_land_nose_forward_up_up(name, forward, up):
+    mesh, rep = import_model(REF / name, forward=forward, up=up, length_m=12.5)
+    v = mesh.vertices
+    assert mesh.extents[0] == pytest.approx(12.5, rel=1e-12)
+    assert rep.extents_m[0] == pytest.approx(12.5, rel=1e-12)
+    # the fin (the highest points) is aft of the middle and above the wing
+    top = v[v[:, 2] > v[:, 2].max() - 0.03 * mesh.extents[2]]
+    mid_x = v[:, 0].min() + 0.5 * mesh.extents[0]
+    assert top[:, 0].mean() < mid_x
+    # the span is along y and the aircraft is flat: height is the smallest extent
+    assert mesh.extents[2] < mesh.extents[0] and mesh.extents[2] < mesh.extents[1]
+    # importing with the opposite forward axis puts the fin forward: the test can fail
+    flipped, _ = import_model(REF / name, forward=forward.replace("-", "") if "-" in forward
+                              else "-" + forward, up=up, length_m=12.5)
+    w = flipped.vertices
+    top2 = w[w[:, 2] > w[:, 2].max() - 0.03 * flipped.extents[2]]
+    assert top2[:, 0].mean() > w[:, 0].min() + 0.5 * flipped.extents[0]
+
+
+def test_reference_quadcopter_units_and_up():
+    mesh, rep = import_model(REF / "px4_iris.stl", forward="X", up="Z", unit_scale=1.0)
+    assert max(mesh.extents[:2]) == pytest.approx(0.48, abs=0.01)  # "0.48 m across"
+    assert mesh.extents[2] < min(mesh.extents[:2])
+    assert rep.n_bodies > 1 and not rep.watertight and rep.centre == "bounding-box centre"
+    np.testing.assert_allclose(mesh.bounds.mean(axis=0), 0, atol=1e-12)
+
+
+def test_closed_and_multi_body_models_are_reported():
+    _, closed = import_model(REF / "odedstein_plane.obj", length_m=37.57)
+    assert closed.watertight and closed.n_bodies == 1 and closed.centre == "volume centroid"
+    mesh, open_ = import_model(REF / "pyvista_airplane.ply", length_m=37.57)
+    assert not open_.watertight and open_.n_bodies == 7
+    assert open_.centre == "bounding-box centre"
+
+
+def _off(tmp_path, text, name="m.off"):
+    p = tmp_path / name
+    p.write_bytes(text.encode())
+    return p
+
+
+def test_off_modelnet_quirks(tmp_path):
+    quad = "0 0 0\r\n1 0 0\r\n1 1 0\r\n0 1 0\r\n0 0 1\r\n"
+    faces = "4 0 3 2 1\r\n3 0 1 4\r\n3 1 2 4\r\n3 2 3 4\r\n3 3 0 4\r\n"
+    glued = _off(tmp_path, "OFF5 5 0\r\n" + quad + faces, "glued.off")  # ModelNet's first line
+    normal = _off(tmp_path, "OFF\n# comment\n5 5 0\n" + quad.replace("\r", "") + faces, "n.off")
+    a, b = read_mesh(glued), read_mesh(normal)
+    assert len(a.faces) == 6  # the quad was split in two
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    np.testing.assert_array_equal(a.faces, b.faces)
+    mesh, rep = import_model(glued, length_m=2.0)
+    assert rep.watertight and mesh.extents[0] == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("content,needle", [
+    ("", "empty"),
+    ("OFF\n3 1 0\n0 0 0\n1 0 0\n", "corrupt OFF"),
+    ("PLY nonsense", "not an OFF file"),
+])
+def test_broken_off_files(tmp_path, content, needle):
+    p = _off(tmp_path, content)
+    with pytest.raises(InputError, match=needle) as e:
+        read_mesh(p)
+    assert str(p) in str(e.value)
+
+
+def test_broken_other_files(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        read_mesh(tmp_path / "missing.obj")
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nend_header\n\x00")
+    with pytest.raises(InputError, match="bad.ply"):
+        read_mesh(bad)
+    txt = tmp_path / "m.xyz"
+    txt.write_text("1 2 3")
+    with pytest.raises(InputError, match="unsupported format"):
+        read_mesh(txt)
+    with pytest.raises(InputError, match="forward 'Z' and up 'Z'"):
+        import_model(REF / "odedstein_plane.obj", forward="Z", up="Z", length_m=1)
+    with pytest.raises(InputError, match="axis 'W' unknown"):
+        import_model(REF / "odedstein_plane.obj", forward="W", length_m=1)
+
+
+@pytest.mark.parametrize("ext", ["ply", "obj", "stl", "glb"])
+def test_export_round_trip(tmp_path, ext):
+    m = CAT.mesh("ATR 72-600")
+    p = export_mesh(m, tmp_path / f"atr.{ext}")
+    back = _merge_close(read_mesh(p))
+    assert len(back.vertices) == len(np.unique(m.vertices, axis=0))
+    assert len(back.faces) == len(m.faces)
+    # same vertex set (float32 formats keep ~1e-7 relative)
+    a = m.vertices[np.lexsort(np.round(m.vertices, 4).T)]
+    b = back.vertices[np.lexsort(np.round(back.vertices, 4).T)]
+    np.testing.assert_allclose(b, a, atol=2e-6 * np.abs(m.vertices).max())
+    assert not list(tmp_path.glob("*.part"))
+
+
+def test_user_catalog_add_reload_and_refuse(tmp_path):
+    cat = Catalog(user_path=tmp_path)
+    mesh, _ = import_model(REF / "odedstein_plane.obj", length_m=37.57)
+    t = cat.add_user_type("my-plane", mesh, "aircraft", "user", "odedstein_plane.obj")
+    assert t.index == 1000 and t.length_m == pytest.approx(37.57)
+    again = Catalog(user_path=tmp_path)
+    assert again.get("my-plane").index == 1000
+    np.testing.assert_array_equal(again.mesh("my-plane").vertices, mesh.vertices)
+    assert again.get(3).name == "A320neo"  # built-in indices untouched
+    t2 = again.add_user_type("second", mesh, "drone", "user", "x")
+    assert t2.index == 1001 and Catalog(user_path=tmp_path).get(1001).name == "second"
+    with pytest.raises(InputError, match="already exists"):
+        again.add_user_type("A320neo", mesh, "aircraft", "user", "x")
+    (tmp_path / "user_types.json").write_text("{broken")
+    with pytest.raises(InputError, match="corrupt"):
+        Catalog(user_path=tmp_path)
+
+
+def _run(*args, env=None):
+    return subprocess.run([APCG, *args], capture_output=True, text=True, timeout=300, env=env)
+
+
+def test_catalog_cli(tmp_path):
+    env = {**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")}
+    out = _run("catalog", "list", "--json", env=env)
+    assert out.returncode == 0, out.stderr
+    rows = json.loads(out.stdout)
+    assert len(rows) == len(CAT)
+    for key in ("name", "index", "kind", "category", "length_m", "span_m", "height_m"):
+        assert key in rows[0]
+    assert {r["kind"] for r in rows} == {"aircraft", "drone"}
+    add = _run("catalog", "add", str(REF / "px4_believer_body_m.glb"), "--name", "believer",
+               "--forward=-X", "--up", "Z", "--unit-scale", "1", "--kind", "drone", env=env)
+    assert add.returncode == 0, add.stderr
+    assert "index 1000" in add.stdout and "96 bodies" in add.stdout
+    rows = json.loads(_run("catalog", "list", "--json", env=env).stdout)
+    assert rows[-1]["name"] == "believer" and rows[-1]["index"] == 1000
+    exp = _run("catalog", "export", "believer", "-o", str(tmp_path / "b.obj"), env=env)
+    assert exp.returncode == 0 and (tmp_path / "b.obj").stat().st_size > 0
+    sheet = _run("catalog", "show", "H135", "A320neo", "-o", str(tmp_path / "s.png"), env=env)
+    assert sheet.returncode == 0, sheet.stderr
+    assert (tmp_path / "s.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    bad = _run("catalog", "export", "A380", "-o", str(tmp_path / "x.ply"), env=env)
+    assert bad.returncode == 2 and "did you mean A380-800" in bad.stderr
