@@ -11,7 +11,16 @@ from apcg_core.catalog import Catalog
 from apcg_core.catalog.importer import _merge_close, export_mesh, import_model, read_mesh
 from apcg_core.errors import InputError
 
-REF = Path(__file__).resolve().parents[2] / "shared" / "reference" / "meshes"
+def _reference_dir() -> Path:
+    """The shared reference meshes: $APCG_REFERENCE_MESHES, else ../shared beside the repo."""
+    env = os.environ.get("APCG_REFERENCE_MESHES")
+    candidates = [Path(env)] if env else []
+    candidates += [Path(__file__).resolve().parents[2] / "shared" / "reference" / "meshes",
+                   Path("/work/shared/reference/meshes")]
+    return next((c for c in candidates if c.is_dir()), candidates[0])
+
+
+REF = _reference_dir()
 APCG = str(Path(sys.executable).parent / "apcg")
 CAT = Catalog(include_user=False)
 
