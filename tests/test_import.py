@@ -11,6 +11,7 @@ from apcg_core.catalog import Catalog
 from apcg_core.catalog.importer import _merge_close, export_mesh, import_model, read_mesh
 from apcg_core.errors import InputError
 
+
 def _reference_dir() -> Path:
     """The shared reference meshes: $APCG_REFERENCE_MESHES, else ../shared beside the repo."""
     env = os.environ.get("APCG_REFERENCE_MESHES")

@@ -29,22 +29,20 @@ class Proportions:
     thickness: float  # wing thickness / chord
     wing_x: float  # root leading edge, fraction of length aft of the nose
     gear: float  # landing-gear drop below the fuselage, in fuselage diameters
-    fin: float  # fin height / length (before fitting the height)
     tail_span: float  # horizontal tail span / wing span
     profile: str  # fuselage profile family
 
 
 CATEGORY = {
-    "airliner_narrowbody": Proportions(0.105, 1.05, 9.5, 0.30, 0.12, 0.36, 0.45, 0.16, 0.36,
-                                       "airliner"),
-    "airliner_widebody": Proportions(0.092, 1.08, 9.0, 0.28, 0.11, 0.36, 0.45, 0.16, 0.34, "airliner"),
-    "regional_jet": Proportions(0.095, 1.0, 8.5, 0.33, 0.12, 0.42, 0.40, 0.16, 0.36, "airliner"),
-    "turboprop": Proportions(0.095, 1.05, 11.0, 0.50, 0.15, 0.38, 0.45, 0.17, 0.33, "airliner"),
-    "business_jet": Proportions(0.085, 1.05, 8.0, 0.35, 0.11, 0.44, 0.35, 0.15, 0.33, "business"),
-    "light_GA": Proportions(0.14, 1.1, 7.5, 0.70, 0.15, 0.28, 0.45, 0.13, 0.33, "light"),
-    "fighter": Proportions(0.11, 0.85, 3.0, 0.25, 0.05, 0.40, 0.55, 0.14, 0.45, "fighter"),
-    "military_transport": Proportions(0.125, 1.05, 8.5, 0.40, 0.14, 0.32, 0.20, 0.16, 0.36, "transport"),
-    "fixed_wing_drone": Proportions(0.10, 1.0, 12.0, 0.50, 0.12, 0.38, 0.30, 0.12, 0.30, "light"),
+    "airliner_narrowbody": Proportions(0.105, 1.05, 9.5, 0.30, 0.12, 0.36, 0.45, 0.36, "airliner"),
+    "airliner_widebody": Proportions(0.092, 1.08, 9.0, 0.28, 0.11, 0.36, 0.45, 0.34, "airliner"),
+    "regional_jet": Proportions(0.095, 1.0, 8.5, 0.33, 0.12, 0.42, 0.40, 0.36, "airliner"),
+    "turboprop": Proportions(0.095, 1.05, 11.0, 0.50, 0.15, 0.38, 0.45, 0.33, "airliner"),
+    "business_jet": Proportions(0.085, 1.05, 8.0, 0.35, 0.11, 0.44, 0.35, 0.33, "business"),
+    "light_GA": Proportions(0.14, 1.1, 7.5, 0.70, 0.15, 0.28, 0.45, 0.33, "light"),
+    "fighter": Proportions(0.11, 0.85, 3.0, 0.25, 0.05, 0.40, 0.55, 0.45, "fighter"),
+    "military_transport": Proportions(0.125, 1.05, 8.5, 0.40, 0.14, 0.32, 0.20, 0.36, "transport"),
+    "fixed_wing_drone": Proportions(0.10, 1.0, 12.0, 0.50, 0.12, 0.38, 0.30, 0.30, "light"),
 }
 
 # Fuselage profiles: (fraction of length from the nose, radius factor, centre height in D)
@@ -229,7 +227,7 @@ def build_fixed_wing(t) -> Built:
         x_le = L / 2 - 0.35 * L if canard else L / 2 - 0.05 * L
     wing = Wing(x_le, S / 2, root, root * taper, sweep, dih, z_w)
     parts.append(wing.mesh(p.thickness if not flying_wing else 0.10))
-    if canard and "gripen" in name or canard:
+    if canard:
         cs = 0.38 * S / 2
         parts.append(Wing(L / 2 - 0.18 * L, cs, 0.12 * L, 0.04 * L, 45 * DEG, 0, 0.15 * D)
                      .mesh(0.05))
@@ -257,7 +255,7 @@ def build_fixed_wing(t) -> Built:
     ht_x = x_tail + ht_root * 1.1
     ht_z = z_tail
     fins: list[tuple] = []
-    if "none" in tail or flying_wing and "fin" not in tail and "winglet" not in tail:
+    if "none" in tail or (flying_wing and "fin" not in tail and "winglet" not in tail):
         pass
     elif "winglet" in tail or "wingtip fin" in tail:
         for s in (-1, 1):
