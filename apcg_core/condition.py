@@ -12,8 +12,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .errors import InputError, check_finite, check_range
-
-DEG = math.pi / 180.0
+from .lidar import DEG
 
 # Column order of a condition table and of nu.
 FIELDS = ("type_index", "range_m", "elevation", "pitch", "yaw", "roll")

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .metrics import CHUNK_ELEMENTS, _sq_dist_chunks, as_cloud, subsample
+from .metrics import CHUNK_ELEMENTS, _centred_pair, _sq_dist_chunks, as_cloud
 
 
 def _nn_sq(a: np.ndarray, b: np.ndarray, chunk: int) -> np.ndarray:
@@ -25,12 +25,9 @@ def _nn_sq(a: np.ndarray, b: np.ndarray, chunk: int) -> np.ndarray:
 def chamfer_distance(a, b, max_points: int | None = None, seed: int = 0,
                      chunk: int = CHUNK_ELEMENTS) -> float | None:
     """Chamfer distance: mean squared NN distance a->b plus b->a (m^2). None if a cloud is empty."""
-    a = subsample(as_cloud(a, "a"), max_points, seed)
-    b = subsample(as_cloud(b, "b"), max_points, seed + 1)
+    a, b = _centred_pair(a, b, max_points, seed)
     if len(a) == 0 or len(b) == 0:
         return None
-    c = np.concatenate([a, b]).mean(axis=0)  # centring keeps the distance formula exact far out
-    a, b = a - c, b - c
     return float(_nn_sq(a, b, chunk).mean() + _nn_sq(b, a, chunk).mean())
 
 

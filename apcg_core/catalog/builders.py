@@ -14,10 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..lidar import DEG
 from .mesh import Mesh
 from .shapes import body, box, cylinder, lifting_surface
-
-DEG = math.pi / 180
 
 
 @dataclass(frozen=True)
