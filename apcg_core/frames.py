@@ -99,3 +99,27 @@ def observation_to_blender(points) -> np.ndarray:
 def blender_to_observation(points) -> np.ndarray:
     """The lidar object's local frame in Blender -> observation frame."""
     return _f64(points)[..., _SWAP_YZ]
+
+
+def body_to_observation_matrices(yaw, pitch, roll) -> np.ndarray:
+    """Batched :func:`body_to_observation_matrix`: arrays of N angles -> (N, 3, 3)."""
+    yaw, pitch, roll = (np.atleast_1d(_f64(a)) for a in (yaw, pitch, roll))
+    n = len(yaw)
+
+    def stack(rows):
+        return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+    z, o = np.zeros(n), np.ones(n)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, sp = np.cos(-pitch), np.sin(-pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    rz = stack([[cy, -sy, z], [sy, cy, z], [z, z, o]])
+    ry = stack([[cp, z, sp], [z, o, z], [-sp, z, cp]])
+    rx = stack([[o, z, z], [z, cr, -sr], [z, sr, cr]])
+    return M0 @ rz @ ry @ rx
+
+
+def target_centres(range_m, elevation) -> np.ndarray:
+    """Batched :func:`target_centre`: (N, 3)."""
+    return spherical_to_cartesian(0.0, np.atleast_1d(_f64(elevation)),
+                                  np.atleast_1d(_f64(range_m)))
