@@ -15,19 +15,24 @@ from . import __version__
 from .errors import APCGError
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(registrars=None) -> argparse.ArgumentParser:
+    """The ``apcg`` parser; ``registrars`` (functions adding subparsers) replace the installed
+    entry points, for runs where the package is not installed (e.g. inside a Blender binary)."""
     parser = argparse.ArgumentParser(
         prog="apcg",
         description="Aircraft point clouds as a single-photon counting lidar sees them.")
     parser.add_argument("--version", action="version", version=f"apcg {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for ep in sorted(entry_points(group="apcg.commands"), key=lambda e: e.name):
-        ep.load()(sub)
+    if registrars is None:
+        registrars = [ep.load() for ep in sorted(entry_points(group="apcg.commands"),
+                                                 key=lambda e: e.name)]
+    for register in registrars:
+        register(sub)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def main(argv: list[str] | None = None, registrars=None) -> int:
+    parser = build_parser(registrars)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

@@ -97,6 +97,19 @@ class Simulator:
         t = catalog.get(type_key)
         return self.simulate(catalog.mesh(t), conditions, key=("type", t.index))
 
+    def close(self) -> None:
+        """Release the backends' resources (Blender objects and scenes) now."""
+        for caster in self._casters.values():
+            if hasattr(caster, "close"):
+                caster.close()
+        self._casters.clear()
+
+    def __enter__(self) -> Simulator:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     # --- ray casting ---------------------------------------------------------------------------
     def _caster(self, mesh, key):
         if key not in self._casters:

@@ -1,0 +1,47 @@
+"""Depth images in files: NPY (float32, exact) or PNG (16-bit grayscale, d in [-1, 1] mapped to
+[0, 65535], so background is 0). The PNG writer is a few lines of zlib: no imaging library."""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(
+        ">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+
+def png16_bytes(img: np.ndarray) -> bytes:
+    """A 16-bit grayscale PNG of ``img`` (H, W) with values in [-1, 1]."""
+    a = np.asarray(img, dtype=np.float64)
+    v = np.round((np.clip(a, -1, 1) + 1.0) / 2.0 * 65535).astype(">u2")
+    h, w = v.shape
+    raw = b"".join(b"\x00" + v[i].tobytes() for i in range(h))
+    head = struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", head)
+            + _png_chunk(b"IDAT", zlib.compress(raw, 6)) + _png_chunk(b"IEND", b""))
+
+
+def write_depth_image(path, img: np.ndarray) -> Path:
+    path = Path(path)
+    img = np.asarray(img)
+    if img.ndim != 2:
+        raise InputError(f"a depth image has shape (H, W), got {img.shape}")
+    tmp = path.with_name(path.name + ".part")
+    ext = path.suffix.lower()
+    if ext == ".npy":
+        with open(tmp, "wb") as f:
+            np.save(f, img.astype(np.float32))
+    elif ext == ".png":
+        tmp.write_bytes(png16_bytes(img))
+    else:
+        raise InputError(f"unsupported depth image format {ext!r}; accepted: .npy, .png")
+    os.replace(tmp, path)
+    return path

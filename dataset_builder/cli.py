@@ -1,0 +1,132 @@
+"""``apcg simulate`` and ``apcg dataset build / info / configs``."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from apcg_core.cli import add_pose_arguments
+
+from .backends import BACKENDS
+
+
+def register_simulate(sub) -> None:
+    p = sub.add_parser(
+        "simulate", help="simulate the SPC-Lidar on one catalog type: a standard point cloud",
+        description="Place a catalog type at a condition and sample it as the SPC-Lidar would "
+                    "(one return per cell, first surface, ranges quantized to the time bin). "
+                    "Writes the standard point cloud in the observation frame (metres).")
+    p.add_argument("--type", required=True, help="catalog type name or index "
+                                                 "(`apcg catalog list`)")
+    add_pose_arguments(p)
+    p.add_argument("--backend", choices=BACKENDS, default="embree",
+                   help="ray casting: embree (default), blender (Geometry Nodes), blender-bvh; "
+                        "or points (the paper's z-buffer over a fine point cloud)")
+    p.add_argument("--supersample", type=int, default=1, metavar="K",
+                   help="K x K rays per cell, nearest hit kept (default 1)")
+    p.add_argument("--no-quantize", action="store_true",
+                   help="keep exact ranges instead of the time-bin centres")
+    p.add_argument("-o", "--output", required=True, help="cloud file: .ply, .npz or .las")
+    p.add_argument("--depth-image", help="also write the depth image (PC2Im): .npy or .png")
+    p.add_argument("--normalized-image", help="also write Norm(depth image): .npy or .png")
+    p.set_defaults(func=_run_simulate)
+
+
+def _run_simulate(args) -> int:
+    import numpy as np
+
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.condition import Condition
+    from apcg_core.depth import norm
+    from apcg_core.io import write_cloud, write_depth_image
+
+    from .simulate import Simulator
+
+    cat = default_catalog()
+    key = int(args.type) if args.type.isdigit() else args.type
+    t = cat.get(key)
+    cond = Condition.from_degrees(t.index, args.range_m, args.elevation_deg, args.pitch_deg,
+                                  args.yaw_deg, args.roll_deg)
+    with Simulator(args.backend, quantize=not args.no_quantize,
+                   supersample=args.supersample) as sim:
+        res = sim.simulate_type(cat, t, cond.as_array()[None])
+    table = cond.as_array()[None]
+    length = cat.depth_length_m(t)
+    img, stats = res.depth_images(table, length, sim.lidar)
+    meta = {"type": t.name, "catalog_index": t.index, "condition": cond.to_degrees(),
+            "backend": args.backend, "quantized": not args.no_quantize,
+            "supersample": args.supersample, "lidar": sim.lidar.to_dict(),
+            "depth_length_m": length, "clipped": bool(res.clipped[0])}
+    cloud = res.cloud
+    cloud.sample = None
+    write_cloud(args.output, cloud, meta)
+    if args.depth_image:
+        write_depth_image(args.depth_image, img[0])
+    if args.normalized_image:
+        write_depth_image(args.normalized_image, norm(img[0], cond.q))
+    summary = {"output": args.output, "points": len(cloud), "rays": int(res.n_rays[0]),
+               "clipped": bool(res.clipped[0]), "clamped_pixels": stats.n_clamped,
+               "range_m": [float(np.min(cloud.range_m)), float(np.max(cloud.range_m))]
+               if len(cloud) else None}
+    print(json.dumps(summary))
+    if res.clipped[0]:
+        print("warning: the target is larger than the lidar window; its cloud is cut at the "
+              "window's edge", file=sys.stderr)
+    return 0
+
+
+def register_dataset(sub) -> None:
+    p = sub.add_parser("dataset", help="build and inspect training datasets",
+                       description="Build a dataset of standard depth images from a TOML config "
+                                   "(see docs/DATASET.md), or describe one.")
+    dsub = p.add_subparsers(dest="dataset_command", metavar="ACTION", required=True)
+    b = dsub.add_parser("build", help="build (or resume) a dataset",
+                        description="Deterministic from the config's seed; killed at any point "
+                                    "and run again, it finishes the same dataset byte for byte.")
+    b.add_argument("--config", required=True,
+                   help="TOML file, or a committed config name (see `apcg dataset configs`)")
+    b.add_argument("-o", "--output", required=True, help="dataset directory")
+    b.add_argument("--backend", choices=BACKENDS, help="override the config's backend")
+    b.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    b.add_argument("--shard", metavar="I/N",
+                   help="build only shards with index %% N == I (0 <= I < N), for job arrays")
+    b.add_argument("--tasks-per-process", type=int, default=None,
+                   help="shards a worker builds before it is replaced (blender default: 1)")
+    b.add_argument("--no-progress", action="store_true", help="no progress bar")
+    b.set_defaults(func=_run_build)
+    i = dsub.add_parser("info", help="describe a dataset directory")
+    i.add_argument("directory")
+    i.add_argument("--verify", action="store_true",
+                   help="read every shard and check it against the manifest")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=_run_info)
+    c = dsub.add_parser("configs", help="list the committed dataset configs")
+    c.set_defaults(func=_run_configs)
+
+
+def _run_build(args) -> int:
+    from .build import build_dataset
+    summary = build_dataset(args.config, args.output, backend=args.backend,
+                            workers=args.workers, shard_spec=args.shard,
+                            progress=not args.no_progress,
+                            tasks_per_process=args.tasks_per_process)
+    print(json.dumps(summary))
+    return 0
+
+
+def _run_info(args) -> int:
+    from .build import dataset_info
+    info = dataset_info(args.directory, verify=args.verify)
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        for k, v in info.items():
+            print(f"{k:24s} {v}")
+    return 0
+
+
+def _run_configs(args) -> int:
+    from .plan import builtin_configs, load_config
+    for name in builtin_configs():
+        print(f"{name:14s} {load_config(name).get('description', '')}")
+    return 0

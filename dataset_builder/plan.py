@@ -1,0 +1,190 @@
+"""A dataset's plan, fixed by its TOML config and seed: types, conditions, split and shards.
+
+Everything here is deterministic: the same config gives the same plan, whatever machine, worker
+count or interruption; the shards are then pure functions of the plan.
+"""
+
+from __future__ import annotations
+
+import itertools
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from apcg_core.condition import ConditionSpace
+from apcg_core.errors import InputError
+from apcg_core.lidar import DEG, LidarParams
+
+CONFIG_DIR = Path(__file__).with_name("configs")
+GRID_FIELDS = ("elevation", "range_m", "yaw", "pitch", "roll")  # product order of a grid
+_DEFAULT_COUNTS = {"elevation": 5, "range_m": 10, "yaw": 10, "pitch": 5, "roll": 5}
+_KNOWN_TOP = {"name", "description", "seed", "backend", "shard_size", "test_fraction",
+              "quantize", "supersample", "sampling", "samples_per_type", "types", "lidar",
+              "ranges", "counts", "fine_cloud_points"}
+
+
+def builtin_configs() -> list[str]:
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.toml"))
+
+
+def load_config(ref: str) -> dict:
+    """A config by file path or by the name of a committed one (``demo``, ``paper-table1``...)."""
+    path = Path(ref)
+    if not path.exists():
+        path = CONFIG_DIR / f"{ref}.toml"
+    if not path.exists():
+        raise InputError(f"no dataset config {ref!r}: give a TOML file or one of "
+                         f"{', '.join(builtin_configs())}")
+    try:
+        cfg = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"dataset config {path} is not valid TOML: {exc}") from exc
+    unknown = set(cfg) - _KNOWN_TOP
+    if unknown:
+        raise InputError(f"dataset config {path}: unknown keys {sorted(unknown)}; accepted: "
+                         f"{sorted(_KNOWN_TOP)}")
+    cfg.setdefault("name", path.stem)
+    return cfg
+
+
+@dataclass
+class ShardPlan:
+    index: int
+    split: str
+    type_code: int
+    rows: np.ndarray  # sample ids (rows of the condition table)
+
+    @property
+    def file(self) -> str:
+        return f"shards/{self.split}-{self.index:05d}.npz"
+
+
+@dataclass
+class Plan:
+    config: dict
+    lidar: LidarParams
+    space: ConditionSpace
+    types: list  # AircraftType, in dataset code order
+    table: np.ndarray  # (N, 6) float64 [type_code, range_m, elevation, pitch, yaw, roll] rad
+    split: np.ndarray  # (N,) "train" / "test"
+    shards: list[ShardPlan]
+    values: dict  # the grid values drawn for each parameter (edge units)
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.table)
+
+
+def _pair(cfg: dict, key: str, default) -> tuple[float, float]:
+    v = cfg.get(key, default)
+    if not (isinstance(v, list | tuple) and len(v) == 2):
+        raise InputError(f"ranges.{key} must be [lo, hi], got {v!r}")
+    return float(v[0]), float(v[1])
+
+
+def _resolve_types(cfg: dict, catalog) -> list:
+    spec = cfg.get("types", "all")
+    if spec == "all":
+        return [t for t in catalog if t.source == "builtin"]
+    if isinstance(spec, str) or not isinstance(spec, list):
+        raise InputError(f"types must be \"all\" or a list of catalog names, got {spec!r}")
+    types = [catalog.get(name) for name in spec]
+    dup = {t.name for t in types if sum(u.index == t.index for u in types) > 1}
+    if dup:
+        raise InputError(f"types lists {sorted(dup)} more than once")
+    return types
+
+
+def make_plan(cfg: dict, catalog, backend: str | None = None) -> Plan:
+    """The plan of a config (see the committed configs for every key)."""
+    seed = cfg.get("seed", 0)
+    if not isinstance(seed, int) or seed < 0:
+        raise InputError(f"seed must be an integer >= 0, got {seed!r}")
+    lidar = LidarParams.from_dict(cfg["lidar"]) if "lidar" in cfg else LidarParams()
+    types = _resolve_types(cfg, catalog)
+    ranges = cfg.get("ranges", {})
+    space = ConditionSpace(
+        n_types=len(types),
+        drone_types=tuple(i for i, t in enumerate(types) if t.range_band == "near"),
+        aircraft_range_m=_pair(ranges, "aircraft_range_m", (3000.0, 18000.0)),
+        drone_range_m=_pair(ranges, "drone_range_m", (100.0, 600.0)),
+        elevation=tuple(v * DEG for v in _pair(ranges, "elevation_deg", (3.0, 4.0))),
+        pitch=tuple(v * DEG for v in _pair(ranges, "pitch_deg", (1.0, 5.0))),
+        yaw=tuple(v * DEG for v in _pair(ranges, "yaw_deg", (-60.0, 60.0))),
+        roll=tuple(v * DEG for v in _pair(ranges, "roll_deg", (-5.0, 5.0))),
+        counts={**_DEFAULT_COUNTS, **cfg.get("counts", {})})
+    rng = np.random.default_rng(seed)
+    sampling = cfg.get("sampling", "grid")
+    near = np.array([t.range_band == "near" for t in types])
+    lo_hi = {"elevation": space.elevation, "yaw": space.yaw, "pitch": space.pitch,
+             "roll": space.roll}
+    values: dict = {}
+    if sampling == "grid":
+        # Table 1: each parameter's values drawn uniformly in its range, then the full grid.
+        counts = space.counts
+        for f in GRID_FIELDS:
+            if not isinstance(counts.get(f), int) or counts[f] < 1:
+                raise InputError(f"counts.{f} must be an integer >= 1, got {counts.get(f)!r}")
+        draws = {}
+        for f in GRID_FIELDS:
+            if f == "range_m":
+                draws["aircraft"] = np.sort(rng.uniform(*space.aircraft_range_m, counts[f]))
+                draws["drone"] = np.sort(rng.uniform(*space.drone_range_m, counts[f]))
+            else:
+                draws[f] = np.sort(rng.uniform(*lo_hi[f], counts[f]))
+        rows = []
+        for code in range(len(types)):
+            r = draws["drone" if near[code] else "aircraft"]
+            for b, rr, y, p, g in itertools.product(draws["elevation"], r, draws["yaw"],
+                                                    draws["pitch"], draws["roll"]):
+                rows.append((code, rr, b, p, y, g))
+        table = np.array(rows, dtype=np.float64).reshape(-1, 6)
+        values = {"elevation_deg": (draws["elevation"] / DEG).tolist(),
+                  "aircraft_range_m": draws["aircraft"].tolist(),
+                  "drone_range_m": draws["drone"].tolist(),
+                  "yaw_deg": (draws["yaw"] / DEG).tolist(),
+                  "pitch_deg": (draws["pitch"] / DEG).tolist(),
+                  "roll_deg": (draws["roll"] / DEG).tolist()}
+    elif sampling == "random":
+        per = cfg.get("samples_per_type")
+        if not isinstance(per, int) or per < 1:
+            raise InputError(f"sampling = \"random\" needs samples_per_type >= 1, got {per!r}")
+        n = per * len(types)
+        code = np.repeat(np.arange(len(types)), per)
+        lo, hi = space.range_bounds(code)
+        table = np.stack([code, rng.uniform(lo, hi), rng.uniform(*space.elevation, n),
+                          rng.uniform(*space.pitch, n), rng.uniform(*space.yaw, n),
+                          rng.uniform(*space.roll, n)], axis=1)
+    else:
+        raise InputError(f"sampling must be \"grid\" or \"random\", got {sampling!r}")
+    space.check(table)
+
+    # Split 4 : 1 by condition, stratified by type: every type has the same test fraction.
+    frac = float(cfg.get("test_fraction", 0.2))
+    if not 0.0 <= frac < 1.0:
+        raise InputError(f"test_fraction must be in [0, 1), got {frac}")
+    split = np.full(len(table), "train", dtype="<U5")
+    split_rng = np.random.default_rng([seed, 1])
+    codes = table[:, 0].astype(np.int64)
+    for code in range(len(types)):
+        rows_t = np.flatnonzero(codes == code)
+        n_test = int(round(frac * len(rows_t)))
+        split[split_rng.permutation(rows_t)[:n_test]] = "test"
+
+    shard_size = cfg.get("shard_size", 2500)
+    if not isinstance(shard_size, int) or shard_size < 1:
+        raise InputError(f"shard_size must be an integer >= 1, got {shard_size!r}")
+    shards = []
+    for name in ("train", "test"):
+        for code in range(len(types)):
+            rows_t = np.flatnonzero((codes == code) & (split == name))
+            for start in range(0, len(rows_t), shard_size):
+                shards.append(ShardPlan(len(shards), name, code,
+                                        rows_t[start:start + shard_size]))
+    cfg = dict(cfg)
+    if backend:
+        cfg["backend"] = backend
+    cfg.setdefault("backend", "embree")
+    return Plan(cfg, lidar, space, types, table, split, shards, values)

@@ -1,0 +1,141 @@
+"""The on-disk dataset format (documented in docs/DATASET.md), readable with numpy alone.
+
+A shard is a standard ``.npz`` (an uncompressed zip of ``.npy`` arrays) written so that the
+same content always gives the same bytes (fixed zip timestamps, fixed member order), first to
+``NAME.part`` and then renamed: a file with its final name is always complete.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from apcg_core.depth import BACKGROUND, norm
+from apcg_core.errors import InputError
+
+FORMAT_VERSION = 1
+SHARD_KEYS = ("sample_id", "conditions", "nu", "offsets", "pixel", "depth", "delta_range_m",
+              "clipped", "n_clamped", "n_rays")
+_EPOCH = (1980, 1, 1, 0, 0, 0)
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: Path, data: bytes, part_suffix: str = ".part") -> None:
+    """Write ``data`` to ``path`` through ``path`` + ``part_suffix`` + fsync + rename."""
+    path = Path(path)
+    tmp = path.with_name(path.name + part_suffix)
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def npz_bytes(arrays: dict) -> bytes:
+    """An uncompressed .npz of ``arrays`` (in the given order) whose bytes depend only on them."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
+            info.external_attr = 0o644 << 16
+            member = io.BytesIO()
+            np.lib.format.write_array(member, np.ascontiguousarray(arr), allow_pickle=False)
+            zf.writestr(info, member.getvalue())
+    return buf.getvalue()
+
+
+def json_bytes(obj) -> bytes:
+    return (json.dumps(obj, indent=1, sort_keys=True) + "\n").encode()
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+@dataclass
+class Shard:
+    """One shard's arrays (see docs/DATASET.md for each one's meaning)."""
+
+    sample_id: np.ndarray  # (n,) int64
+    conditions: np.ndarray  # (n, 6) float64 [type_code, range_m, elevation, pitch, yaw, roll] rad
+    nu: np.ndarray  # (n, 6) float32, the cGAN's condition vector
+    offsets: np.ndarray  # (n + 1,) int64: sample i owns points offsets[i]:offsets[i+1]
+    pixel: np.ndarray  # (P,) uint16/uint32: row * W + col in the H x W depth image
+    depth: np.ndarray  # (P,) float16: PC2Im depth d at that pixel (background -1 elsewhere)
+    delta_range_m: np.ndarray  # (P,) float32: slant range minus r0 (metres)
+    clipped: np.ndarray  # (n,) bool: the target's angular box reached beyond the window
+    n_clamped: np.ndarray  # (n,) int32: target pixels whose depth was clamped into [-1+eps, 1]
+    n_rays: np.ndarray  # (n,) int32: rays cast (0 for the points backend)
+
+    def __len__(self) -> int:
+        return len(self.sample_id)
+
+    def to_bytes(self) -> bytes:
+        return npz_bytes({k: getattr(self, k) for k in SHARD_KEYS})
+
+    @classmethod
+    def load(cls, path) -> Shard:
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in SHARD_KEYS if k not in z.files]
+                if missing:
+                    raise InputError(f"dataset shard {path} lacks arrays {missing}; it is not "
+                                     "an APCG shard or is from another format version")
+                arrays = {k: z[k] for k in SHARD_KEYS}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise InputError(f"dataset shard {path} is corrupt or unreadable ({exc}); delete "
+                             "it and run the build again to remake it") from exc
+        shard = cls(**arrays)
+        n = len(shard.sample_id)
+        if len(shard.offsets) != n + 1 or shard.offsets[-1] != len(shard.pixel):
+            raise InputError(f"dataset shard {path} is inconsistent (offsets do not match the "
+                             "points); delete it and build again")
+        return shard
+
+    def depth_images(self, height: int, width: int, dtype=np.float16) -> np.ndarray:
+        """Dense standard depth images (n, H, W), background -1 (PC2Im, eq. 15)."""
+        n = len(self)
+        img = np.full(n * height * width, BACKGROUND, dtype=dtype)
+        s = np.repeat(np.arange(n), np.diff(self.offsets))
+        img[s * height * width + self.pixel.astype(np.int64)] = self.depth
+        return img.reshape(n, height, width)
+
+    def training_images(self, height: int, width: int, q) -> np.ndarray:
+        """The normalised training images Norm(d) (eq. 17), float16 (n, H, W)."""
+        return norm(self.depth_images(height, width), q)
+
+
+def read_header(directory) -> dict:
+    path = Path(directory) / "dataset.json"
+    if not path.exists():
+        raise InputError(f"{directory} is not an APCG dataset (no dataset.json); build one with "
+                         "`apcg dataset build --config CFG -o DIR`")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path} is corrupt ({exc})") from exc
