@@ -251,12 +251,17 @@ def _task(plan: Plan, catalog, s: ShardPlan, out: Path) -> ShardTask:
                      lidar=plan.lidar.to_dict())
 
 
-def dataset_info(directory, verify: bool = False) -> dict:
-    """Summary of a dataset directory; ``verify`` loads every shard and checks its hash."""
+def dataset_info(directory, verify: bool = False, require_complete: bool = False) -> dict:
+    """Summary of a dataset directory; ``verify`` loads every shard and checks its hash;
+    ``require_complete`` raises unless every shard and the manifest are there."""
     out = Path(directory)
     head = read_header(out)
     shards = head["shards"]
     present = [s for s in shards if (out / s["file"]).exists()]
+    if require_complete and (len(present) < len(shards)
+                             or not (out / "manifest.json").exists()):
+        raise InputError(f"dataset {out} is not complete: {len(present)} of {len(shards)} "
+                         "shards present; run the same `apcg dataset build` again to finish it")
     info = {"directory": str(out), "name": head["name"], "format_version": head["format_version"],
             "backend": head["config"].get("backend"), "n_types": len(head["types"]),
             "n_samples": head["n_samples"], "n_train": head["n_train"], "n_test": head["n_test"],

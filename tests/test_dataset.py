@@ -1,0 +1,202 @@
+"""The dataset builder: determinism, resume after SIGKILL, sharding, format, backends."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apcg_core.catalog.catalog import default_catalog
+from apcg_core.depth import norm, pc2im
+from apcg_core.errors import InputError
+from apcg_core.lidar import LidarParams
+from dataset_builder.build import build_dataset, dataset_info
+from dataset_builder.plan import load_config, make_plan
+from dataset_builder.simulate import Simulator
+from dataset_builder.store import Shard
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = str(ROOT / "tests" / "data" / "dataset_small.toml")
+LIDAR = LidarParams()
+
+
+def _files(d: Path) -> dict:
+    return {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ref") / "ds"
+    build_dataset(SMALL, out, progress=False)
+    return out
+
+
+def test_plan_is_table1_shaped_and_split_4_to_1():
+    cat = default_catalog()
+    plan = make_plan(load_config("paper-table1"), cat)
+    assert plan.n_samples == 1_000_000
+    assert len(plan.types) == 80
+    assert sum(t.range_band == "near" for t in plan.types) == 4
+    assert (plan.split == "test").sum() == 200_000
+    counts = np.bincount(plan.table[:, 0].astype(int))
+    assert (counts == 12_500).all()
+    drone = plan.space.is_drone(plan.table[:, 0].astype(int))
+    assert plan.table[drone, 1].max() <= 600 and plan.table[~drone, 1].min() >= 3000
+    assert len(np.unique(plan.table[:, 4])) == 10 and len(np.unique(plan.table[:, 2])) == 5
+    # every sample in exactly one shard, shards of one type and one split
+    rows = np.concatenate([s.rows for s in plan.shards])
+    assert np.array_equal(np.sort(rows), np.arange(plan.n_samples))
+    for s in plan.shards[:50]:
+        assert (plan.table[s.rows, 0] == s.type_code).all()
+        assert (plan.split[s.rows] == s.split).all()
+    again = make_plan(load_config("paper-table1"), cat)
+    assert np.array_equal(plan.table, again.table) and np.array_equal(plan.split, again.split)
+
+
+def test_shard_contents_match_the_simulator_and_pc2im(reference):
+    head = json.loads((reference / "dataset.json").read_text())
+    info = dataset_info(reference, verify=True)
+    assert info["complete"] and info["samples_present"] == head["n_samples"] == 384
+    assert head["n_test"] == round(0.2 * 96) * 4
+    cat = default_catalog()
+    spec = head["shards"][5]
+    shard = Shard.load(reference / spec["file"])
+    t = head["types"][spec["type_code"]]
+    sim = Simulator("embree", quantize=False)
+    res = sim.simulate_type(cat, t["catalog_index"], shard.conditions)
+    img, stats = pc2im(res.cloud.xyz, shard.conditions[:, 1], shard.conditions[:, 2],
+                       t["depth_length_m"], LIDAR, sample=res.cloud.sample,
+                       n_samples=len(shard))
+    dense = shard.depth_images(LIDAR.height, LIDAR.width)
+    assert np.array_equal(dense, img.astype(np.float16))
+    assert int(shard.n_clamped.sum()) == stats.n_clamped
+    q = shard.conditions[:, 1] / np.where(shard.conditions[:, 1] >= 3000, 3000.0, 100.0)
+    assert np.array_equal(shard.training_images(LIDAR.height, LIDAR.width, q),
+                          norm(dense, q))
+    # ranges stored to float32 precision about r0
+    r = shard.conditions[np.repeat(np.arange(len(shard)), np.diff(shard.offsets)), 1]
+    assert np.abs(shard.delta_range_m + r - res.cloud.range_m).max() < 1e-5
+    # the conditions table on disk says the same
+    lines = (reference / "conditions.csv").read_text().splitlines()
+    assert len(lines) == 385
+    row = lines[1 + int(shard.sample_id[0])].split(",")
+    assert float(row[5]) == shard.conditions[0, 1] and row[1] == spec["split"]
+
+
+def test_same_config_same_bytes_with_two_workers_and_job_array(reference, tmp_path):
+    two = tmp_path / "two"
+    build_dataset(SMALL, two, workers=2, progress=False)
+    assert _files(two) == _files(reference)
+    arr = tmp_path / "arr"
+    for i in range(3):
+        summary = build_dataset(SMALL, arr, shard_spec=f"{i}/3", progress=False)
+        assert summary["complete"] == (i == 2)
+    assert _files(arr) == _files(reference)
+
+
+def test_resume_after_sigkill_is_byte_identical(tmp_path):
+    cfg = _write(tmp_path / "kill.toml", Path(SMALL).read_text().replace(
+        "shard_size = 12", "shard_size = 2"))  # 192 shards: a build long enough to kill
+    ref = tmp_path / "uninterrupted"
+    build_dataset(cfg, ref, progress=False)
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "apcg_core.cli", "dataset", "build", "--config", cfg,
+           "-o", str(out), "--no-progress"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        done = list((out / "shards").glob("*.npz")) if (out / "shards").exists() else []
+        if len(done) >= 5:
+            break
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    n_before = len(list((out / "shards").glob("*.npz")))
+    assert 5 <= n_before < 192, n_before
+    assert not (out / "manifest.json").exists()
+    with pytest.raises(InputError, match="not complete|incomplete|missing"):
+        dataset_info(out, verify=True, require_complete=True)
+    build_dataset(cfg, out, progress=False)
+    assert _files(out) == _files(ref)
+
+
+def test_corrupt_shard_and_other_config_are_clear_errors(reference, tmp_path):
+    out = tmp_path / "c"
+    shutil.copytree(reference, out)
+    victim = sorted((out / "shards").glob("*.npz"))[3]
+    victim.write_bytes(victim.read_bytes()[:200])
+    with pytest.raises(InputError, match="corrupt"):
+        dataset_info(out, verify=True)
+    with pytest.raises(InputError, match="corrupt"):
+        Shard.load(victim)
+    cfg = load_config(SMALL)
+    cfg["seed"] = 4
+    with pytest.raises(InputError, match="different dataset"):
+        build_dataset(cfg, out, progress=False)
+    with pytest.raises(InputError, match="no dataset config"):
+        load_config("no-such-config")
+    with pytest.raises(InputError, match="unknown keys"):
+        load_config(_write(tmp_path / "bad.toml", "sead = 1\n"))
+    with pytest.raises(InputError, match="--shard"):
+        build_dataset(SMALL, tmp_path / "y", shard_spec="3/3", progress=False)
+    with pytest.raises(InputError, match="unknown aircraft type"):
+        build_dataset({**cfg, "types": ["Concorde II"]}, tmp_path / "z", progress=False)
+
+
+def _write(path: Path, text: str) -> str:
+    path.write_text(text)
+    return str(path)
+
+
+def _compare_datasets(a: Path, b: Path):
+    head = json.loads((a / "dataset.json").read_text())
+    same = total = 0
+    worst = 0.0
+    for spec in head["shards"]:
+        sa, sb = Shard.load(a / spec["file"]), Shard.load(b / spec["file"])
+        assert np.array_equal(sa.conditions, sb.conditions)
+        for i in range(len(sa)):
+            xa = slice(sa.offsets[i], sa.offsets[i + 1])
+            xb = slice(sb.offsets[i], sb.offsets[i + 1])
+            da = dict(zip(sa.pixel[xa].tolist(), sa.delta_range_m[xa].astype(float)))
+            db = dict(zip(sb.pixel[xb].tolist(), sb.delta_range_m[xb].astype(float)))
+            common = set(da) & set(db)
+            same += len(common)
+            total += len(set(da) | set(db))
+            if common:
+                worst = max(worst, max(abs(da[k] - db[k]) for k in common))
+    return same / total, worst, total
+
+
+def test_bpy_module_build_matches_embree(reference, tmp_path):
+    out = tmp_path / "bpy"
+    code = ("import bpy, sys\nbpy.ops.wm.read_factory_settings(use_empty=True)\n"
+            "from dataset_builder.build import build_dataset\n"
+            f"build_dataset({SMALL!r}, {str(out)!r}, backend='blender', progress=False)\n")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=600)
+    same, worst, total = _compare_datasets(reference, out)
+    assert total > 10_000
+    assert same >= 0.995 and worst < 2e-3, (same, worst)
+
+
+def test_blender_binary_build_matches_embree(reference, tmp_path):
+    blender = shutil.which("blender")
+    assert blender, "the blender binary is needed (apt-get install blender python3-numpy)"
+    out = tmp_path / "bin"
+    cmd = [blender, "-b", "--factory-startup", "--python-exit-code", "1", "-P",
+           str(ROOT / "dataset_builder" / "blender_entry.py"), "--", "dataset", "build",
+           "--config", SMALL, "-o", str(out), "--backend", "blender", "--no-progress"]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    same, worst, total = _compare_datasets(reference, out)
+    assert same >= 0.995 and worst < 2e-3, (same, worst)
+    bad = subprocess.run(cmd[:8] + ["dataset", "build", "--config", "nope", "-o",
+                                     str(tmp_path / "n")], capture_output=True, text=True,
+                         timeout=600)
+    assert bad.returncode == 2 and "no dataset config" in bad.stderr
