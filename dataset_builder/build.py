@@ -129,6 +129,14 @@ def compute_shard(task: ShardTask) -> Shard:
                  n_rays=res.n_rays.astype(np.int32))
 
 
+def worker_init() -> None:
+    """Pool initializer. A spawned child inherits its parent's sys.path; once the parent has
+    imported the bpy module that includes Blender's own scripts/modules folder, whose ``bpy``
+    package would then shadow the bpy extension module in the child. Drop those entries."""
+    marker = f"{os.sep}bpy{os.sep}"
+    sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
+
+
 def run_task(task: ShardTask) -> tuple[int, int, float]:
     t0 = time.perf_counter()
     shard = compute_shard(task)
@@ -220,7 +228,7 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
             # been imported, and inside a Blender binary builds run with one worker.
             import multiprocessing as mp
             ctx = mp.get_context("spawn")
-            with ctx.Pool(workers, maxtasksperchild=per) as pool:
+            with ctx.Pool(workers, initializer=worker_init, maxtasksperchild=per) as pool:
                 for _, n, _ in pool.imap_unordered(run_task, tasks):
                     bar.update(n)
     finally:
