@@ -62,9 +62,13 @@ def register_condition(sub) -> None:
     p = sub.add_parser("condition", help="show a condition's vector nu, q and frames",
                        description="Encode one condition as the cGAN's vector nu and show the "
                                    "reference range, q and the target centre in each frame.")
-    p.add_argument("--type-index", type=int, required=True, help="catalog index of the type")
-    p.add_argument("--n-types", type=int, default=80, help="number of types in the catalog")
-    p.add_argument("--drone", action="store_true", help="the type is a drone (range 100-600 m)")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--type", help="catalog type name or index: nu codes it among all "
+                                      "catalog types, with the type's own range band")
+    which.add_argument("--type-index", type=int, help="a type code among --n-types types")
+    p.add_argument("--n-types", type=int, default=80, help="with --type-index: number of types")
+    p.add_argument("--drone", action="store_true",
+                   help="with --type-index: the type is a drone (range 100-600 m)")
     add_pose_arguments(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=_run_condition)
@@ -74,10 +78,18 @@ def _run_condition(args) -> int:
     from .condition import Condition, ConditionSpace
     from .frames import observation_to_blender, target_centre
 
-    cond = Condition.from_degrees(args.type_index, args.range_m, args.elevation_deg,
+    if args.type is not None:
+        from .catalog.catalog import default_catalog
+        cat = default_catalog()
+        t = cat.get(int(args.type) if args.type.isdigit() else args.type)
+        space = cat.condition_space()
+        code = [u.index for u in cat.types].index(t.index)
+    else:
+        code = args.type_index
+        space = ConditionSpace(n_types=args.n_types,
+                               drone_types=(code,) if args.drone else ())
+    cond = Condition.from_degrees(code, args.range_m, args.elevation_deg,
                                   args.pitch_deg, args.yaw_deg, args.roll_deg)
-    space = ConditionSpace(n_types=args.n_types,
-                           drone_types=(args.type_index,) if args.drone else ())
     centre = target_centre(cond.range_m, cond.elevation)
     out = {"condition": cond.to_degrees(), "nu": space.encode(cond).round(6).tolist(),
            "reference_range_m": cond.reference_range_m, "q": cond.q,

@@ -24,8 +24,7 @@ from apcg_core.lidar import DEG
 from .backends import check_backend
 from .plan import Plan, ShardPlan, load_config, make_plan
 from .rays import bounding_radius
-from .store import (FORMAT_VERSION, Shard, json_bytes, read_header, sha256_file,
-                    write_atomic)
+from .store import FORMAT_VERSION, Shard, json_bytes, read_header, sha256_file, write_atomic
 
 
 def header_of(plan: Plan, catalog) -> dict:

@@ -19,8 +19,7 @@ from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian
 from apcg_core.lidar import LidarParams
 
 from .backends import check_backend, make_caster
-from .rays import (angular_boxes, bounding_radius, check_conditions, make_rays,
-                   sample_frames)
+from .rays import angular_boxes, bounding_radius, check_conditions, make_rays, sample_frames
 
 # Rays per ray-casting call: large enough that per-call overhead vanishes, small enough that
 # the (rays x 3 x 3) temporaries stay around 100 MB.

@@ -44,3 +44,15 @@ def test_condition_errors_are_clear(args, needle):
     out = run("condition", "--type-index", "0", "--range-m", "5000", *args)
     assert out.returncode == 2
     assert needle in out.stderr and "Traceback" not in out.stderr
+
+
+def test_condition_by_catalog_type_uses_its_range_band():
+    out = run("condition", "--type", "Mavic 3", "--range-m", "350", "--elevation-deg", "3.5",
+              "--pitch-deg", "2",
+              "--json")
+    assert out.returncode == 0, out.stderr
+    nu = json.loads(out.stdout)["nu"]
+    assert nu[1] == pytest.approx(2 * (350 - 100) / 500 - 1)
+    far = run("condition", "--type", "Mavic 3", "--range-m", "3000", "--elevation-deg", "3.5",
+              "--pitch-deg", "2")
+    assert far.returncode == 2 and "range_m" in far.stderr and "600" in far.stderr

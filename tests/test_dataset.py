@@ -1,7 +1,6 @@
 """The dataset builder: determinism, resume after SIGKILL, sharding, format, backends."""
 
 import json
-import os
 import shutil
 import signal
 import subprocess
@@ -164,8 +163,8 @@ def _compare_datasets(a: Path, b: Path):
         for i in range(len(sa)):
             xa = slice(sa.offsets[i], sa.offsets[i + 1])
             xb = slice(sb.offsets[i], sb.offsets[i + 1])
-            da = dict(zip(sa.pixel[xa].tolist(), sa.delta_range_m[xa].astype(float)))
-            db = dict(zip(sb.pixel[xb].tolist(), sb.delta_range_m[xb].astype(float)))
+            da = dict(zip(sa.pixel[xa].tolist(), sa.delta_range_m[xa].astype(float), strict=True))
+            db = dict(zip(sb.pixel[xb].tolist(), sb.delta_range_m[xb].astype(float), strict=True))
             common = set(da) & set(db)
             same += len(common)
             total += len(set(da) | set(db))

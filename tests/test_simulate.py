@@ -22,7 +22,8 @@ def _blender_empty():
 
 
 def _all_cell_dirs(beta0):
-    w, h = np.meshgrid(np.arange(LIDAR.w_min, -LIDAR.w_min), np.arange(LIDAR.h_min, -LIDAR.h_min))
+    w, h = np.meshgrid(np.arange(LIDAR.w_min, -LIDAR.w_min),
+                       np.arange(LIDAR.h_min, -LIDAR.h_min))
     w, h = w.ravel(), h.ravel()
     a, b = LIDAR.cell_centre_angles(w, h, beta0)
     d = np.stack([np.cos(b) * np.sin(a), np.sin(b), np.cos(b) * np.cos(a)], 1)
@@ -30,7 +31,8 @@ def _all_cell_dirs(beta0):
 
 
 def _as_dict(cloud):
-    return {(int(w), int(h)): r for w, h, r in zip(cloud.cell_w, cloud.cell_h, cloud.range_m)}
+    cells = zip(cloud.cell_w, cloud.cell_h, cloud.range_m, strict=True)
+    return {(int(w), int(h)): r for w, h, r in cells}
 
 
 @pytest.mark.parametrize("backend", RAY_BACKENDS)
@@ -47,10 +49,12 @@ def test_tilted_plane_at_18_km_within_1_mm(backend):
     inside = (np.abs(p[:, 1]) < 20) & (np.abs(p[:, 2]) < 5)
     border = (np.abs(np.abs(p[:, 1]) - 20) < 1e-3) | (np.abs(np.abs(p[:, 2]) - 5) < 1e-3)
     got = _as_dict(res.cloud)
-    expect = {(int(a), int(b)): r for a, b, r, ok in zip(w, h, t, inside & ~border) if ok}
+    keep = inside & ~border
+    expect = {(int(a), int(b)): r for a, b, r, ok in zip(w, h, t, keep, strict=True) if ok}
     assert len(expect) > 100
     assert set(expect) <= set(got)
-    extra = set(got) - {(int(a), int(b)) for a, b, ok in zip(w, h, inside | border) if ok}
+    maybe = inside | border
+    extra = set(got) - {(int(a), int(b)) for a, b, ok in zip(w, h, maybe, strict=True) if ok}
     assert not extra
     err = np.array([got[k] - expect[k] for k in expect])
     assert np.abs(err).max() < 1e-3, np.abs(err).max()
@@ -70,10 +74,11 @@ def test_sphere_at_18_km_within_1_mm(backend):
     core = impact < 0.9 * radius
     t = dc - np.sqrt(np.maximum(disc, 0))
     got = _as_dict(res.cloud)
-    expect = {(int(a), int(b)): r for a, b, r, ok in zip(w, h, t, core) if ok}
+    expect = {(int(a), int(b)): r for a, b, r, ok in zip(w, h, t, core, strict=True) if ok}
     assert len(expect) > 80
     assert set(expect) <= set(got)
-    hit_any = {(int(a), int(b)) for a, b, ok in zip(w, h, impact < 1.001 * radius) if ok}
+    near = impact < 1.001 * radius
+    hit_any = {(int(a), int(b)) for a, b, ok in zip(w, h, near, strict=True) if ok}
     assert set(got) <= hit_any
     err = np.array([got[k] - expect[k] for k in expect])
     assert np.abs(err).max() < 1e-3, np.abs(err).max()
@@ -112,7 +117,8 @@ def test_rays_through_shared_vertices_and_edges_leave_no_holes(backend, offset):
     got = _as_dict(res.cloud)
     interior = {(i, j) for i in range(-19, 20) for j in range(-9, 10)}
     assert interior <= set(got), sorted(interior - set(got))[:5]
-    assert len(res.cloud) == len(set(zip(res.cloud.cell_w, res.cloud.cell_h)))  # one per cell
+    cells = set(zip(res.cloud.cell_w, res.cloud.cell_h, strict=True))
+    assert len(res.cloud) == len(cells)  # one return per cell
     err = np.array([got[k] - r_plane for k in interior])
     assert np.abs(err).max() < 1e-3
 
@@ -207,9 +213,9 @@ def _parity_conditions(cat, rng):
 
 def _compare(a, b):
     ka = {(int(s), int(w), int(h)): r for s, w, h, r in
-          zip(a.sample, a.cell_w, a.cell_h, a.range_m)}
+          zip(a.sample, a.cell_w, a.cell_h, a.range_m, strict=True)}
     kb = {(int(s), int(w), int(h)): r for s, w, h, r in
-          zip(b.sample, b.cell_w, b.cell_h, b.range_m)}
+          zip(b.sample, b.cell_w, b.cell_h, b.range_m, strict=True)}
     common = set(ka) & set(kb)
     same = len(common) / max(1, len(set(ka) | set(kb)))
     dr = np.array([abs(ka[k] - kb[k]) for k in common])

@@ -21,7 +21,8 @@ def make_caster(backend: str, mesh):
     if backend in ("blender", "blender-bvh"):
         from .blender import BlenderCaster
         return BlenderCaster(mesh, method="geometry-nodes" if backend == "blender" else "bvh")
-    raise InputError(f"unknown ray-casting backend {backend!r}; accepted: {', '.join(RAY_BACKENDS)}")
+    raise InputError(f"unknown ray-casting backend {backend!r}; "
+                     f"accepted: {', '.join(RAY_BACKENDS)}")
 
 
 def check_backend(name: str) -> str:
