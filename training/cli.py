@@ -1,0 +1,69 @@
+"""``apcg train``."""
+
+from __future__ import annotations
+
+import json
+
+
+def register_train(sub) -> None:
+    p = sub.add_parser("train", help="train the cGAN (WGAN-GP) on a dataset",
+                       description="Train the improved cGAN on a dataset built by `apcg dataset "
+                                   "build`. Checkpoints to RUN/checkpoint.pt; --resume continues "
+                                   "exactly. Logs: RUN/log.csv and RUN/tensorboard. For several "
+                                   "processes: torchrun --nproc_per_node N -m apcg_core.cli "
+                                   "train ...")
+    p.add_argument("--data", required=True, help="dataset directory")
+    p.add_argument("-o", "--output", required=True, help="run directory")
+    p.add_argument("--preset", default="cpu", choices=["paper", "cpu", "tiny"],
+                   help="paper: full width for a GPU; cpu: quarter width, bf16 (default); "
+                        "tiny: for tests")
+    p.add_argument("--resume", action="store_true", help="continue the run in -o")
+    p.add_argument("--steps", type=int, help="generator steps (overrides --epochs)")
+    p.add_argument("--epochs", type=float, help="epochs over the training split")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--width", type=float, help="channel width multiplier (1.0 = the paper)")
+    p.add_argument("--n-critic", type=int, help="critic steps per generator step")
+    p.add_argument("--batch-size", type=int)
+    p.add_argument("--no-conv", action="store_true", help="ablation: fully connected layers")
+    p.add_argument("--no-attention", action="store_true", help="ablation: no self-attention")
+    p.add_argument("--bce", action="store_true", help="ablation: BCE loss, no Wasserstein/GP")
+    p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
+    p.add_argument("--max-minutes", type=float, help="stop (after a checkpoint) after this long")
+    p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=_run_train)
+
+
+def _run_train(args) -> int:
+    from .trainer import Trainer, config_from
+    over = {"steps": args.steps, "epochs": args.epochs, "seed": args.seed, "width": args.width,
+            "n_critic": args.n_critic, "batch_size": args.batch_size,
+            "checkpoint_every": args.checkpoint_every, "threads": args.threads}
+    if args.no_conv:
+        over["conv"] = False
+    if args.no_attention:
+        over["attention"] = False
+    if args.bce:
+        over["loss"] = "bce"
+    if args.resume:
+        import torch
+        from pathlib import Path
+        ck = Path(args.output) / "checkpoint.pt"
+        if ck.exists():  # a resumed run keeps its own configuration
+            saved = torch.load(ck, map_location="cpu", weights_only=False)["train"]
+            saved.update({k: v for k, v in over.items() if v is not None and k in
+                          ("steps", "epochs", "checkpoint_every", "threads")})
+            from .trainer import TrainConfig
+            saved["betas"] = tuple(saved["betas"])
+            cfg = TrainConfig(**saved)
+        else:
+            cfg = config_from(args.preset, **over)
+    else:
+        cfg = config_from(args.preset, **over)
+    trainer = Trainer(args.data, args.output, cfg, resume=args.resume,
+                      progress=not args.no_progress)
+    max_s = args.max_minutes * 60 if args.max_minutes else None
+    summary = trainer.fit(max_seconds=max_s)
+    if trainer.rank == 0:
+        print(json.dumps(summary))
+    return 0

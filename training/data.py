@@ -1,0 +1,86 @@
+"""Training batches from a dataset directory (docs/DATASET.md): normalised depth images + nu.
+
+All shards of a split are held in memory in their sparse form (a few kB per sample); a batch is
+made dense and normalised (Norm, eq. 17) on demand, in numpy. The order of batches is a pure
+function of (seed, batch counter), so a resumed run sees exactly the batches it would have seen.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from apcg_core.condition import scale_ratio
+from apcg_core.depth import BACKGROUND, norm
+from apcg_core.errors import InputError
+from dataset_builder.store import Shard, read_header
+
+
+class DepthDataset:
+    def __init__(self, directory, split: str = "train") -> None:
+        self.directory = Path(directory)
+        self.header = read_header(self.directory)
+        if not (self.directory / "manifest.json").exists():
+            raise InputError(f"dataset {directory} is not complete (no manifest.json); finish it "
+                             "with the same `apcg dataset build` command first")
+        if split not in ("train", "test"):
+            raise InputError(f"split must be 'train' or 'test', got {split!r}")
+        shards = [Shard.load(self.directory / s["file"]) for s in self.header["shards"]
+                  if s["split"] == split]
+        if not shards:
+            raise InputError(f"dataset {directory} has no {split} samples")
+        self.height = int(self.header["lidar"]["height"])
+        self.width = int(self.header["lidar"]["width"])
+        self.sample_id = np.concatenate([s.sample_id for s in shards])
+        self.conditions = np.concatenate([s.conditions for s in shards])
+        self.nu = np.concatenate([s.nu for s in shards]).astype(np.float32)
+        counts = np.concatenate([np.diff(s.offsets) for s in shards])
+        self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        self.pixel = np.concatenate([s.pixel.astype(np.int64) for s in shards])
+        self.depth = np.concatenate([s.depth for s in shards]).astype(np.float32)
+        self.q = scale_ratio(self.conditions[:, 1])
+
+    def __len__(self) -> int:
+        return len(self.sample_id)
+
+    @property
+    def types(self) -> list[dict]:
+        return self.header["types"]
+
+    def images(self, idx: np.ndarray, normalized: bool = True) -> np.ndarray:
+        """(B, H, W) float32 depth images of samples ``idx`` (Norm applied if ``normalized``)."""
+        idx = np.asarray(idx, dtype=np.int64)
+        H, W = self.height, self.width
+        out = np.full((len(idx), H * W), BACKGROUND, np.float32)
+        starts, stops = self.offsets[idx], self.offsets[idx + 1]
+        lens = stops - starts
+        rows = np.repeat(np.arange(len(idx)), lens)
+        pos = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens) + np.arange(
+            lens.sum())
+        out[rows, self.pixel[pos]] = self.depth[pos]
+        out = out.reshape(len(idx), H, W)
+        return norm(out, self.q[idx]) if normalized else out
+
+    def batches_per_epoch(self, batch_size: int, world: int = 1) -> int:
+        n = len(self) // (batch_size * world)
+        if n < 1:
+            raise InputError(f"{len(self)} samples are fewer than one batch of {batch_size} "
+                             f"x {world} process(es)")
+        return n
+
+    def batch_indices(self, seed: int, counter: int, batch_size: int, rank: int = 0,
+                      world: int = 1) -> np.ndarray:
+        """Samples of the ``counter``-th batch of this rank: a fresh permutation each epoch."""
+        bpe = self.batches_per_epoch(batch_size, world)
+        epoch, i = divmod(counter, bpe)
+        perm = np.random.default_rng([seed, epoch]).permutation(len(self))
+        start = (i * world + rank) * batch_size
+        return perm[start:start + batch_size]
+
+
+def dataset_summary(directory) -> dict:
+    head = json.loads((Path(directory) / "dataset.json").read_text())
+    return {"name": head.get("name"), "n_train": head["n_train"], "n_test": head["n_test"],
+            "n_types": len(head["types"])}

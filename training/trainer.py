@@ -1,0 +1,327 @@
+"""WGAN-GP training of the improved cGAN (SPEC section 7), with exact resume and data parallelism.
+
+Exactness: the batch order is a pure function of (seed, batch counter) and every random draw of a
+step (noise, gradient-penalty mixing) comes from a generator seeded by (seed, step, rank), so a
+run resumed from a checkpoint computes the very same steps as an uninterrupted one.
+
+Data parallel (``torchrun --nproc_per_node N``, gloo on CPU): each rank takes its own slice of
+every batch; gradients are averaged across ranks by an all-reduce after each backward (this keeps
+the gradient penalty's double backward simple) and BatchNorm buffers follow rank 0.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from apcg_core.errors import InputError
+from apcg_core.nn import Discriminator, Generator, NetConfig
+from apcg_core.nn.models import NOISE_DIM
+
+from .data import DepthDataset
+
+LOG_FIELDS = ["step", "epoch", "loss_d", "loss_g", "gp", "wasserstein", "seconds"]
+
+
+@dataclass
+class TrainConfig:
+    width: float = 1.0
+    conv: bool = True
+    attention: bool = True
+    loss: str = "wgan-gp"
+    batch_size: int = 32
+    lr: float = 2e-4
+    betas: tuple = (0.5, 0.9)
+    n_critic: int = 5
+    gp_lambda: float = 10.0
+    epochs: float = 1000.0
+    steps: int | None = None  # overrides epochs when given
+    seed: int = 0
+    bf16: bool = False
+    channels_last: bool = False
+    checkpoint_every: int = 500
+    log_every: int = 10
+    threads: int | None = None
+    extra: dict = field(default_factory=dict)
+
+    def net(self) -> NetConfig:
+        return NetConfig(width=self.width, conv=self.conv, attention=self.attention,
+                         loss=self.loss)
+
+
+PRESETS = {
+    # The paper: full width, 1000 epochs: a GPU job.
+    "paper": TrainConfig(),
+    # This CPU: a quarter of the channels, bf16 autocast, fewer critic steps.
+    "cpu": TrainConfig(width=0.25, n_critic=2, bf16=True, epochs=30.0, checkpoint_every=200),
+    # Tests: tiny and fast.
+    "tiny": TrainConfig(width=0.0625, n_critic=1, epochs=1.0, checkpoint_every=20,
+                        log_every=1),
+}
+
+
+def gradient_penalty(d, real, fake, nu, eps) -> torch.Tensor:
+    """E[(||grad_x D(x)||_2 - 1)^2] at x = eps real + (1 - eps) fake (WGAN-GP).
+
+    The norm is sqrt(sum g^2 + 1e-12), so a zero gradient gives a penalty of ~1 with a finite
+    gradient instead of NaN."""
+    e = eps.view(-1, *([1] * (real.dim() - 1)))
+    mix = (e * real + (1 - e) * fake).detach().requires_grad_(True)
+    score = d(mix, nu)
+    (grad,) = torch.autograd.grad(score.sum(), mix, create_graph=True)
+    norm = torch.sqrt(grad.flatten(1).pow(2).sum(1) + 1e-12)
+    return ((norm - 1.0) ** 2).mean()
+
+
+def _step_generator(seed: int, step: int, phase: int, rank: int) -> torch.Generator:
+    g = torch.Generator()
+    g.manual_seed(int(np.random.SeedSequence([seed, step, phase, rank]).generate_state(1)[0]))
+    return g
+
+
+class Trainer:
+    def __init__(self, data_dir, run_dir, cfg: TrainConfig, resume: bool = False,
+                 progress: bool = True) -> None:
+        self.cfg = cfg
+        self.run = Path(run_dir)
+        self.progress = progress
+        self.rank, self.world = _dist_rank_world()
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
+        self.data = DepthDataset(data_dir, "train")
+        self.data_dir = str(data_dir)
+        torch.manual_seed(cfg.seed)  # initial weights
+        net = cfg.net()
+        self.G, self.D = Generator(net), Discriminator(net)
+        if cfg.channels_last:
+            self.G = self.G.to(memory_format=torch.channels_last)
+            self.D = self.D.to(memory_format=torch.channels_last)
+        self.opt_g = torch.optim.Adam(self.G.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
+        self.opt_d = torch.optim.Adam(self.D.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
+        self.step = 0
+        self.batch_counter = 0
+        self.bpe = self.data.batches_per_epoch(cfg.batch_size, self.world)
+        self.total_steps = cfg.steps if cfg.steps is not None else int(
+            math.ceil(cfg.epochs * self.bpe / cfg.n_critic))
+        ckpt = self.run / "checkpoint.pt"
+        if self.run.exists() and (self.run / "train_config.json").exists() and not resume:
+            raise InputError(f"{self.run} already holds a training run; pass --resume to "
+                             "continue it or choose another -o")
+        if resume:
+            if not ckpt.exists():
+                raise InputError(f"nothing to resume in {self.run} (no checkpoint.pt)")
+            self._load(ckpt)
+        elif self.rank == 0:
+            self.run.mkdir(parents=True, exist_ok=True)
+            (self.run / "train_config.json").write_text(json.dumps(
+                {"train": asdict(cfg), "net": net.to_dict(), "data": self.data_dir,
+                 "dataset": self.data.header.get("name"), "world": self.world}, indent=1))
+        if self.world > 1:
+            _broadcast(self.G)
+            _broadcast(self.D)
+        self._tb = None
+
+    # --- checkpoints -------------------------------------------------------------------------
+    def _state(self) -> dict:
+        return {"step": self.step, "batch_counter": self.batch_counter,
+                "G": self.G.state_dict(), "D": self.D.state_dict(),
+                "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict(),
+                "train": asdict(self.cfg), "net": self.cfg.net().to_dict()}
+
+    def save(self) -> None:
+        if self.rank != 0:
+            return
+        tmp = self.run / "checkpoint.pt.part"
+        torch.save(self._state(), tmp)
+        os.replace(tmp, self.run / "checkpoint.pt")
+
+    def _load(self, path: Path) -> None:
+        st = torch.load(path, map_location="cpu", weights_only=False)
+        if st["net"] != self.cfg.net().to_dict():
+            raise InputError(f"checkpoint {path} has network {st['net']}, not "
+                             f"{self.cfg.net().to_dict()}; resume with the same preset")
+        self.G.load_state_dict(st["G"])
+        self.D.load_state_dict(st["D"])
+        self.opt_g.load_state_dict(st["opt_g"])
+        self.opt_d.load_state_dict(st["opt_d"])
+        self.step, self.batch_counter = st["step"], st["batch_counter"]
+        log = self.run / "log.csv"
+        if log.exists() and self.rank == 0:  # drop rows past the checkpoint: they are redone
+            with open(log) as f:
+                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
+            self._write_log_rows(rows, mode="w")
+
+    # --- logging ------------------------------------------------------------------------------
+    def _write_log_rows(self, rows, mode="a") -> None:
+        path = self.run / "log.csv"
+        new = mode == "w" or not path.exists()
+        with open(path, mode, newline="") as f:
+            w = csv.DictWriter(f, fieldnames=LOG_FIELDS)
+            if new:
+                w.writeheader()
+            w.writerows(rows)
+
+    def _tensorboard(self, row: dict) -> None:
+        if self._tb is None:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+                self._tb = SummaryWriter(str(self.run / "tensorboard"), purge_step=self.step)
+            except ImportError:
+                self._tb = False
+        if self._tb:
+            for k in ("loss_d", "loss_g", "gp", "wasserstein"):
+                self._tb.add_scalar(k, row[k], row["step"])
+
+    # --- one step ------------------------------------------------------------------------------
+    def _batch(self):
+        idx = self.data.batch_indices(self.cfg.seed, self.batch_counter, self.cfg.batch_size,
+                                      self.rank, self.world)
+        self.batch_counter += 1
+        real = torch.from_numpy(self.data.images(idx))[:, None]
+        nu = torch.from_numpy(self.data.nu[idx])
+        if self.cfg.channels_last:
+            real = real.contiguous(memory_format=torch.channels_last)
+        return real, nu
+
+    def _autocast(self):
+        return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.cfg.bf16)
+
+    def train_step(self) -> dict:
+        cfg = self.cfg
+        wgan = cfg.loss == "wgan-gp"
+        b = cfg.batch_size
+        self.G.train()
+        self.D.train()
+        for j in range(cfg.n_critic):
+            real, nu = self._batch()
+            gen = _step_generator(cfg.seed, self.step, j, self.rank)
+            z = torch.randn(b, NOISE_DIM, generator=gen)
+            with self._autocast():
+                with torch.no_grad():
+                    fake = self.G(z, nu)
+                d_real = self.D(real, nu).float()
+                d_fake = self.D(fake, nu).float()
+            if wgan:
+                eps = torch.rand(b, generator=gen)
+                gp = gradient_penalty(self.D, real, fake.float(), nu, eps)
+                loss_d = d_fake.mean() - d_real.mean() + cfg.gp_lambda * gp
+            else:
+                gp = torch.zeros(())
+                loss_d = (F.binary_cross_entropy_with_logits(d_real, torch.ones_like(d_real))
+                          + F.binary_cross_entropy_with_logits(d_fake, torch.zeros_like(d_fake)))
+            self.opt_d.zero_grad(set_to_none=True)
+            loss_d.backward()
+            _allreduce_grads(self.D, self.world)
+            self.opt_d.step()
+        gen = _step_generator(cfg.seed, self.step, cfg.n_critic, self.rank)
+        z = torch.randn(b, NOISE_DIM, generator=gen)
+        with self._autocast():
+            score = self.D(self.G(z, nu), nu).float()
+        loss_g = (-score.mean() if wgan else
+                  F.binary_cross_entropy_with_logits(score, torch.ones_like(score)))
+        self.opt_g.zero_grad(set_to_none=True)
+        loss_g.backward()
+        _allreduce_grads(self.G, self.world)
+        self.opt_g.step()
+        if self.world > 1:
+            _broadcast(self.G, buffers_only=True)
+        self.step += 1
+        return {"step": self.step, "epoch": round(self.batch_counter / self.bpe, 4),
+                "loss_d": float(loss_d.detach()), "loss_g": float(loss_g.detach()),
+                "gp": float(gp.detach()),
+                "wasserstein": float((d_real.mean() - d_fake.mean()).detach())}
+
+    def fit(self, max_seconds: float | None = None) -> dict:
+        """Train to ``total_steps`` (or until ``max_seconds`` pass); checkpoint on the way."""
+        bar = None
+        if self.progress and self.rank == 0:
+            try:
+                from tqdm import tqdm
+                bar = tqdm(total=self.total_steps, initial=self.step, unit="step")
+            except ImportError:
+                bar = None
+        t0 = time.perf_counter()
+        pending = []
+        last = {}
+        while self.step < self.total_steps:
+            row = self.train_step()
+            row["seconds"] = round(time.perf_counter() - t0, 3)
+            last = row
+            if self.rank == 0:
+                pending.append(row)
+                if self.step % self.cfg.log_every == 0 or self.step == self.total_steps:
+                    self._write_log_rows(pending)
+                    for r in pending:
+                        self._tensorboard(r)
+                    pending = []
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(L_D=f"{row['loss_d']:.3f}", L_G=f"{row['loss_g']:.3f}")
+                elif self.progress and self.step % 50 == 0:
+                    print(f"step {self.step}/{self.total_steps} L_D {row['loss_d']:.4f} "
+                          f"L_G {row['loss_g']:.4f}", file=sys.stderr, flush=True)
+            if self.step % self.cfg.checkpoint_every == 0:
+                if self.rank == 0:
+                    self._write_log_rows(pending)
+                    pending = []
+                self.save()
+            if max_seconds is not None and time.perf_counter() - t0 > max_seconds:
+                break
+        if self.rank == 0 and pending:
+            self._write_log_rows(pending)
+        self.save()
+        if bar is not None:
+            bar.close()
+        if self._tb:
+            self._tb.flush()
+        return {"step": self.step, "total_steps": self.total_steps, "last": last,
+                "seconds": round(time.perf_counter() - t0, 3),
+                "param_checksum": param_checksum(self.G) + param_checksum(self.D)}
+
+
+def param_checksum(model) -> float:
+    return float(sum(p.detach().double().sum() for p in model.parameters()))
+
+
+def _dist_rank_world() -> tuple[int, int]:
+    if "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1:
+        import torch.distributed as dist
+        if not dist.is_initialized():
+            dist.init_process_group("gloo")
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _allreduce_grads(model, world: int) -> None:
+    if world == 1:
+        return
+    import torch.distributed as dist
+    for p in model.parameters():
+        if p.grad is not None:
+            dist.all_reduce(p.grad, op=dist.ReduceOp.SUM)
+            p.grad /= world
+
+
+def _broadcast(model, buffers_only: bool = False) -> None:
+    import torch.distributed as dist
+    tensors = list(model.buffers()) if buffers_only else list(model.state_dict().values())
+    for t in tensors:
+        if t.dtype.is_floating_point or t.dtype in (torch.int64,):
+            dist.broadcast(t, 0)
+
+
+def config_from(preset: str, **overrides) -> TrainConfig:
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; accepted: {', '.join(PRESETS)}")
+    over = {k: v for k, v in overrides.items() if v is not None}
+    return replace(PRESETS[preset], **over)
