@@ -64,6 +64,29 @@ def _run_train(args) -> int:
                       progress=not args.no_progress)
     max_s = args.max_minutes * 60 if args.max_minutes else None
     summary = trainer.fit(max_seconds=max_s)
-    if trainer.rank == 0:
+    if trainer.world > 1:
+        summary["rank"] = trainer.rank
+        print(json.dumps(summary), flush=True)
+    elif trainer.rank == 0:
         print(json.dumps(summary))
+    return 0
+
+
+def register_export(sub) -> None:
+    p = sub.add_parser("export", help="export a training run as a model (ONNX + model.json)",
+                       description="Writes model.json and generator.onnx (with the run's "
+                                   "config and log beside them) for `apcg generate --model`.")
+    p.add_argument("--run", required=True, help="training run directory")
+    p.add_argument("-o", "--output", required=True, help="model directory")
+    p.add_argument("--tau", type=float, default=None, help="Im2PC threshold to record")
+    p.set_defaults(func=_run_export)
+
+
+def _run_export(args) -> int:
+    from apcg_core.depth import TAU_DEFAULT
+
+    from .export import export_model
+    out = export_model(args.run, args.output, tau=args.tau if args.tau is not None
+                       else TAU_DEFAULT)
+    print(json.dumps({"model": str(out)}))
     return 0

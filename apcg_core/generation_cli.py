@@ -1,0 +1,62 @@
+"""``apcg generate``: APCG point clouds for one condition or a CSV of conditions."""
+
+from __future__ import annotations
+
+import json
+
+from .cli import add_pose_arguments
+
+
+def register_generate(sub) -> None:
+    p = sub.add_parser("generate", help="generate point clouds with a trained APCG model",
+                       description="nu + noise -> generator -> DeNorm -> Im2PC. Without --model "
+                                   "the default model shipped with the package is used.")
+    p.add_argument("--model", help="model directory (default: the shipped default model)")
+    p.add_argument("--type", help="catalog type name or index (with the pose options)")
+    p.add_argument("--conditions", help="CSV with type,range_m,elevation_deg,pitch_deg,"
+                                        "yaw_deg,roll_deg (instead of --type and the pose)")
+    add_pose_arguments(p)
+    p.add_argument("--count", type=int, default=1, help="clouds per condition (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="auto")
+    p.add_argument("--tau", type=float, help="Im2PC threshold (default: the model's)")
+    p.add_argument("-o", "--output", required=True,
+                   help=".ply / .npz / .las; several clouds go in one file, told apart by "
+                        "their `sample` attribute")
+    p.set_defaults(func=_run_generate)
+    # the pose options are required only without --conditions
+    for a in p._actions:
+        if a.dest in ("range_m", "elevation_deg"):
+            a.required = False
+
+
+def _run_generate(args) -> int:
+    from .errors import InputError
+    from .generation import APCGModel, conditions_from_csv
+    from .io import write_cloud
+    from .lidar import DEG
+
+    model = APCGModel(args.model, runtime=args.runtime)
+    if args.tau is not None:
+        model.tau = float(args.tau)
+    if args.conditions:
+        if args.type:
+            raise InputError("give either --conditions or --type with a pose, not both")
+        table = conditions_from_csv(args.conditions, model)
+    else:
+        if args.type is None or args.range_m is None or args.elevation_deg is None:
+            raise InputError("give --type, --range-m and --elevation-deg (or --conditions)")
+        key = int(args.type) if args.type.isdigit() else args.type
+        table = model.condition_row(key, args.range_m, args.elevation_deg * DEG,
+                                    args.pitch_deg * DEG, args.yaw_deg * DEG,
+                                    args.roll_deg * DEG)[None]
+    res = model.generate(table, count=args.count, seed=args.seed)
+    meta = {"model": str(model.directory), "runtime": model.runtime, "seed": args.seed,
+            "count": args.count, "tau": model.tau,
+            "conditions": [[float(v) for v in row] for row in res.table[:: args.count]],
+            "condition_fields": ["type_code", "range_m", "elevation_rad", "pitch_rad",
+                                 "yaw_rad", "roll_rad"]}
+    write_cloud(args.output, res.cloud, meta)
+    print(json.dumps({"output": args.output, "clouds": len(res.table),
+                      "points": len(res.cloud), "runtime": model.runtime}))
+    return 0

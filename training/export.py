@@ -1,0 +1,62 @@
+"""A training run's checkpoint -> a model directory (model.json + generator.onnx)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+from pathlib import Path
+
+import torch
+
+from apcg_core.depth import TAU_DEFAULT
+from apcg_core.errors import InputError
+from apcg_core.nn import Generator, NetConfig
+from dataset_builder.store import read_header
+
+
+def export_onnx(g: Generator, path: Path) -> None:
+    g = g.eval()
+    z = torch.zeros(2, 100)
+    nu = torch.zeros(2, 6)
+    tmp = path.with_name(path.name + ".part")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(g, (z, nu), str(tmp), input_names=["noise", "nu"],
+                          output_names=["image"], opset_version=17, dynamo=False,
+                          do_constant_folding=False,
+                          dynamic_axes={"noise": {0: "batch"}, "nu": {0: "batch"},
+                                        "image": {0: "batch"}})
+    os.replace(tmp, path)
+
+
+def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None) -> Path:
+    run = Path(run_dir)
+    ck = run / "checkpoint.pt"
+    if not ck.exists():
+        raise InputError(f"{run} has no checkpoint.pt to export")
+    st = torch.load(ck, map_location="cpu", weights_only=False)
+    cfg = json.loads((run / "train_config.json").read_text())
+    head = read_header(data_dir or cfg["data"])
+    g = Generator(NetConfig(**st["net"]))
+    g.load_state_dict(st["G"])
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    export_onnx(g, out / "generator.onnx")
+    meta = {"format": "apcg-model", "format_version": 1, "net": st["net"],
+            "condition_space": head["condition_space"], "lidar": head["lidar"],
+            "types": [{k: t[k] for k in ("code", "name", "catalog_index", "kind", "range_band",
+                                          "depth_length_m")} for t in head["types"]],
+            "tau": tau, "trained_steps": st["step"],
+            "trained_epochs": round(st["batch_counter"] / max(1, _bpe(head, st)), 3),
+            "dataset": head.get("name"), "train": st["train"]}
+    (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
+    for name in ("train_config.json", "log.csv"):
+        if (run / name).exists():
+            shutil.copy(run / name, out / name)
+    return out
+
+
+def _bpe(head, st) -> int:
+    return head["n_train"] // st["train"]["batch_size"]
