@@ -1,0 +1,187 @@
+"""The cGAN: structure of SPEC section 7, the gradient penalty, training, resume, data
+parallelism, export to ONNX and generation."""
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from apcg_core.generation import APCGModel
+from apcg_core.nn import Discriminator, Generator, NetConfig, SelfAttention
+from dataset_builder.build import build_dataset
+from training.data import DepthDataset
+from training.export import export_model
+from training.trainer import Trainer, config_from, gradient_penalty
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = str(ROOT / "tests" / "data" / "dataset_small.toml")
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("cgan") / "ds"
+    build_dataset(SMALL, out, progress=False)
+    return out
+
+
+def test_generator_structure_is_the_papers():
+    g = Generator(NetConfig())
+    convs = [m for m in g.modules() if isinstance(m, nn.ConvTranspose2d)]
+    assert len(convs) == 5
+    shapes = []
+    hooks = [m.register_forward_hook(lambda m, i, o: shapes.append(tuple(o.shape[1:])))
+             for m in convs]
+    g.eval()
+    with torch.no_grad():
+        out = g(torch.zeros(1, 100), torch.zeros(1, 6))
+    for h in hooks:
+        h.remove()
+    assert shapes == [(512, 4, 16), (256, 8, 32), (128, 16, 64), (64, 32, 128), (1, 64, 256)]
+    assert convs[0].in_channels == 106
+    assert sum(isinstance(m, SelfAttention) for m in g.modules()) == 1
+    assert g.attention.value.in_channels == 512  # attached to the first layer
+    bns = [m for m in g.modules() if isinstance(m, nn.BatchNorm2d)]
+    assert [b.num_features for b in bns] == [256, 128, 64]
+    assert isinstance(g.out[-1], nn.Tanh) and out.abs().max() <= 1
+
+
+def test_discriminator_structure_is_the_papers():
+    d = Discriminator(NetConfig())
+    convs = [m for m in d.features if isinstance(m, nn.Conv2d)]
+    assert len(convs) == 4 and convs[0].in_channels == 7
+    assert [c.out_channels for c in convs] == [64, 128, 256, 512]
+    layers = list(d.features)
+    sa = [i for i, m in enumerate(layers) if isinstance(m, SelfAttention)]
+    assert len(sa) == 1 and sa[0] > layers.index(convs[3])
+    assert not any(isinstance(m, (nn.BatchNorm2d, nn.BatchNorm1d)) for m in d.modules())
+    linears = [m for m in d.modules() if isinstance(m, nn.Linear)]
+    assert len(linears) == 1 and linears[0].out_features == 1
+    assert d(torch.zeros(3, 1, 64, 256), torch.zeros(3, 6)).shape == (3,)
+
+
+@pytest.mark.parametrize("conv", [True, False])
+@pytest.mark.parametrize("attention", [True, False])
+def test_ablation_variants_build_and_run(conv, attention):
+    cfg = NetConfig(width=0.125, conv=conv, attention=attention)
+    g, d = Generator(cfg), Discriminator(cfg)
+    x = g(torch.randn(2, 100), torch.zeros(2, 6))
+    assert x.shape == (2, 1, 64, 256)
+    assert d(x, torch.zeros(2, 6)).shape == (2,)
+    assert any(isinstance(m, nn.ConvTranspose2d) for m in g.modules()) == conv
+    assert any(isinstance(m, SelfAttention) for m in g.modules()) == attention
+
+
+class _Linear(nn.Module):
+    def __init__(self, w):
+        super().__init__()
+        self.w = nn.Parameter(w)
+
+    def forward(self, x, nu):
+        return (x * self.w).flatten(1).sum(1)
+
+
+def test_gradient_penalty_hand_computed_and_finite_at_zero_gradient():
+    torch.manual_seed(0)
+    w = torch.zeros(1, 1, 2, 2)
+    w[0, 0, 0, 0], w[0, 0, 1, 1] = 3.0, 4.0  # ||grad|| = 5 everywhere
+    d = _Linear(w)
+    real, fake = torch.randn(4, 1, 2, 2), torch.randn(4, 1, 2, 2)
+    gp = gradient_penalty(d, real, fake, torch.zeros(4, 6), torch.rand(4))
+    assert float(gp) == pytest.approx((5.0 - 1.0) ** 2, rel=1e-6)
+    gp.backward()
+    # d/dw of (||w|| - 1)^2 = 2 (||w|| - 1) w / ||w||
+    assert torch.allclose(d.w.grad, 2 * 4 * w / 5, atol=1e-5)
+    zero = _Linear(torch.zeros(1, 1, 2, 2))
+    gp0 = gradient_penalty(zero, real, fake, torch.zeros(4, 6), torch.rand(4))
+    assert float(gp0) == pytest.approx(1.0, abs=1e-5)
+    gp0.backward()
+    assert torch.isfinite(zero.w.grad).all()
+
+
+def _losses(run: Path):
+    with open(run / "log.csv") as f:
+        return [(r["step"], r["loss_d"], r["loss_g"], r["gp"]) for r in csv.DictReader(f)]
+
+
+def test_resume_continues_exactly(data, tmp_path):
+    cfg = config_from("tiny", steps=6, checkpoint_every=3, seed=4)
+    full = Trainer(data, tmp_path / "full", cfg, progress=False)
+    full.fit()
+    part = Trainer(data, tmp_path / "part", cfg, progress=False)
+    part.fit(max_seconds=0.0)  # stops after its first checkpoint... at step 1: force 3
+    while part.step < 3:
+        part.train_step()
+    part.save()
+    # the log may hold rows past the checkpoint in a real crash; they are dropped on resume
+    again = Trainer(data, tmp_path / "part", cfg, resume=True, progress=False)
+    assert again.step == 3
+    again.fit()
+    assert _losses(tmp_path / "full")[3:] == _losses(tmp_path / "part")[-3:]
+    for a, b in zip(full.G.state_dict().values(), again.G.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    with pytest.raises(Exception, match="already holds a training run"):
+        Trainer(data, tmp_path / "full", cfg, progress=False)
+
+
+def _image_distance(model_g, ds: DepthDataset, n=64, seed=0):
+    """Mean absolute difference between the mean generated and mean real training image, and
+    between the generated and real target occupancy rates."""
+    idx = np.random.default_rng(seed).choice(len(ds), n, replace=False)
+    real = ds.images(idx)
+    model_g.eval()
+    with torch.no_grad():
+        fake = model_g(torch.randn(n, 100, generator=torch.Generator().manual_seed(seed)),
+                       torch.from_numpy(ds.nu[idx]))[:, 0].numpy()
+    return float(np.abs(real.mean(0) - fake.mean(0)).mean())
+
+
+def test_training_reduces_the_distance_to_the_data(data, tmp_path):
+    cfg = config_from("tiny", steps=200, checkpoint_every=1000, seed=1, log_every=50)
+    tr = Trainer(data, tmp_path / "run", cfg, progress=False)
+    ds = DepthDataset(data, "train")
+    before = _image_distance(tr.G, ds)
+    tr.fit()
+    after = _image_distance(tr.G, ds)
+    assert after < 0.8 * before, (before, after)
+
+
+def test_two_process_data_parallel_training_stays_in_sync(data, tmp_path):
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+           "--master_port", "29533", "-m", "apcg_core.cli", "train", "--data", str(data),
+           "-o", str(tmp_path / "ddp"), "--preset", "tiny", "--steps", "3", "--no-progress",
+           "--threads", "1"]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    rows = [json.loads(line) for line in run.stdout.splitlines() if line.startswith("{")]
+    assert sorted(r["rank"] for r in rows) == [0, 1]
+    assert rows[0]["step"] == rows[1]["step"] == 3
+    assert rows[0]["param_checksum"] == rows[1]["param_checksum"]
+    assert (tmp_path / "ddp" / "checkpoint.pt").exists()
+
+
+def test_onnx_matches_torch_and_generation_is_seeded(data, tmp_path):
+    cfg = config_from("tiny", steps=5, seed=2)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    model_dir = export_model(tmp_path / "run", tmp_path / "model")
+    onnx_m = APCGModel(model_dir, runtime="onnx")
+    torch_m = APCGModel(model_dir, runtime="torch")
+    rng = np.random.default_rng(0)
+    noise = rng.standard_normal((16, 100))
+    nu = rng.uniform(-1, 1, (16, 6))
+    a, b = onnx_m.images_from(noise, nu), torch_m.images_from(noise, nu)
+    assert np.abs(a - b).max() < 1e-4
+    table = np.array([torch_m.condition_row("A320neo", 4500.0, 0.06, 0.04, 0.2, 0.0)])
+    r1 = torch_m.generate(table, count=3, seed=7)
+    r2 = onnx_m.generate(table, count=3, seed=7)
+    r3 = torch_m.generate(table, count=3, seed=8)
+    assert r1.images.shape == (3, 64, 256)
+    assert np.array_equal(r1.cloud.cell_w, r2.cloud.cell_w)
+    assert not np.array_equal(r1.images, r3.images)
+    with pytest.raises(Exception, match="not one this model was trained on"):
+        torch_m.type_code("A380-800")
