@@ -62,8 +62,8 @@ class APCGModel:
         if runtime != "auto":
             return runtime
         try:
-            import torch  # noqa: F401
             import onnx  # noqa: F401
+            import torch  # noqa: F401
             return "torch"
         except ImportError:
             return "onnx"

@@ -18,7 +18,10 @@ class Block:
 
 sys.meta_path.insert(0, Block())
 import apcg_core
-mods = [m.name for m in pkgutil.walk_packages(apcg_core.__path__, "apcg_core.")]
+# apcg_core.nn is the torch part of the core (DESIGN: "nn/ ... import torch"); everything
+# else, the generation pipeline included, must load without it.
+mods = [m.name for m in pkgutil.walk_packages(apcg_core.__path__, "apcg_core.")
+        if not m.name.startswith("apcg_core.nn")]
 for m in mods:
     importlib.import_module(m)
 loaded = sorted(n for n in sys.modules if n.split(".")[0] in BLOCKED)
@@ -31,7 +34,7 @@ def test_apcg_core_imports_with_numpy_alone():
     out = subprocess.run([sys.executable, "-c", SCRIPT % BLOCKED], capture_output=True,
                          text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    assert int(out.stdout.strip()) >= 8  # every module of the package was imported
+    assert int(out.stdout.strip()) >= 12  # every module of the package was imported
 
 
 def test_the_block_really_blocks():

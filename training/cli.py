@@ -46,8 +46,9 @@ def _run_train(args) -> int:
     if args.bce:
         over["loss"] = "bce"
     if args.resume:
-        import torch
         from pathlib import Path
+
+        import torch
         ck = Path(args.output) / "checkpoint.pt"
         if ck.exists():  # a resumed run keeps its own configuration
             saved = torch.load(ck, map_location="cpu", weights_only=False)["train"]
