@@ -20,7 +20,7 @@ from training.export import export_model
 from training.trainer import Trainer, config_from, gradient_penalty
 
 ROOT = Path(__file__).resolve().parents[1]
-SMALL = str(ROOT / "tests" / "data" / "dataset_small.toml")
+SMALL = str(ROOT / "tests" / "data" / "dataset_tiny_window.toml")
 
 
 @pytest.fixture(scope="module")
@@ -142,18 +142,19 @@ def _image_distance(model_g, ds: DepthDataset, n=64, seed=0):
 
 
 def test_training_reduces_the_distance_to_the_data(data, tmp_path):
-    cfg = config_from("tiny", steps=200, checkpoint_every=1000, seed=1, log_every=50)
+    cfg = config_from("tiny", steps=300, width=0.125, checkpoint_every=1000, seed=1,
+                      log_every=50)
     tr = Trainer(data, tmp_path / "run", cfg, progress=False)
     ds = DepthDataset(data, "train")
     before = _image_distance(tr.G, ds)
     tr.fit()
     after = _image_distance(tr.G, ds)
-    assert after < 0.8 * before, (before, after)
+    assert after < 0.5 * before, (before, after)
 
 
 def test_two_process_data_parallel_training_stays_in_sync(data, tmp_path):
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-           "--master_port", "29533", "-m", "apcg_core.cli", "train", "--data", str(data),
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "apcg_core.cli", "train", "--data", str(data),
            "-o", str(tmp_path / "ddp"), "--preset", "tiny", "--steps", "3", "--no-progress",
            "--threads", "1"]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
@@ -180,7 +181,7 @@ def test_onnx_matches_torch_and_generation_is_seeded(data, tmp_path):
     r1 = torch_m.generate(table, count=3, seed=7)
     r2 = onnx_m.generate(table, count=3, seed=7)
     r3 = torch_m.generate(table, count=3, seed=8)
-    assert r1.images.shape == (3, 64, 256)
+    assert r1.images.shape == (3, 16, 64)
     assert np.array_equal(r1.cloud.cell_w, r2.cloud.cell_w)
     assert not np.array_equal(r1.images, r3.images)
     with pytest.raises(Exception, match="not one this model was trained on"):

@@ -54,9 +54,10 @@ class TrainConfig:
     threads: int | None = None
     extra: dict = field(default_factory=dict)
 
-    def net(self) -> NetConfig:
+    def net(self, height: int = 64, width_px: int = 256) -> NetConfig:
+        """The networks for images of ``height`` x ``width_px`` (the dataset's lidar window)."""
         return NetConfig(width=self.width, conv=self.conv, attention=self.attention,
-                         loss=self.loss)
+                         loss=self.loss, height=height, width_px=width_px)
 
 
 PRESETS = {
@@ -101,7 +102,7 @@ class Trainer:
         self.data = DepthDataset(data_dir, "train")
         self.data_dir = str(data_dir)
         torch.manual_seed(cfg.seed)  # initial weights
-        net = cfg.net()
+        net = self.net_config = cfg.net(self.data.height, self.data.width)
         self.G, self.D = Generator(net), Discriminator(net)
         if cfg.channels_last:
             self.G = self.G.to(memory_format=torch.channels_last)
@@ -136,7 +137,7 @@ class Trainer:
         return {"step": self.step, "batch_counter": self.batch_counter,
                 "G": self.G.state_dict(), "D": self.D.state_dict(),
                 "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict(),
-                "train": asdict(self.cfg), "net": self.cfg.net().to_dict()}
+                "train": asdict(self.cfg), "net": self.net_config.to_dict()}
 
     def save(self) -> None:
         if self.rank != 0:
@@ -147,9 +148,9 @@ class Trainer:
 
     def _load(self, path: Path) -> None:
         st = torch.load(path, map_location="cpu", weights_only=False)
-        if st["net"] != self.cfg.net().to_dict():
+        if st["net"] != self.net_config.to_dict():
             raise InputError(f"checkpoint {path} has network {st['net']}, not "
-                             f"{self.cfg.net().to_dict()}; resume with the same preset")
+                             f"{self.net_config.to_dict()}; resume with the same preset")
         self.G.load_state_dict(st["G"])
         self.D.load_state_dict(st["D"])
         self.opt_g.load_state_dict(st["opt_g"])
