@@ -40,6 +40,7 @@ class DepthDataset:
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         self.pixel = np.concatenate([s.pixel.astype(np.int64) for s in shards])
         self.depth = np.concatenate([s.depth for s in shards]).astype(np.float32)
+        self.delta_range_m = np.concatenate([s.delta_range_m for s in shards])
         self.q = scale_ratio(self.conditions[:, 1])
 
     def __len__(self) -> int:
@@ -62,6 +63,18 @@ class DepthDataset:
         out[rows, self.pixel[pos]] = self.depth[pos]
         out = out.reshape(len(idx), H, W)
         return norm(out, self.q[idx]) if normalized else out
+
+    def standard_cloud(self, i: int) -> np.ndarray:
+        """The standard point cloud (n, 3) of sample ``i`` (observation frame, metres)."""
+        from apcg_core.frames import spherical_to_cartesian
+        from apcg_core.lidar import LidarParams
+        lidar = LidarParams.from_dict(self.header["lidar"])
+        sl = slice(self.offsets[i], self.offsets[i + 1])
+        row, col = np.divmod(self.pixel[sl], self.width)
+        a, b = lidar.cell_centre_angles(lidar.w_of_col(col), lidar.h_of_row(row),
+                                        self.conditions[i, 2])
+        r = self.conditions[i, 1] + self.delta_range_m[sl].astype(np.float64)
+        return spherical_to_cartesian(a, b, r)
 
     def batches_per_epoch(self, batch_size: int, world: int = 1) -> int:
         n = len(self) // (batch_size * world)
