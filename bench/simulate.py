@@ -26,9 +26,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from apcg_core.catalog.catalog import default_catalog  # noqa: E402
+from apcg_core.io.dataset import Shard  # noqa: E402
 from dataset_builder.build import ShardTask, _task, close_simulators, run_task, worker_init  # noqa: E402
 from dataset_builder.plan import ShardPlan, load_config, make_plan  # noqa: E402
-from dataset_builder.store import Shard  # noqa: E402
 
 
 def subset_tasks(plan, catalog, per_type: int, out: Path, backend: str, seed: int = 0):

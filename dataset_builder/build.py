@@ -19,12 +19,19 @@ import numpy as np
 from apcg_core import __version__
 from apcg_core.depth import DEPTH_SCALE, TARGET_FLOOR
 from apcg_core.errors import InputError
+from apcg_core.io.dataset import (
+    FORMAT_VERSION,
+    Shard,
+    json_bytes,
+    read_header,
+    sha256_file,
+    write_atomic,
+)
 from apcg_core.lidar import DEG
 
 from .backends import check_backend
 from .plan import Plan, ShardPlan, load_config, make_plan
 from .rays import bounding_radius
-from .store import FORMAT_VERSION, Shard, json_bytes, read_header, sha256_file, write_atomic
 
 
 def header_of(plan: Plan, catalog) -> dict:

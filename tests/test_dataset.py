@@ -14,11 +14,11 @@ import pytest
 from apcg_core.catalog.catalog import default_catalog
 from apcg_core.depth import norm, pc2im
 from apcg_core.errors import InputError
+from apcg_core.io.dataset import Shard
 from apcg_core.lidar import LidarParams
 from dataset_builder.build import build_dataset, dataset_info
 from dataset_builder.plan import load_config, make_plan
 from dataset_builder.simulate import Simulator
-from dataset_builder.store import Shard
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = str(ROOT / "tests" / "data" / "dataset_small.toml")

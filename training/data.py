@@ -15,7 +15,7 @@ import numpy as np
 from apcg_core.condition import scale_ratio
 from apcg_core.depth import BACKGROUND, norm
 from apcg_core.errors import InputError
-from dataset_builder.store import Shard, read_header
+from apcg_core.io.dataset import Shard, read_header
 
 
 class DepthDataset:

@@ -12,8 +12,8 @@ import torch
 
 from apcg_core.depth import TAU_DEFAULT
 from apcg_core.errors import InputError
+from apcg_core.io.dataset import read_header
 from apcg_core.nn import Generator, NetConfig
-from dataset_builder.store import read_header
 
 
 def export_onnx(g: Generator, path: Path) -> None:

@@ -115,7 +115,11 @@ class Trainer:
         self.total_steps = cfg.steps if cfg.steps is not None else int(
             math.ceil(cfg.epochs * self.bpe / cfg.n_critic))
         ckpt = self.run / "checkpoint.pt"
-        if self.run.exists() and (self.run / "train_config.json").exists() and not resume:
+        existed = (self.run / "train_config.json").exists()
+        if self.world > 1:  # every rank looks before rank 0 writes the run's files
+            import torch.distributed as dist
+            dist.barrier()
+        if existed and not resume:
             raise InputError(f"{self.run} already holds a training run; pass --resume to "
                              "continue it or choose another -o")
         if resume:

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from apcg_core.depth import BACKGROUND, norm
-from apcg_core.errors import InputError
+from ..depth import BACKGROUND, norm
+from ..errors import InputError
 
 FORMAT_VERSION = 1
 SHARD_KEYS = ("sample_id", "conditions", "nu", "offsets", "pixel", "depth", "delta_range_m",
