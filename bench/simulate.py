@@ -26,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from apcg_core.catalog.catalog import default_catalog  # noqa: E402
-from apcg_core.io.dataset import Shard  # noqa: E402
+from apcg_core.io.dataset import Shard, shard_agreement  # noqa: E402
 from dataset_builder.build import ShardTask, _task, close_simulators, run_task, worker_init  # noqa: E402
 from dataset_builder.plan import ShardPlan, load_config, make_plan  # noqa: E402
 
@@ -85,24 +85,17 @@ def raw_embree_rate(plan, catalog, tasks) -> tuple[float, int]:
 
 
 def agreement(ref_dir: Path, other_dir: Path, backend: str, n_tasks: int) -> dict:
-    same = total = equal = 0
+    tot = {"cells_common": 0, "cells_either": 0, "ranges_within_tol": 0}
     worst = 0.0
     for code in range(n_tasks):
-        a = Shard.load(ref_dir / f"embree-{code:03d}.npz")
-        b = Shard.load(other_dir / f"{backend}-{code:03d}.npz")
-        for i in range(len(a)):
-            xa, xb = slice(a.offsets[i], a.offsets[i + 1]), slice(b.offsets[i], b.offsets[i + 1])
-            da = dict(zip(a.pixel[xa].tolist(), a.delta_range_m[xa].astype(float), strict=True))
-            db = dict(zip(b.pixel[xb].tolist(), b.delta_range_m[xb].astype(float), strict=True))
-            common = set(da) & set(db)
-            same += len(common)
-            total += len(set(da) | set(db))
-            if common:
-                diff = [abs(da[k] - db[k]) for k in common]
-                worst = max(worst, max(diff))
-                equal += sum(x < 2e-3 for x in diff)
+        g = shard_agreement(Shard.load(ref_dir / f"embree-{code:03d}.npz"),
+                            Shard.load(other_dir / f"{backend}-{code:03d}.npz"))
+        for k in tot:
+            tot[k] += g[k]
+        worst = max(worst, g["max_range_diff_m"])
     # With quantized ranges a hit within micrometres of a bin edge may land in the next bin.
-    return {"cells_in_common": same / max(total, 1), "ranges_within_2mm": equal / max(same, 1),
+    return {"cells_in_common": tot["cells_common"] / max(tot["cells_either"], 1),
+            "ranges_within_2mm": tot["ranges_within_tol"] / max(tot["cells_common"], 1),
             "max_range_diff_m": worst}
 
 

@@ -293,7 +293,7 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
         bad = []
         for s in present:
             p = out / s["file"]
-            if p.name and sums.get(s["file"]) not in (None, sha256_file(p)):
+            if sums.get(s["file"]) not in (None, sha256_file(p)):
                 bad.append(s["file"])
                 continue
             sh = Shard.load(p)

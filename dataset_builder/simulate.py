@@ -8,7 +8,7 @@ time bin), whichever backend found it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -36,7 +36,6 @@ class SimResult:
     clipped: np.ndarray  # (N,) bool: the target's angular box reached beyond the window
     n_rays: np.ndarray  # (N,) rays cast (cells x k x k); 0 for the points backend
     backend: str = ""
-    extra: dict = field(default_factory=dict)
 
     def clouds(self) -> list[PointCloud]:
         return self.cloud.split(self.n_samples)

@@ -14,7 +14,7 @@ import pytest
 from apcg_core.catalog.catalog import default_catalog
 from apcg_core.depth import norm, pc2im
 from apcg_core.errors import InputError
-from apcg_core.io.dataset import Shard
+from apcg_core.io.dataset import Shard, shard_agreement
 from apcg_core.lidar import LidarParams
 from dataset_builder.build import build_dataset, dataset_info
 from dataset_builder.plan import load_config, make_plan
@@ -160,16 +160,9 @@ def _compare_datasets(a: Path, b: Path):
     for spec in head["shards"]:
         sa, sb = Shard.load(a / spec["file"]), Shard.load(b / spec["file"])
         assert np.array_equal(sa.conditions, sb.conditions)
-        for i in range(len(sa)):
-            xa = slice(sa.offsets[i], sa.offsets[i + 1])
-            xb = slice(sb.offsets[i], sb.offsets[i + 1])
-            da = dict(zip(sa.pixel[xa].tolist(), sa.delta_range_m[xa].astype(float), strict=True))
-            db = dict(zip(sb.pixel[xb].tolist(), sb.delta_range_m[xb].astype(float), strict=True))
-            common = set(da) & set(db)
-            same += len(common)
-            total += len(set(da) | set(db))
-            if common:
-                worst = max(worst, max(abs(da[k] - db[k]) for k in common))
+        g = shard_agreement(sa, sb)
+        same, total = same + g["cells_common"], total + g["cells_either"]
+        worst = max(worst, g["max_range_diff_m"])
     return same / total, worst, total
 
 

@@ -130,6 +130,28 @@ class Shard:
         return norm(self.depth_images(height, width), q)
 
 
+def shard_agreement(a: Shard, b: Shard, tol_m: float = 2e-3) -> dict:
+    """How two shards of the same samples (e.g. built by two backends) agree: cells (pixels) in
+    both / in either, and among the common ones how many ranges lie within ``tol_m``."""
+    if not np.array_equal(a.sample_id, b.sample_id):
+        raise InputError("shards hold different samples; compare shards of the same plan")
+    same = total = within = 0
+    worst = 0.0
+    for i in range(len(a)):
+        xa, xb = slice(a.offsets[i], a.offsets[i + 1]), slice(b.offsets[i], b.offsets[i + 1])
+        da = dict(zip(a.pixel[xa].tolist(), a.delta_range_m[xa].astype(float), strict=True))
+        db = dict(zip(b.pixel[xb].tolist(), b.delta_range_m[xb].astype(float), strict=True))
+        common = da.keys() & db.keys()
+        same += len(common)
+        total += len(da.keys() | db.keys())
+        if common:
+            diff = [abs(da[k] - db[k]) for k in common]
+            worst = max(worst, max(diff))
+            within += sum(x < tol_m for x in diff)
+    return {"cells_common": same, "cells_either": total, "ranges_within_tol": within,
+            "max_range_diff_m": worst}
+
+
 def read_header(directory) -> dict:
     path = Path(directory) / "dataset.json"
     if not path.exists():
