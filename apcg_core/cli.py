@@ -47,10 +47,21 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
         return 2
 
 
-def add_pose_arguments(p: argparse.ArgumentParser) -> None:
-    """The pose options shared by simulate / generate / condition (edges use degrees)."""
-    p.add_argument("--range-m", type=float, required=True, help="slant range r0 in metres")
-    p.add_argument("--elevation-deg", type=float, required=True, help="elevation beta0 (deg)")
+def print_mapping(mapping: dict, as_json: bool, key_width: int = 24) -> None:
+    """A command's result: indented JSON, or one aligned ``key value`` line per entry."""
+    if as_json:
+        print(json.dumps(mapping, indent=2))
+    else:
+        for k, v in mapping.items():
+            print(f"{k:{key_width}s} {v}")
+
+
+def add_pose_arguments(p: argparse.ArgumentParser, required: bool = True) -> None:
+    """The pose options shared by simulate / generate / condition (edges use degrees);
+    ``required`` False where a command can take its conditions from elsewhere (a CSV)."""
+    p.add_argument("--range-m", type=float, required=required, help="slant range r0 in metres")
+    p.add_argument("--elevation-deg", type=float, required=required,
+                   help="elevation beta0 (deg)")
     p.add_argument("--pitch-deg", type=float, default=0.0, help="pitch theta (deg, + nose up)")
     p.add_argument("--yaw-deg", type=float, default=0.0,
                    help="yaw phi (deg, + swings the nose toward +X)")
@@ -95,11 +106,7 @@ def _run_condition(args) -> int:
            "reference_range_m": cond.reference_range_m, "q": cond.q,
            "centre_observation_m": centre.round(6).tolist(),
            "centre_blender_lidar_local_m": observation_to_blender(centre).round(6).tolist()}
-    if args.json:
-        print(json.dumps(out, indent=2))
-    else:
-        for k, v in out.items():
-            print(f"{k:30s} {v}")
+    print_mapping(out, args.json, key_width=30)
     return 0
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .cloud import PointCloud
-from .condition import FIELDS, Condition, ConditionSpace, scale_ratio
+from .condition import Condition, ConditionSpace, scale_ratio
 from .depth import TAU_DEFAULT, denorm, im2pc
 from .errors import InputError
 from .lidar import LidarParams
@@ -192,5 +192,4 @@ def conditions_from_csv(path, model: APCGModel) -> np.ndarray:
     return np.array(rows)
 
 
-__all__ = ["APCGModel", "GenerationResult", "conditions_from_csv", "default_model_dir",
-           "FIELDS"]
+__all__ = ["APCGModel", "GenerationResult", "conditions_from_csv", "default_model_dir"]

@@ -15,7 +15,7 @@ def register_generate(sub) -> None:
     p.add_argument("--type", help="catalog type name or index (with the pose options)")
     p.add_argument("--conditions", help="CSV with type,range_m,elevation_deg,pitch_deg,"
                                         "yaw_deg,roll_deg (instead of --type and the pose)")
-    add_pose_arguments(p)
+    add_pose_arguments(p, required=False)  # not needed with --conditions
     p.add_argument("--count", type=int, default=1, help="clouds per condition (default 1)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="auto")
@@ -24,10 +24,6 @@ def register_generate(sub) -> None:
                    help=".ply / .npz / .las; several clouds go in one file, told apart by "
                         "their `sample` attribute")
     p.set_defaults(func=_run_generate)
-    # the pose options are required only without --conditions
-    for a in p._actions:
-        if a.dest in ("range_m", "elevation_deg"):
-            a.required = False
 
 
 def _run_generate(args) -> int:

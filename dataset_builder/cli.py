@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-from apcg_core.cli import add_pose_arguments
+from apcg_core.cli import add_pose_arguments, print_mapping
 
 from .backends import BACKENDS
 
@@ -116,12 +116,7 @@ def _run_build(args) -> int:
 
 def _run_info(args) -> int:
     from .build import dataset_info
-    info = dataset_info(args.directory, verify=args.verify)
-    if args.json:
-        print(json.dumps(info, indent=2))
-    else:
-        for k, v in info.items():
-            print(f"{k:24s} {v}")
+    print_mapping(dataset_info(args.directory, verify=args.verify), args.json)
     return 0
 
 

@@ -73,6 +73,10 @@ class AngularBoxes:
     h_hi: np.ndarray
     clipped: np.ndarray
 
+    def __getitem__(self, sl) -> AngularBoxes:
+        return AngularBoxes(self.w_lo[sl], self.w_hi[sl], self.h_lo[sl], self.h_hi[sl],
+                            self.clipped[sl])
+
     @property
     def n_cells(self) -> np.ndarray:
         return np.maximum(self.w_hi - self.w_lo + 1, 0) * np.maximum(self.h_hi - self.h_lo + 1, 0)

@@ -128,9 +128,7 @@ class Simulator:
                 np.cumsum(rays_per_sample[start:]), RAYS_PER_CALL, side="right")))
             stop = min(stop, n)
             sl = slice(start, stop)
-            sub = type(boxes)(boxes.w_lo[sl], boxes.w_hi[sl], boxes.h_lo[sl], boxes.h_hi[sl],
-                              boxes.clipped[sl])
-            rays = make_rays(table[sl], sub, lidar, m[sl], c[sl], radius, self.supersample)
+            rays = make_rays(table[sl], boxes[sl], lidar, m[sl], c[sl], radius, self.supersample)
             t = caster.cast(rays.origin, rays.direction, rays.t_max)
             t = t.reshape(-1, rays.k).min(axis=1)  # nearest of the k x k rays of each cell
             hit = np.isfinite(t)

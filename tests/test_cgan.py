@@ -114,7 +114,7 @@ def test_resume_continues_exactly(data, tmp_path):
     full = Trainer(data, tmp_path / "full", cfg, progress=False)
     full.fit()
     part = Trainer(data, tmp_path / "part", cfg, progress=False)
-    part.fit(max_seconds=0.0)  # stops after its first checkpoint... at step 1: force 3
+    part.fit(max_seconds=0.0)  # one step, then it stops and checkpoints
     while part.step < 3:
         part.train_step()
     part.save()

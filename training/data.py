@@ -15,7 +15,9 @@ import numpy as np
 from apcg_core.condition import scale_ratio
 from apcg_core.depth import BACKGROUND, norm
 from apcg_core.errors import InputError
+from apcg_core.frames import spherical_to_cartesian
 from apcg_core.io.dataset import Shard, read_header
+from apcg_core.lidar import LidarParams
 
 
 class DepthDataset:
@@ -42,6 +44,7 @@ class DepthDataset:
         self.depth = np.concatenate([s.depth for s in shards]).astype(np.float32)
         self.delta_range_m = np.concatenate([s.delta_range_m for s in shards])
         self.q = scale_ratio(self.conditions[:, 1])
+        self.lidar = LidarParams.from_dict(self.header["lidar"])
 
     def __len__(self) -> int:
         return len(self.sample_id)
@@ -66,9 +69,7 @@ class DepthDataset:
 
     def standard_cloud(self, i: int) -> np.ndarray:
         """The standard point cloud (n, 3) of sample ``i`` (observation frame, metres)."""
-        from apcg_core.frames import spherical_to_cartesian
-        from apcg_core.lidar import LidarParams
-        lidar = LidarParams.from_dict(self.header["lidar"])
+        lidar = self.lidar
         sl = slice(self.offsets[i], self.offsets[i + 1])
         row, col = np.divmod(self.pixel[sl], self.width)
         a, b = lidar.cell_centre_angles(lidar.w_of_col(col), lidar.h_of_row(row),
