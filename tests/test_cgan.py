@@ -123,6 +123,9 @@ def test_resume_continues_exactly(data, tmp_path):
     assert again.step == 3
     again.fit()
     assert _losses(tmp_path / "full")[3:] == _losses(tmp_path / "part")[-3:]
+    with open(tmp_path / "part" / "log.csv") as f:
+        clock = [float(r["seconds"]) for r in csv.DictReader(f)]
+    assert clock == sorted(clock) and clock[0] > 0  # training time accumulates across runs
     for a, b in zip(full.G.state_dict().values(), again.G.state_dict().values(), strict=True):
         assert torch.equal(a, b)
     with pytest.raises(Exception, match="already holds a training run"):

@@ -111,6 +111,7 @@ class Trainer:
         self.opt_d = torch.optim.Adam(self.D.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
         self.step = 0
         self.batch_counter = 0
+        self.seconds_before = 0.0  # training time of earlier runs (from the log, on resume)
         self.bpe = self.data.batches_per_epoch(cfg.batch_size, self.world)
         self.total_steps = cfg.steps if cfg.steps is not None else int(
             math.ceil(cfg.epochs * self.bpe / cfg.n_critic))
@@ -165,6 +166,8 @@ class Trainer:
             with open(log) as f:
                 rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
             self._write_log_rows(rows, mode="w")
+            if rows:  # the log's clock is training time summed over all runs
+                self.seconds_before = float(rows[-1]["seconds"])
 
     # --- logging ------------------------------------------------------------------------------
     def _write_log_rows(self, rows, mode="a") -> None:
@@ -260,7 +263,7 @@ class Trainer:
         last = {}
         while self.step < self.total_steps:
             row = self.train_step()
-            row["seconds"] = round(time.perf_counter() - t0, 3)
+            row["seconds"] = round(self.seconds_before + time.perf_counter() - t0, 3)
             last = row
             if self.rank == 0:
                 pending.append(row)
