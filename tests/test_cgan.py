@@ -5,6 +5,7 @@ import csv
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ from apcg_core.nn import Discriminator, Generator, NetConfig, SelfAttention
 from dataset_builder.build import build_dataset
 from training.data import DepthDataset
 from training.export import export_model
-from training.trainer import Trainer, config_from, gradient_penalty
+from training.trainer import Trainer, TrainingDiverged, config_from, gradient_penalty
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = str(ROOT / "tests" / "data" / "dataset_tiny_window.toml")
@@ -189,3 +190,19 @@ def test_onnx_matches_torch_and_generation_is_seeded(data, tmp_path):
     assert not np.array_equal(r1.images, r3.images)
     with pytest.raises(Exception, match="not one this model was trained on"):
         torch_m.type_code("A380-800")
+
+
+def test_snapshots_and_divergence_guard(data, tmp_path):
+    cfg = config_from("tiny", steps=60, checkpoint_every=10, keep_every=20, seed=2,
+                      diverge_gp=0.0)
+    Trainer(data, tmp_path / "ok", cfg, progress=False).fit()
+    assert [p.name for p in sorted((tmp_path / "ok" / "checkpoints").glob("*.pt"))] == [
+        "step-000020.pt", "step-000040.pt", "step-000060.pt"]
+    # a threshold no healthy run stays under: the guard stops at step 50, keeps step 40's state
+    tr = Trainer(data, tmp_path / "bad", replace(cfg, diverge_gp=1e-9), progress=False)
+    with pytest.raises(TrainingDiverged, match=r"diverged at step 50: mean gradient penalty.*"
+                                               r"step-000040\.pt"):
+        tr.fit()
+    saved = torch.load(tmp_path / "bad" / "checkpoint.pt", map_location="cpu",
+                       weights_only=False)
+    assert saved["step"] == 40

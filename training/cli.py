@@ -30,6 +30,10 @@ def register_train(sub) -> None:
     p.add_argument("--no-attention", action="store_true", help="ablation: no self-attention")
     p.add_argument("--bce", action="store_true", help="ablation: BCE loss, no Wasserstein/GP")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
+    p.add_argument("--keep-every", type=int,
+                   help="also keep a copy of the checkpoint every this many steps")
+    p.add_argument("--diverge-gp", type=float,
+                   help="stop when the gradient penalty's 50-step mean exceeds this (0: never)")
     p.add_argument("--max-minutes", type=float, help="stop (after a checkpoint) after this long")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--no-progress", action="store_true")
@@ -40,7 +44,8 @@ def _run_train(args) -> int:
     from .trainer import Trainer, config_from
     over = {"steps": args.steps, "epochs": args.epochs, "seed": args.seed, "width": args.width,
             "n_critic": args.n_critic, "batch_size": args.batch_size,
-            "checkpoint_every": args.checkpoint_every, "threads": args.threads}
+            "checkpoint_every": args.checkpoint_every, "threads": args.threads,
+            "keep_every": args.keep_every, "diverge_gp": args.diverge_gp}
     if args.no_conv:
         over["conv"] = False
     if args.no_attention:
@@ -55,7 +60,8 @@ def _run_train(args) -> int:
         if ck.exists():  # a resumed run keeps its own configuration
             saved = torch.load(ck, map_location="cpu", weights_only=False)["train"]
             saved.update({k: v for k, v in over.items() if v is not None and k in
-                          ("steps", "epochs", "checkpoint_every", "threads")})
+                          ("steps", "epochs", "checkpoint_every", "threads", "keep_every",
+                           "diverge_gp")})
             from .trainer import TrainConfig
             saved["betas"] = tuple(saved["betas"])
             cfg = TrainConfig(**saved)
