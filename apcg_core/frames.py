@@ -123,3 +123,63 @@ def target_centres(range_m, elevation) -> np.ndarray:
     """Batched :func:`target_centre`: (N, 3)."""
     return spherical_to_cartesian(0.0, np.atleast_1d(_f64(elevation)),
                                   np.atleast_1d(_f64(range_m)))
+
+
+def attitude_angles(r) -> tuple[float, float, float]:
+    """Inverse of :func:`attitude_matrix`: (yaw, pitch, roll) of a rotation matrix.
+
+    Pitch is in [-90, 90] deg; at exactly +-90 deg yaw and roll are not separable and roll is
+    returned as 0."""
+    r = _f64(r)
+    pitch = float(np.arcsin(np.clip(r[2, 0], -1.0, 1.0)))
+    if abs(r[2, 0]) > 1.0 - 1e-12:
+        return float(np.arctan2(-r[0, 1], r[1, 1])), pitch, 0.0
+    return float(np.arctan2(r[1, 0], r[0, 0])), pitch, float(np.arctan2(r[2, 1], r[2, 2]))
+
+
+def _azimuth_matrix(azimuth: float) -> np.ndarray:
+    """Turns the observation frame about its vertical (Y) by ``azimuth``: +Z toward +X."""
+    return _rot_y(azimuth)
+
+
+_SWAP = np.eye(3)[_SWAP_YZ]  # the observation <-> Blender lidar-local permutation
+
+
+def target_matrix_lidar_local(range_m: float, elevation: float, yaw: float, pitch: float,
+                              roll: float, azimuth: float = 0.0) -> np.ndarray:
+    """4 x 4 map from the body frame to the lidar object's local frame in Blender.
+
+    ``azimuth`` (not part of the condition) turns the target about the lidar's vertical: the
+    lidar tracks each target, so its observation frame is this one turned back by ``azimuth``.
+    """
+    out = np.eye(4)
+    turn = _azimuth_matrix(azimuth)
+    out[:3, :3] = _SWAP @ turn @ body_to_observation_matrix(yaw, pitch, roll)
+    out[:3, 3] = _SWAP @ turn @ target_centre(range_m, elevation)
+    return out
+
+
+def pose_from_lidar_local(matrix) -> dict:
+    """Inverse of :func:`target_matrix_lidar_local`: range, elevation, azimuth, yaw, pitch, roll
+    (metres, radians) of a body-to-lidar-local matrix (scale is removed)."""
+    m = _f64(matrix)
+    obs = _SWAP @ m[:3, 3]
+    azimuth, elevation, range_m = (float(v) for v in cartesian_to_spherical(obs))
+    if range_m <= 0.0 or not np.isfinite(range_m):
+        raise ValueError("the target sits on the lidar: no range or direction")
+    lin = _SWAP @ m[:3, :3]
+    lin = lin / np.linalg.norm(lin, axis=0, keepdims=True)
+    att = np.linalg.inv(M0) @ _azimuth_matrix(azimuth).T @ lin
+    yaw, pitch, roll = attitude_angles(att)
+    return {"range_m": range_m, "elevation": elevation, "azimuth": azimuth, "yaw": yaw,
+            "pitch": pitch, "roll": roll}
+
+
+def observation_to_lidar_local(points, azimuth: float = 0.0) -> np.ndarray:
+    """Points of a target's observation frame -> the lidar's local frame (see azimuth above)."""
+    return _f64(points) @ (_SWAP @ _azimuth_matrix(azimuth)).T
+
+
+def lidar_local_to_observation(points, azimuth: float = 0.0) -> np.ndarray:
+    """Inverse of :func:`observation_to_lidar_local`."""
+    return _f64(points) @ (_SWAP @ _azimuth_matrix(azimuth))

@@ -7,16 +7,21 @@ from hypothesis import strategies as st
 
 from apcg_core.frames import (
     M0,
+    attitude_angles,
     attitude_matrix,
     blender_to_observation,
     body_to_observation,
     body_to_observation_matrix,
     cartesian_to_spherical,
     directions_to_body,
+    lidar_local_to_observation,
     observation_to_blender,
     observation_to_body,
+    observation_to_lidar_local,
+    pose_from_lidar_local,
     spherical_to_cartesian,
     target_centre,
+    target_matrix_lidar_local,
 )
 
 DEG = math.pi / 180
@@ -141,3 +146,34 @@ def test_blender_axes():
     # a right-handed Blender frame: x cross y = z must hold for the mapped basis
     ex, ey, ez = (observation_to_blender(v) for v in np.eye(3))
     np.testing.assert_array_equal(np.cross(ex, ez), ey)  # X x Z(obs) -> up in Blender
+
+
+turn = st.floats(-3.1, 3.1)
+
+
+@given(st.floats(100.0, 18000.0), st.floats(-1.5, 1.5), turn, st.floats(-1.55, 1.55), turn,
+       turn)
+def test_target_matrix_and_pose_round_trip(r0, b0, yaw, pitch, roll, az):
+    m = target_matrix_lidar_local(r0, b0, yaw, pitch, roll, az)
+    assert np.linalg.det(m[:3, :3]) == pytest.approx(1.0, abs=1e-9)  # a proper rotation
+    p = pose_from_lidar_local(m)
+    got = [p[k] for k in ("range_m", "elevation", "azimuth", "yaw", "pitch", "roll")]
+    assert np.allclose(got, [r0, b0, az, yaw, pitch, roll], rtol=0, atol=1e-8)
+    body = np.array([[10.0, 2.0, -1.0], [-3.0, 5.0, 0.5]])
+    local = observation_to_lidar_local(body_to_observation(body, r0, b0, yaw, pitch, roll), az)
+    assert np.allclose(local, body @ m[:3, :3].T + m[:3, 3], atol=1e-7)
+    assert np.allclose(lidar_local_to_observation(local, az),
+                       body_to_observation(body, r0, b0, yaw, pitch, roll), atol=1e-7)
+
+
+def test_target_matrix_axes():
+    # zero azimuth and attitude: the nose points back at the lidar (local -Y), up is local +Z,
+    # the centre sits along the lidar's line of sight (+Y) at the elevation
+    m = target_matrix_lidar_local(1000.0, 0.1, 0.0, 0.0, 0.0)
+    assert np.allclose(m[:3, 0], [0, -1, 0]) and np.allclose(m[:3, 2], [0, 0, 1])
+    assert np.allclose(m[:3, 3], [0, 1000 * math.cos(0.1), 1000 * math.sin(0.1)])
+    # +azimuth swings the target toward the lidar's right (+x)
+    assert target_matrix_lidar_local(1000.0, 0.0, 0.0, 0.0, 0.0, 0.2)[0, 3] > 0
+    assert attitude_angles(attitude_matrix(0.3, -0.2, 0.1)) == pytest.approx((0.3, -0.2, 0.1))
+    with pytest.raises(ValueError, match="sits on the lidar"):
+        pose_from_lidar_local(np.eye(4))
