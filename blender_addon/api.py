@@ -1,0 +1,174 @@
+"""Everything the APCG panel does, as functions for scripts and headless Blender.
+
+    from blender_addon import api          # or: from bl_ext.user_default.apcg import api
+    lidar = api.add_lidar()
+    jet = api.add_aircraft(lidar, "A320neo", range_m=4500, elevation_deg=3.4, yaw_deg=13.2)
+    cloud = api.scan(lidar)[0]             # the lidar's view, by Blender's ray casting
+    fake = api.generate(jet, seed=0)       # the same condition through the APCG generator
+    api.export_cloud(cloud, "/tmp/a320neo.ply")
+
+Scans equal `apcg simulate --backend blender` for the same condition: each target is cast in its
+own body frame from its double-precision pose (the lidar tracks the target: its window is
+centred on it), then points that other scene geometry hides are removed when ``occlusion`` is
+on, by one ray from the lidar per point.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from apcg_core.errors import InputError
+
+from .clouds import (cloud_from_object, cloud_object, export_cloud, import_cloud, is_cloud,
+                     set_point_radius)
+from .objects import (INDEX_KEY, LENGTH_KEY, TYPE_KEY, add_aircraft, add_lidar, body_mesh,
+                      condition_row, is_lidar, is_target, lidar_of, lidar_params, make_target,
+                      pose_of, set_pose, targets_of)
+
+__all__ = ["add_lidar", "add_aircraft", "make_target", "scan", "scan_target", "generate",
+           "import_cloud", "export_cloud", "cloud_from_object", "pose_of", "set_pose",
+           "targets_of", "is_lidar", "is_target", "is_cloud", "set_point_radius", "load_model"]
+
+# Hits this much nearer than a point's range, on other geometry, hide the point.
+OCCLUSION_MARGIN_M = 0.5
+
+
+def _lidar_and_targets(lidar, targets):
+    if targets is None:
+        if not is_lidar(lidar):
+            raise InputError(f"{getattr(lidar, 'name', lidar)!r} is not an APCG lidar")
+        targets = targets_of(lidar)
+    targets = list(targets)
+    if not targets:
+        raise InputError("no targets to scan: add one with apcg.add_aircraft")
+    for t in targets:
+        if not is_target(t):
+            raise InputError(f"{t.name!r} is not an APCG target")
+        if lidar_of(t) is None:
+            raise InputError(f"target {t.name!r} is not parented to an APCG lidar")
+    return targets
+
+
+def scan_target(target, backend: str = "blender", quantize: bool = True, supersample: int = 1,
+                occlusion: bool = True, simulator=None, name: str | None = None):
+    """The lidar's view of one target as a new cloud object (``None`` if nothing is seen)."""
+    from dataset_builder.simulate import Simulator
+    lidar = lidar_of(target)
+    params = lidar_params(lidar)
+    table = condition_row(target)
+    pose = pose_of(target)
+    own = simulator is None
+    sim = simulator or Simulator(backend, params, quantize=quantize, supersample=supersample)
+    try:
+        res = sim.simulate(body_mesh(target), table, key=("blender-object", target.name))
+    finally:
+        if own:
+            sim.close()
+    cloud = res.cloud
+    hidden = 0
+    if occlusion and len(cloud):
+        keep = _unoccluded(lidar, target, cloud.xyz, pose["azimuth"])
+        hidden = int((~keep).sum())
+        cloud = cloud.select(keep)
+    meta = {"type": target.get(TYPE_KEY), "catalog_index": int(target.get(INDEX_KEY, -1)),
+            "condition": {"range_m": pose["range_m"],
+                          "elevation_deg": math.degrees(pose["elevation"]),
+                          "pitch_deg": math.degrees(pose["pitch"]),
+                          "yaw_deg": math.degrees(pose["yaw"]),
+                          "roll_deg": math.degrees(pose["roll"])},
+            "azimuth_deg": math.degrees(pose["azimuth"]), "backend": sim.backend,
+            "quantized": sim.quantize, "supersample": sim.supersample,
+            "lidar": params.to_dict(), "depth_length_m": float(target.get(LENGTH_KEY, 0.0)),
+            "clipped": bool(res.clipped[0]), "occluded_points": hidden}
+    return cloud_object(cloud, name or f"{target.name} scan", lidar=lidar, source="scan",
+                        r0=pose["range_m"], beta0=pose["elevation"], azimuth=pose["azimuth"],
+                        meta=meta)
+
+
+def scan(lidar, targets=None, backend: str = "blender", quantize: bool = True,
+         supersample: int = 1, occlusion: bool = True, progress=None) -> list:
+    """Scan every target of ``lidar`` (or ``targets``): one cloud object per target.
+
+    ``progress(i, n)`` is called after each target; returning False stops early."""
+    from dataset_builder.simulate import Simulator
+    targets = _lidar_and_targets(lidar, targets)
+    out = []
+    with Simulator(backend, lidar_params(lidar_of(targets[0])), quantize=quantize,
+                   supersample=supersample) as sim:
+        for i, t in enumerate(targets):
+            if lidar_params(lidar_of(t)) != sim.lidar:
+                raise InputError("targets of one scan must share a lidar's parameters")
+            out.append(scan_target(t, occlusion=occlusion, simulator=sim))
+            if progress is not None and progress(i + 1, len(targets)) is False:
+                break
+    return out
+
+
+def _unoccluded(lidar, target, xyz_obs: np.ndarray, azimuth: float) -> np.ndarray:
+    """True for points no other visible scene geometry hides from the lidar."""
+    import bpy
+    from mathutils import Vector
+
+    from apcg_core.frames import observation_to_lidar_local
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    scene = bpy.context.scene
+    world = np.array([list(r) for r in lidar.matrix_world], dtype=np.float64)
+    local = observation_to_lidar_local(xyz_obs, azimuth)
+    pts = local @ world[:3, :3].T + world[:3, 3]
+    origin = Vector(world[:3, 3].tolist())
+    keep = np.ones(len(pts), bool)
+    for i, p in enumerate(pts):
+        d = p - world[:3, 3]
+        dist = float(np.linalg.norm(d))
+        limit = dist - OCCLUSION_MARGIN_M
+        start = origin
+        while limit > 0:  # step past hits on the target itself (its far side can't hide it)
+            hit, loc, _n, _f, obj, _m = scene.ray_cast(depsgraph, start, Vector((d / dist)
+                                                                                .tolist()),
+                                                       distance=limit)
+            if not hit:
+                break
+            if obj is None or obj.original != target:
+                keep[i] = False
+                break
+            step = (loc - start).length + 1e-3
+            start = loc + Vector((d / dist).tolist()) * 1e-3
+            limit -= step
+    return keep
+
+
+def load_model(path=None, runtime: str = "auto"):
+    from apcg_core.generation import APCGModel
+    return APCGModel(path, runtime=runtime)
+
+
+def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "auto",
+             name: str | None = None):
+    """APCG point clouds for a target's condition (the default model unless ``model``, a model
+    directory or an APCGModel, is given): one object, ``count`` samples (attribute ``sample``).
+    """
+    from apcg_core.generation import APCGModel
+    if not is_target(target):
+        raise InputError(f"{getattr(target, 'name', target)!r} is not an APCG target")
+    if not isinstance(model, APCGModel):
+        model = APCGModel(model, runtime=runtime)
+    pose = pose_of(target)
+    idx = int(target.get(INDEX_KEY, -1))
+    key = idx if idx >= 0 else str(target.get(TYPE_KEY, target.name))
+    row = model.condition_row(key, pose["range_m"], pose["elevation"], pose["pitch"],
+                              pose["yaw"], pose["roll"])
+    res = model.generate(row[None], count=count, seed=seed)
+    meta = {"model": str(model.directory), "runtime": model.runtime, "seed": seed,
+            "count": count, "type": target.get(TYPE_KEY),
+            "condition": {"range_m": pose["range_m"],
+                          "elevation_deg": math.degrees(pose["elevation"]),
+                          "pitch_deg": math.degrees(pose["pitch"]),
+                          "yaw_deg": math.degrees(pose["yaw"]),
+                          "roll_deg": math.degrees(pose["roll"])},
+            "azimuth_deg": math.degrees(pose["azimuth"]), "tau": model.tau,
+            "lidar": model.lidar.to_dict()}
+    return cloud_object(res.cloud, name or f"{target.name} APCG", lidar=lidar_of(target),
+                        source="generated", r0=pose["range_m"], beta0=pose["elevation"],
+                        azimuth=pose["azimuth"], meta=meta)

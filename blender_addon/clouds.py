@@ -1,0 +1,223 @@
+"""Point clouds as Blender objects: vertex-only meshes with per-point attributes, shown as
+points through one shared Geometry Nodes group with a range-coloured material (renders in
+Cycles and EEVEE).
+
+A cloud object is parented to its lidar. Its origin sits at the cloud's centre and its vertices
+are relative to it, so float32 vertex coordinates keep sub-millimetre detail at 18 km; the
+origin, r0 and the frame are kept as double-precision custom properties, and export rebuilds
+the observation-frame cloud in float64 from them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import bpy
+import numpy as np
+
+from apcg_core.cloud import PointCloud
+from apcg_core.errors import InputError
+from apcg_core.frames import lidar_local_to_observation, observation_to_lidar_local
+from apcg_core.io.clouds import read_cloud, write_cloud
+
+CLOUD_KEY = "apcg_cloud"  # JSON: source, r0, beta0, azimuth, origin (lidar-local, m), meta
+GROUP_NAME = "APCG Points"
+MATERIAL_NAME = "APCG Range"
+SOURCES = {"scan": 0, "generated": 1, "imported": 2}
+
+
+def is_cloud(obj) -> bool:
+    return obj is not None and obj.get(CLOUD_KEY) is not None
+
+
+def cloud_info(obj) -> dict:
+    return json.loads(obj[CLOUD_KEY])
+
+
+# --- the shared display -------------------------------------------------------------------------
+def _socket(sockets, *names: str):
+    """The first enabled socket called one of ``names`` (Blender renames some: Fac, Factor)."""
+    for name in names:
+        for s in sockets:
+            if s.name == name and getattr(s, "enabled", True):
+                return s
+    raise RuntimeError(f"node has no socket {names}: {[s.name for s in sockets]}")
+
+
+def _group_input(tree, name: str, socket_type: str, default=None) -> str:
+    """Adds a group input; returns its identifier (what a modifier is keyed by)."""
+    if hasattr(tree, "interface"):  # Blender 4.0+
+        sock = tree.interface.new_socket(name=name, in_out="INPUT", socket_type=socket_type)
+    else:
+        sock = tree.inputs.new(socket_type, name)
+    if default is not None:
+        sock.default_value = default
+    return sock.identifier
+
+
+def _group_output(tree, name: str, socket_type: str) -> None:
+    if hasattr(tree, "interface"):
+        tree.interface.new_socket(name=name, in_out="OUTPUT", socket_type=socket_type)
+    else:
+        tree.outputs.new(socket_type, name)
+
+
+def range_material():
+    """Emission coloured by the per-point ``range_norm`` attribute (near: yellow, far: blue)."""
+    mat = bpy.data.materials.get(MATERIAL_NAME)
+    if mat is not None:
+        return mat
+    mat = bpy.data.materials.new(MATERIAL_NAME)
+    mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    attr = nt.nodes.new("ShaderNodeAttribute")
+    attr.attribute_type = "GEOMETRY"
+    attr.attribute_name = "range_norm"
+    ramp = nt.nodes.new("ShaderNodeValToRGB")
+    ramp.color_ramp.elements[0].color = (1.0, 0.85, 0.1, 1.0)
+    ramp.color_ramp.elements[1].color = (0.05, 0.25, 1.0, 1.0)
+    emit = nt.nodes.new("ShaderNodeEmission")
+    _socket(emit.inputs, "Strength").default_value = 2.0
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    nt.links.new(_socket(attr.outputs, "Fac", "Factor"),
+                 _socket(ramp.inputs, "Fac", "Factor"))
+    nt.links.new(_socket(ramp.outputs, "Color"), _socket(emit.inputs, "Color"))
+    nt.links.new(_socket(emit.outputs, "Emission"), _socket(out.inputs, "Surface"))
+    mat.diffuse_color = (1.0, 0.6, 0.1, 1.0)  # solid viewport colour
+    return mat
+
+
+def points_group():
+    """The one node group every cloud uses: Mesh to Points (radius) + Set Material."""
+    tree = bpy.data.node_groups.get(GROUP_NAME)
+    if tree is not None:
+        return tree
+    tree = bpy.data.node_groups.new(GROUP_NAME, "GeometryNodeTree")
+    _group_input(tree, "Geometry", "NodeSocketGeometry")
+    _group_input(tree, "Radius", "NodeSocketFloat", 0.1)
+    _group_output(tree, "Geometry", "NodeSocketGeometry")
+    nodes, links = tree.nodes, tree.links
+    gin, gout = nodes.new("NodeGroupInput"), nodes.new("NodeGroupOutput")
+    to_points = nodes.new("GeometryNodeMeshToPoints")
+    set_mat = nodes.new("GeometryNodeSetMaterial")
+    _socket(set_mat.inputs, "Material").default_value = range_material()
+    links.new(_socket(gin.outputs, "Geometry"), _socket(to_points.inputs, "Mesh"))
+    links.new(_socket(gin.outputs, "Radius"), _socket(to_points.inputs, "Radius"))
+    links.new(_socket(to_points.outputs, "Points"), _socket(set_mat.inputs, "Geometry"))
+    links.new(_socket(set_mat.outputs, "Geometry"), _socket(gout.inputs, "Geometry"))
+    return tree
+
+
+def _radius_identifier(tree) -> str:
+    if hasattr(tree, "interface"):
+        return next(i.identifier for i in tree.interface.items_tree
+                    if getattr(i, "in_out", None) == "INPUT" and i.name == "Radius")
+    return tree.inputs["Radius"].identifier
+
+
+def set_point_radius(obj, radius: float) -> None:
+    mod = obj.modifiers.get("APCG points")
+    mod[_radius_identifier(mod.node_group)] = float(radius)
+    obj.update_tag()
+
+
+# --- cloud <-> object ---------------------------------------------------------------------------
+def _add_attr(me, name: str, kind: str, values) -> None:
+    attr = me.attributes.new(name, kind, "POINT")
+    attr.data.foreach_set("value", np.ascontiguousarray(values).ravel())
+
+
+def cloud_object(cloud: PointCloud, name: str, lidar=None, source: str = "scan",
+                 r0: float | None = None, beta0: float = 0.0, azimuth: float = 0.0,
+                 meta: dict | None = None, radius: float | None = None, collection=None):
+    """A vertex-only mesh object for ``cloud`` (observation frame of a target seen at
+    ``azimuth``), parented to ``lidar`` when given, displayed as points."""
+    if source not in SOURCES:
+        raise InputError(f"source must be one of {sorted(SOURCES)}, got {source!r}")
+    local = observation_to_lidar_local(cloud.xyz, azimuth)
+    origin = local.mean(axis=0) if len(local) else np.zeros(3)
+    rng = cloud.range_m
+    r0 = float(np.median(rng)) if r0 is None and len(rng) else float(r0 or 0.0)
+    me = bpy.data.meshes.new(name)
+    me.vertices.add(len(local))
+    me.vertices.foreach_set("co", (local - origin).astype(np.float32).ravel())
+    lo, hi = (float(rng.min()), float(rng.max())) if len(rng) else (0.0, 1.0)
+    _add_attr(me, "range", "FLOAT", rng.astype(np.float32))
+    _add_attr(me, "delta_range", "FLOAT", (rng - r0).astype(np.float32))
+    _add_attr(me, "range_norm", "FLOAT", ((rng - lo) / max(hi - lo, 1e-9)).astype(np.float32))
+    _add_attr(me, "cell_w", "INT", cloud.cell_w.astype(np.int32))
+    _add_attr(me, "cell_h", "INT", cloud.cell_h.astype(np.int32))
+    sample = cloud.sample if cloud.sample is not None else np.zeros(len(local), np.int64)
+    _add_attr(me, "sample", "INT", sample.astype(np.int32))
+    _add_attr(me, "source", "INT", np.full(len(local), SOURCES[source], np.int32))
+    me.update()
+    obj = bpy.data.objects.new(name, me)
+    obj[CLOUD_KEY] = json.dumps({"source": source, "r0": r0, "beta0": float(beta0),
+                                 "azimuth": float(azimuth), "origin": origin.tolist(),
+                                 "has_sample": cloud.sample is not None, "meta": meta or {}})
+    (collection or (lidar.users_collection[0] if lidar is not None and lidar.users_collection
+                    else bpy.context.scene.collection)).objects.link(obj)
+    if lidar is not None:
+        obj.parent = lidar
+        obj.matrix_parent_inverse.identity()
+    obj.location = origin
+    mod = obj.modifiers.new("APCG points", "NODES")
+    mod.node_group = points_group()
+    if radius is None:  # about half a cell across at the cloud's range
+        cell = math.radians((meta or {}).get("lidar", {}).get("r_alpha_deg", 0.004))
+        radius = max(0.45 * cell * max(r0, 1.0), 0.005)
+    set_point_radius(obj, radius)
+    obj.data.materials.append(range_material())
+    return obj
+
+
+def _get_attr(me, name: str, dtype, n: int):
+    a = me.attributes.get(name)
+    if a is None:
+        return None
+    out = np.zeros(n, dtype)
+    a.data.foreach_get("value", out)
+    return out
+
+
+def cloud_from_object(obj) -> tuple[PointCloud, dict]:
+    """The observation-frame cloud (float64) of a cloud object, and its info."""
+    if not is_cloud(obj) or obj.type != "MESH":
+        raise InputError(f"{obj.name!r} is not an APCG point cloud object")
+    info = cloud_info(obj)
+    me = obj.data
+    n = len(me.vertices)
+    co = np.zeros(3 * n, np.float32)
+    me.vertices.foreach_get("co", co)
+    local = co.reshape(-1, 3).astype(np.float64) + np.asarray(info["origin"])
+    xyz = lidar_local_to_observation(local, info["azimuth"])
+    delta = _get_attr(me, "delta_range", np.float32, n)
+    rng = (info["r0"] + delta.astype(np.float64)) if delta is not None else np.linalg.norm(
+        xyz, axis=1)
+    w = _get_attr(me, "cell_w", np.int32, n)
+    h = _get_attr(me, "cell_h", np.int32, n)
+    sample = _get_attr(me, "sample", np.int32, n) if info.get("has_sample") else None
+    zeros = np.zeros(n, np.int32)
+    return PointCloud(xyz, rng, zeros if w is None else w, zeros if h is None else h,
+                      sample), info
+
+
+def import_cloud(path, lidar=None, name: str | None = None):
+    """A PLY / NPZ / LAS cloud written by apcg (or any PLY / LAS with x, y, z) as an object."""
+    from pathlib import Path
+    cloud, meta = read_cloud(path)
+    cond = meta.get("condition") or {}
+    r0 = cond.get("range_m")
+    beta0 = math.radians(cond["elevation_deg"]) if "elevation_deg" in cond else 0.0
+    return cloud_object(cloud, name or Path(path).stem, lidar=lidar, source="imported",
+                        r0=r0, beta0=beta0, meta=meta)
+
+
+def export_cloud(obj, path) -> str:
+    """Write a cloud object to PLY / NPZ / LAS (by extension), observation frame, float64."""
+    cloud, info = cloud_from_object(obj)
+    meta = dict(info.get("meta") or {})
+    meta.update({"exported_from_blender": obj.name, "source": info["source"]})
+    return str(write_cloud(path, cloud, meta))

@@ -1,0 +1,308 @@
+"""Operators (bpy.ops.apcg.*). Each is a thin shell over :mod:`.api`: scripts get the same
+results by calling the api functions or the operators.
+
+Long work (scan, generate) runs in chunks of one target from a timer when started from the UI
+(invoke): a progress bar, Esc cancels and removes what was made. Called from a script or
+headless (execute), it runs to the end at once. Errors are reported in Blender's UI.
+
+No `from __future__ import annotations` here: Blender reads the annotations as objects."""
+
+import traceback
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy_extras.io_utils import ExportHelper, ImportHelper
+
+from apcg_core.errors import APCGError
+
+from . import api
+from .objects import is_lidar, lidar_of, targets_of
+
+_TYPE_ITEMS = []  # kept alive: Blender does not copy enum items returned by a callback
+
+
+def _type_items(self, context):
+    if not _TYPE_ITEMS:
+        from apcg_core.catalog import default_catalog
+        for t in default_catalog():
+            _TYPE_ITEMS.append((t.name, t.name, f"{t.kind}, {t.category}, {t.length_m:g} m"))
+    return _TYPE_ITEMS
+
+
+def _report_error(op, exc: Exception) -> set:
+    if isinstance(exc, APCGError):
+        op.report({"ERROR"}, str(exc))
+    else:
+        traceback.print_exc()
+        op.report({"ERROR"}, f"{type(exc).__name__}: {exc}")
+    return {"CANCELLED"}
+
+
+def _active_lidar(context, create: bool = False):
+    obj = context.active_object
+    lidar = lidar_of(obj) if obj is not None else None
+    if lidar is None:
+        lidar = next((o for o in context.scene.objects if is_lidar(o)), None)
+    if lidar is None and create:
+        lidar = api.add_lidar()
+    return lidar
+
+
+def _select_only(context, obj) -> None:
+    for o in context.view_layer.objects:
+        o.select_set(False)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
+
+
+class APCG_OT_add_lidar(bpy.types.Operator):
+    """Add an SPC-Lidar: an Empty looking along its local +Y, carrying the lidar parameters"""
+    bl_idname = "apcg.add_lidar"
+    bl_label = "Add APCG Lidar"
+    bl_options = {"REGISTER", "UNDO"}
+
+    r_alpha_deg: FloatProperty(name="R alpha (deg)", default=0.004, min=1e-6, precision=5)
+    r_beta_deg: FloatProperty(name="R beta (deg)", default=0.0076, min=1e-6, precision=5)
+    range_resolution_m: FloatProperty(name="R r (m)", default=0.15, min=1e-4, precision=3)
+    width: IntProperty(name="W", default=256, min=2, max=16384)
+    height: IntProperty(name="H", default=64, min=2, max=16384)
+
+    def execute(self, context):
+        from apcg_core.lidar import LidarParams
+        try:
+            params = LidarParams.from_degrees(round(self.r_alpha_deg, 7),
+                                              round(self.r_beta_deg, 7),
+                                              round(self.range_resolution_m, 7), self.width,
+                                              self.height)
+            obj = api.add_lidar(params=params, location=tuple(context.scene.cursor.location))
+        except Exception as exc:  # noqa: BLE001 - shown in the UI
+            return _report_error(self, exc)
+        _select_only(context, obj)
+        return {"FINISHED"}
+
+
+class APCG_OT_add_aircraft(bpy.types.Operator):
+    """Add a catalog aircraft or drone as a target of the active lidar, at a pose"""
+    bl_idname = "apcg.add_aircraft"
+    bl_label = "Add APCG Aircraft"
+    bl_options = {"REGISTER", "UNDO"}
+    bl_property = "type_name"
+
+    type_name: EnumProperty(name="Type", items=_type_items)
+    range_m: FloatProperty(name="Range (m)", default=4500.0, min=1.0, max=100000.0)
+    elevation_deg: FloatProperty(name="Elevation (deg)", default=3.4, min=-89.9, max=89.9)
+    pitch_deg: FloatProperty(name="Pitch (deg)", default=0.0, min=-90.0, max=90.0)
+    yaw_deg: FloatProperty(name="Yaw (deg)", default=0.0, min=-180.0, max=180.0)
+    roll_deg: FloatProperty(name="Roll (deg)", default=0.0, min=-180.0, max=180.0)
+    azimuth_deg: FloatProperty(name="Azimuth (deg)", default=0.0, min=-180.0, max=180.0)
+
+    def execute(self, context):
+        try:
+            lidar = _active_lidar(context, create=True)
+            obj = api.add_aircraft(lidar, self.type_name, self.range_m, self.elevation_deg,
+                                   self.pitch_deg, self.yaw_deg, self.roll_deg,
+                                   self.azimuth_deg)
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        _select_only(context, obj)
+        return {"FINISHED"}
+
+
+class _ChunkedOperator:
+    """Runs ``self._work`` (a list of callables, one per chunk) from a timer with progress."""
+
+    _timer = None
+
+    def _prepare(self, context) -> list:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def execute(self, context):
+        try:
+            self._made = []
+            for job in self._prepare(context):
+                self._made.append(job())
+        except Exception as exc:  # noqa: BLE001
+            self._cleanup()
+            return _report_error(self, exc)
+        self.report({"INFO"}, f"{self.bl_label}: {len(self._made)} point cloud(s)")
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        if bpy.app.background:
+            return self.execute(context)
+        try:
+            self._jobs = self._prepare(context)
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        self._made, self._done = [], 0
+        wm = context.window_manager
+        wm.progress_begin(0, len(self._jobs))
+        self._timer = wm.event_timer_add(0.01, window=context.window)
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        wm = context.window_manager
+        if event.type == "ESC":
+            self._finish(context)
+            self._cleanup()
+            self.report({"WARNING"}, f"{self.bl_label} cancelled")
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        try:
+            self._made.append(self._jobs[self._done]())
+        except Exception as exc:  # noqa: BLE001
+            self._finish(context)
+            self._cleanup()
+            return _report_error(self, exc)
+        self._done += 1
+        wm.progress_update(self._done)
+        if context.area is not None:
+            context.area.header_text_set(f"{self.bl_label}: {self._done}/{len(self._jobs)} "
+                                         "(Esc cancels)")
+        if self._done < len(self._jobs):
+            return {"RUNNING_MODAL"}
+        self._finish(context)
+        self.report({"INFO"}, f"{self.bl_label}: {len(self._made)} point cloud(s)")
+        return {"FINISHED"}
+
+    def _finish(self, context) -> None:
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        if context.area is not None:
+            context.area.header_text_set(None)
+
+    def _cleanup(self) -> None:
+        for obj in getattr(self, "_made", []):
+            if obj is not None:
+                data = obj.data
+                bpy.data.objects.remove(obj)
+                if data is not None and data.users == 0:
+                    bpy.data.meshes.remove(data)
+        self._made = []
+
+
+def _targets(context, lidar, selected_only: bool):
+    if lidar is None:
+        raise APCGError("no APCG lidar in the scene: add one with Add APCG Lidar")
+    ts = targets_of(lidar, selected_only=selected_only)
+    if not ts:
+        raise APCGError(f"lidar {lidar.name!r} has no {'selected ' if selected_only else ''}"
+                        "targets: add one with Add APCG Aircraft")
+    return ts
+
+
+class APCG_OT_scan(_ChunkedOperator, bpy.types.Operator):
+    """Simulate the lidar on its targets with Blender's ray casting: one cloud per target"""
+    bl_idname = "apcg.scan"
+    bl_label = "APCG Scan"
+    bl_options = {"REGISTER", "UNDO"}
+
+    selected_only: BoolProperty(name="Selected targets only", default=False)
+    occlusion: BoolProperty(name="Occlusion by other objects", default=True)
+    quantize: BoolProperty(name="Quantize ranges", default=True)
+    supersample: IntProperty(name="Rays per cell (k x k)", default=1, min=1, max=8)
+    backend: EnumProperty(name="Ray casting", items=[
+        ("blender", "Geometry Nodes", "One Geometry Nodes Raycast evaluation per target"),
+        ("blender-bvh", "BVH tree", "mathutils BVHTree.ray_cast, one ray at a time")])
+
+    def _prepare(self, context):
+        from dataset_builder.simulate import Simulator
+
+        from .objects import lidar_params
+        lidar = _active_lidar(context)
+        ts = _targets(context, lidar, self.selected_only)
+        sim = Simulator(self.backend, lidar_params(lidar), quantize=self.quantize,
+                        supersample=self.supersample)
+
+        def job(t, last):
+            def run():
+                try:
+                    return api.scan_target(t, occlusion=self.occlusion, simulator=sim)
+                finally:
+                    if last:
+                        sim.close()
+            return run
+        return [job(t, i == len(ts) - 1) for i, t in enumerate(ts)]
+
+
+class APCG_OT_generate(_ChunkedOperator, bpy.types.Operator):
+    """Generate point clouds for the targets' conditions with the APCG generator"""
+    bl_idname = "apcg.generate"
+    bl_label = "APCG Generate"
+    bl_options = {"REGISTER", "UNDO"}
+
+    model_dir: StringProperty(name="Model", subtype="DIR_PATH", default="",
+                              description="A model directory (empty: the default model)")
+    count: IntProperty(name="Samples", default=1, min=1, max=10000)
+    seed: IntProperty(name="Seed", default=0, min=0)
+    selected_only: BoolProperty(name="Selected targets only", default=True)
+    runtime: EnumProperty(name="Runtime", items=[
+        ("auto", "Auto", "torch when installed, else onnxruntime"),
+        ("onnx", "onnxruntime", ""), ("torch", "torch", "")])
+
+    def _prepare(self, context):
+        lidar = _active_lidar(context)
+        ts = _targets(context, lidar, self.selected_only)
+        model = api.load_model(bpy.path.abspath(self.model_dir) or None, self.runtime)
+        return [(lambda t=t: api.generate(t, model, self.count, self.seed)) for t in ts]
+
+
+class APCG_OT_import_cloud(bpy.types.Operator, ImportHelper):
+    """Import a point cloud (PLY, NPZ, LAS) as points under the active lidar"""
+    bl_idname = "apcg.import_cloud"
+    bl_label = "Import APCG Cloud"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filter_glob: StringProperty(default="*.ply;*.npz;*.las", options={"HIDDEN"})
+
+    def execute(self, context):
+        try:
+            obj = api.import_cloud(self.filepath, lidar=_active_lidar(context))
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        _select_only(context, obj)
+        return {"FINISHED"}
+
+
+class APCG_OT_export_cloud(bpy.types.Operator, ExportHelper):
+    """Export the active point cloud (observation frame, float64) as PLY, NPZ or LAS"""
+    bl_idname = "apcg.export_cloud"
+    bl_label = "Export APCG Cloud"
+
+    filename_ext = ".ply"
+    check_extension = False  # .npz and .las are accepted too
+    filter_glob: StringProperty(default="*.ply;*.npz;*.las", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        return api.is_cloud(context.active_object)
+
+    def execute(self, context):
+        try:
+            api.export_cloud(context.active_object, self.filepath)
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        self.report({"INFO"}, f"wrote {self.filepath}")
+        return {"FINISHED"}
+
+
+CLASSES = (APCG_OT_add_lidar, APCG_OT_add_aircraft, APCG_OT_scan, APCG_OT_generate,
+           APCG_OT_import_cloud, APCG_OT_export_cloud)
+
+
+def register() -> None:
+    for c in CLASSES:
+        bpy.utils.register_class(c)
+
+
+def unregister() -> None:
+    for c in reversed(CLASSES):
+        bpy.utils.unregister_class(c)
+
+
+__all__ = ["register", "unregister"]

@@ -1,0 +1,66 @@
+"""The 3D viewport's N-panel "APCG"."""
+
+import bpy
+
+from .clouds import cloud_info, is_cloud
+from .objects import TYPE_KEY, is_lidar, is_target, lidar_of
+
+
+class APCG_PT_panel(bpy.types.Panel):
+    bl_label = "APCG Lidar"
+    bl_idname = "APCG_PT_panel"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "APCG"
+
+    def draw(self, context):
+        layout = self.layout
+        obj = context.active_object
+        lidar = lidar_of(obj) if obj is not None else None
+        col = layout.column(align=True)
+        col.operator("apcg.add_lidar", icon="OUTLINER_OB_EMPTY")
+        col.operator_menu_enum("apcg.add_aircraft", "type_name", text="Add Aircraft",
+                               icon="ADD")
+        if lidar is not None:
+            box = layout.box()
+            box.label(text=f"Lidar: {lidar.name}", icon="LIGHT_SPOT")
+            p = lidar.apcg_lidar
+            row = box.row(align=True)
+            row.prop(p, "r_alpha_deg", text="R\u03b1")
+            row.prop(p, "r_beta_deg", text="R\u03b2")
+            row = box.row(align=True)
+            row.prop(p, "range_resolution_m", text="Rr")
+            row.prop(p, "width")
+            row.prop(p, "height")
+        if is_target(obj):
+            box = layout.box()
+            box.label(text=f"Target: {obj.get(TYPE_KEY, obj.name)}", icon="OBJECT_DATA")
+            t = obj.apcg_target
+            for name in ("range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg",
+                         "azimuth_deg"):
+                box.prop(t, name)
+        elif is_cloud(obj):
+            info = cloud_info(obj)
+            box = layout.box()
+            box.label(text=f"Cloud: {len(obj.data.vertices)} points ({info['source']})",
+                      icon="POINTCLOUD_DATA")
+        col = layout.column(align=True)
+        col.enabled = lidar is not None or is_lidar(obj)
+        col.operator("apcg.scan", icon="LIGHT_SUN")
+        col.operator("apcg.generate", icon="MOD_PARTICLES")
+        row = layout.row(align=True)
+        row.operator("apcg.import_cloud", icon="IMPORT", text="Import")
+        row.operator("apcg.export_cloud", icon="EXPORT", text="Export")
+
+
+CLASSES = (APCG_PT_panel,)
+
+
+def register() -> None:
+    for c in CLASSES:
+        bpy.utils.register_class(c)
+
+
+def unregister() -> None:
+    for c in reversed(CLASSES):
+        bpy.utils.unregister_class(c)
