@@ -69,7 +69,8 @@ def range_material():
     if mat is not None:
         return mat
     mat = bpy.data.materials.new(MATERIAL_NAME)
-    mat.use_nodes = True
+    if mat.node_tree is None or bpy.app.version < (5, 0, 0):  # 5.0: always node-based
+        mat.use_nodes = True
     nt = mat.node_tree
     nt.nodes.clear()
     attr = nt.nodes.new("ShaderNodeAttribute")
@@ -170,6 +171,7 @@ def cloud_object(cloud: PointCloud, name: str, lidar=None, source: str = "scan",
         radius = max(0.45 * cell * max(r0, 1.0), 0.005)
     set_point_radius(obj, radius)
     obj.data.materials.append(range_material())
+    bpy.context.view_layer.update()  # so matrix_world is right for the caller
     return obj
 
 

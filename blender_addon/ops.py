@@ -91,7 +91,7 @@ class APCG_OT_add_aircraft(bpy.types.Operator):
     type_name: EnumProperty(name="Type", items=_type_items)
     range_m: FloatProperty(name="Range (m)", default=4500.0, min=1.0, max=100000.0)
     elevation_deg: FloatProperty(name="Elevation (deg)", default=3.4, min=-89.9, max=89.9)
-    pitch_deg: FloatProperty(name="Pitch (deg)", default=0.0, min=-90.0, max=90.0)
+    pitch_deg: FloatProperty(name="Pitch (deg)", default=2.0, min=-90.0, max=90.0)
     yaw_deg: FloatProperty(name="Yaw (deg)", default=0.0, min=-180.0, max=180.0)
     roll_deg: FloatProperty(name="Roll (deg)", default=0.0, min=-180.0, max=180.0)
     azimuth_deg: FloatProperty(name="Azimuth (deg)", default=0.0, min=-180.0, max=180.0)

@@ -1,0 +1,227 @@
+"""The Blender add-on in real Blender (the bpy module): registration, every operator on a small
+scene, scans against `apcg simulate`, generation against `apcg generate`, file round trips."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+import blender_addon  # noqa: E402
+from apcg_core.io.clouds import read_cloud  # noqa: E402
+from blender_addon import api  # noqa: E402
+
+APCG = [sys.executable, "-m", "apcg_core.cli"]
+POSE = dict(range_m=14_800.0, elevation_deg=3.7, pitch_deg=2.3, yaw_deg=-41.0, roll_deg=1.3)
+
+
+@pytest.fixture(scope="module")
+def small_model(tmp_path_factory):
+    """A real (untrained, narrow) generator over the whole catalog, as a model directory."""
+    torch = pytest.importorskip("torch")
+    from apcg_core.catalog import default_catalog
+    from apcg_core.lidar import LidarParams
+    from apcg_core.nn import Generator, NetConfig
+    from training.export import export_onnx
+    out = tmp_path_factory.mktemp("model")
+    cat = default_catalog()
+    torch.manual_seed(0)
+    net = NetConfig(width=0.0625)
+    export_onnx(Generator(net), out / "generator.onnx")
+    types = [{"code": i, "name": t.name, "catalog_index": t.index, "kind": t.kind,
+              "range_band": t.range_band, "depth_length_m": cat.depth_length_m(t)}
+             for i, t in enumerate(cat)]
+    meta = {"format": "apcg-model", "format_version": 1, "net": net.to_dict(),
+            "condition_space": cat.condition_space().to_dict(),
+            "lidar": LidarParams().to_dict(), "types": types, "tau": -0.95}
+    (out / "model.json").write_text(json.dumps(meta))
+    return out
+
+
+@pytest.fixture
+def scene():
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    blender_addon.register()
+    yield bpy.context.scene
+    blender_addon.unregister()
+
+
+def _cli(*args, cwd=None):
+    r = subprocess.run([*APCG, *map(str, args)], capture_output=True, text=True, cwd=cwd)
+    assert r.returncode == 0, r.stderr
+    return r
+
+
+def _pose_args(pose):
+    return ["--range-m", pose["range_m"], "--elevation-deg", pose["elevation_deg"],
+            "--pitch-deg", pose["pitch_deg"], "--yaw-deg", pose["yaw_deg"],
+            "--roll-deg", pose["roll_deg"]]
+
+
+def test_register_and_unregister_cleanly():
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    for _ in range(2):  # twice: unregister leaves nothing behind that blocks a re-register
+        blender_addon.register()
+        assert hasattr(bpy.types, "APCG_PT_panel") and hasattr(bpy.ops.apcg, "scan")
+        assert hasattr(bpy.types.Object, "apcg_target")
+        assert blender_addon._sync_moved_targets in bpy.app.handlers.depsgraph_update_post
+        blender_addon.unregister()
+        assert not hasattr(bpy.types, "APCG_PT_panel")
+        assert not hasattr(bpy.types.Object, "apcg_target")
+        assert blender_addon._sync_moved_targets not in bpy.app.handlers.depsgraph_update_post
+
+
+@pytest.mark.parametrize("type_name,pose", [
+    ("A320neo", POSE),
+    ("Matrice 300 RTK", dict(range_m=180.0, elevation_deg=3.2, pitch_deg=4.0, yaw_deg=25.0,
+                              roll_deg=-3.0)),
+])
+def test_scan_equals_apcg_simulate(scene, tmp_path, type_name, pose):
+    lidar = api.add_lidar()
+    jet = api.add_aircraft(lidar, type_name, **pose)
+    (obj,) = api.scan(lidar)
+    got, info = api.cloud_from_object(obj)
+    ref_path = tmp_path / "ref.npz"
+    _cli("simulate", "--type", type_name, *_pose_args(pose), "--backend", "blender",
+         "-o", ref_path)
+    ref, meta = read_cloud(ref_path)
+    assert len(ref) > 20
+    key = lambda c: np.lexsort((c.cell_h, c.cell_w))  # noqa: E731
+    a, b = key(got), key(ref)
+    assert np.array_equal(got.cell_w[a], ref.cell_w[b])
+    assert np.array_equal(got.cell_h[a], ref.cell_h[b])
+    assert np.abs(got.range_m[a] - ref.range_m[b]).max() < 2e-3
+    assert np.abs(got.xyz[a] - ref.xyz[b]).max() < 2e-3
+    assert info["source"] == "scan" and info["meta"]["occluded_points"] == 0
+    # the cloud lands on the aircraft in the scene: its points sit near the target's surface
+    bpy.context.view_layer.update()
+    world = np.array([list(r) for r in obj.matrix_world])
+    co = np.array([v.co[:] for v in obj.data.vertices])
+    pts = co @ world[:3, :3].T + world[:3, 3]
+    centre = np.array(jet.matrix_world.translation[:])
+    assert np.linalg.norm(pts - centre, axis=1).max() < jet.dimensions.length
+
+
+def test_operators_on_a_small_scene(scene, tmp_path, small_model):
+    assert bpy.ops.apcg.add_lidar() == {"FINISHED"}
+    lidar = bpy.context.active_object
+    assert api.is_lidar(lidar)
+    assert bpy.ops.apcg.add_aircraft(type_name="H135", range_m=3600.0, elevation_deg=3.5,
+                                     yaw_deg=20.0, pitch_deg=2.0) == {"FINISHED"}
+    heli = bpy.context.active_object
+    assert api.is_target(heli) and heli.parent == lidar
+    assert heli.apcg_target.range_m == pytest.approx(3600.0)
+    assert bpy.ops.apcg.scan() == {"FINISHED"}
+    scans = [o for o in bpy.data.objects if api.is_cloud(o)]
+    assert len(scans) == 1 and len(scans[0].data.vertices) > 10
+    assert scans[0].modifiers["APCG points"].node_group.name == "APCG Points"
+    bpy.context.view_layer.objects.active = heli
+    heli.select_set(True)
+    assert bpy.ops.apcg.generate(model_dir=str(small_model), count=2, seed=3) == {"FINISHED"}
+    gen = [o for o in bpy.data.objects if api.is_cloud(o) and "APCG" in o.name]
+    assert len(gen) == 1 and api.cloud_from_object(gen[0])[1]["source"] == "generated"
+    bpy.context.view_layer.objects.active = scans[0]
+    out = tmp_path / "scan.ply"
+    assert bpy.ops.apcg.export_cloud(filepath=str(out)) == {"FINISHED"}
+    assert bpy.ops.apcg.import_cloud(filepath=str(out)) == {"FINISHED"}
+    assert len(bpy.context.active_object.data.vertices) == len(scans[0].data.vertices)
+    # errors reach the user as a message naming the problem, not as a crash
+    with pytest.raises(RuntimeError, match="no such point cloud file"):
+        bpy.ops.apcg.import_cloud(filepath=str(tmp_path / "missing.ply"))
+    with pytest.raises(RuntimeError, match="has no selected targets"):
+        heli.select_set(False)
+        bpy.context.view_layer.objects.active = lidar
+        bpy.ops.apcg.scan(selected_only=True)
+
+
+def test_generate_equals_apcg_generate(scene, tmp_path, small_model):
+    lidar = api.add_lidar()
+    jet = api.add_aircraft(lidar, "A320neo", **POSE)
+    obj = api.generate(jet, model=small_model, count=3, seed=11, runtime="onnx")
+    got, info = api.cloud_from_object(obj)
+    ref_path = tmp_path / "gen.npz"
+    _cli("generate", "--model", small_model, "--type", "A320neo", *_pose_args(POSE),
+         "--count", 3, "--seed", 11, "--runtime", "onnx", "-o", ref_path)
+    ref, _ = read_cloud(ref_path)
+    assert len(ref) > 0 and len(got) == len(ref)
+    assert np.array_equal(got.sample, ref.sample)
+    assert np.array_equal(got.cell_w, ref.cell_w) and np.array_equal(got.cell_h, ref.cell_h)
+    assert np.abs(got.range_m - ref.range_m).max() < 1e-4
+    assert np.abs(got.xyz - ref.xyz).max() < 1e-4
+
+
+@pytest.mark.parametrize("ext", ["ply", "npz", "las"])
+def test_import_export_round_trip(scene, tmp_path, ext):
+    lidar = api.add_lidar()
+    api.add_aircraft(lidar, "A320neo", **POSE)
+    (obj,) = api.scan(lidar)
+    first, _ = api.cloud_from_object(obj)
+    p1 = tmp_path / f"a.{ext}"
+    api.export_cloud(obj, p1)
+    back = api.import_cloud(p1, lidar=lidar)
+    p2 = tmp_path / f"b.{ext}"
+    api.export_cloud(back, p2)
+    c1, meta1 = read_cloud(p1)
+    c2, _ = read_cloud(p2)
+    tol = 1e-3 if ext == "las" else 1e-5  # LAS stores millimetre-scaled integers
+    for c in (c1, c2):
+        assert len(c) == len(first)
+        assert np.array_equal(c.cell_w, first.cell_w) and np.array_equal(c.cell_h, first.cell_h)
+        assert np.abs(c.xyz - first.xyz).max() < tol
+        assert np.abs(c.range_m - first.range_m).max() < tol
+    assert meta1["source"] == "scan" and meta1["condition"]["range_m"] == POSE["range_m"]
+
+
+def test_other_objects_occlude(scene):
+    lidar = api.add_lidar()
+    jet = api.add_aircraft(lidar, "A320neo", range_m=3000.0, elevation_deg=3.5, yaw_deg=30.0)
+    (free,) = api.scan(lidar)
+    # a wall between the lidar and the left half of the aircraft (lidar-local x < 0)
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(-20.0, 1500.0, 3000 * math.sin(
+        math.radians(3.5)) / 2))
+    wall = bpy.context.active_object
+    wall.scale = (40.0, 1.0, 400.0)
+    (hidden,) = api.scan(lidar, occlusion=True)
+    (ignored,) = api.scan(lidar, occlusion=False)
+    n_free, n_hidden = len(free.data.vertices), len(hidden.data.vertices)
+    assert len(ignored.data.vertices) == n_free
+    assert 0 < n_hidden < n_free
+    assert api.cloud_from_object(hidden)[1]["meta"]["occluded_points"] == n_free - n_hidden
+    left = api.cloud_from_object(hidden)[0].xyz[:, 0]
+    assert (left > -1.0).all()  # what is left is the right-hand side
+    assert jet.name in bpy.data.objects
+
+
+def test_pose_is_editable_both_ways(scene):
+    lidar = api.add_lidar()
+    jet = api.add_aircraft(lidar, "A320neo", **POSE)
+    exact = api.pose_of(jet)
+    assert exact["range_m"] == POSE["range_m"]  # the doubles, not the float32 matrix
+    # the panel's fields move the object
+    jet.apcg_target.yaw_deg = 10.0
+    assert math.degrees(api.pose_of(jet)["yaw"]) == pytest.approx(10.0, abs=1e-9)
+    nose = np.array(jet.matrix_basis.col[0][:3])
+    assert nose[0] > 0  # +yaw swings the nose toward +X
+    # moving the object in the viewport updates the displayed condition
+    jet.location = (0.0, 9000.0, 9000.0 * math.tan(math.radians(4.0)))
+    bpy.context.view_layer.update()
+    p = api.pose_of(jet)
+    assert p["range_m"] == pytest.approx(9000.0 / math.cos(math.radians(4.0)), rel=1e-6)
+    assert math.degrees(p["elevation"]) == pytest.approx(4.0, abs=1e-5)
+    assert jet.apcg_target.range_m == pytest.approx(p["range_m"], rel=1e-6)
+    assert list(jet["apcg_pose"])[0] == pytest.approx(p["range_m"])  # stored by the handler
+
+
+def test_bad_input_is_named(scene):
+    lidar = api.add_lidar()
+    with pytest.raises(Exception, match="unknown aircraft type 'A999'"):
+        api.add_aircraft(lidar, "A999", 4000.0, 3.0)
+    with pytest.raises(Exception, match="range_m must be finite"):
+        api.add_aircraft(lidar, "A320neo", float("nan"), 3.0)
+    with pytest.raises(Exception, match="no targets to scan"):
+        api.scan(lidar)
