@@ -21,11 +21,31 @@ import numpy as np
 
 from apcg_core.errors import InputError
 
-from .clouds import (cloud_from_object, cloud_object, export_cloud, import_cloud, is_cloud,
-                     set_point_radius)
-from .objects import (INDEX_KEY, LENGTH_KEY, TYPE_KEY, add_aircraft, add_lidar, body_mesh,
-                      condition_row, is_lidar, is_target, lidar_of, lidar_params, make_target,
-                      pose_of, set_pose, targets_of)
+from .clouds import (
+    cloud_from_object,
+    cloud_object,
+    export_cloud,
+    import_cloud,
+    is_cloud,
+    set_point_radius,
+)
+from .objects import (
+    INDEX_KEY,
+    LENGTH_KEY,
+    TYPE_KEY,
+    add_aircraft,
+    add_lidar,
+    body_mesh,
+    condition_row,
+    is_lidar,
+    is_target,
+    lidar_of,
+    lidar_params,
+    make_target,
+    pose_of,
+    set_pose,
+    targets_of,
+)
 
 __all__ = ["add_lidar", "add_aircraft", "make_target", "scan", "scan_target", "generate",
            "import_cloud", "export_cloud", "cloud_from_object", "pose_of", "set_pose",
