@@ -25,11 +25,11 @@ class APCG_PT_panel(bpy.types.Panel):
             box = layout.box()
             box.label(text=f"Lidar: {lidar.name}", icon="LIGHT_SPOT")
             p = lidar.apcg_lidar
+            col = box.column(align=True)
+            col.prop(p, "r_alpha_deg")
+            col.prop(p, "r_beta_deg")
+            col.prop(p, "range_resolution_m")
             row = box.row(align=True)
-            row.prop(p, "r_alpha_deg", text="R\u03b1")
-            row.prop(p, "r_beta_deg", text="R\u03b2")
-            row = box.row(align=True)
-            row.prop(p, "range_resolution_m", text="Rr")
             row.prop(p, "width")
             row.prop(p, "height")
         if is_target(obj):
