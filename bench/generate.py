@@ -39,17 +39,22 @@ def matmul_flops(dtype, n=1024, seconds=1.0) -> float:
     return 2 * n**3 * reps / (time.perf_counter() - t0)
 
 
-def clouds_per_second(g, batch: int, bf16: bool, seconds: float, rng) -> tuple[float, float]:
+def clouds_per_second(g, batch: int, bf16: bool, seconds: float, rng,
+                      session=None) -> tuple[float, float]:
+    """Clouds per second and points per cloud; through onnxruntime when ``session`` is given."""
     space = ConditionSpace()
     lidar = LidarParams()
     g.eval()
 
     def once():
         table = space.decode(rng.uniform(-1, 1, (batch, 6)))
-        nu = torch.from_numpy(space.encode(table).astype(np.float32))
-        z = torch.from_numpy(rng.standard_normal((batch, 100)).astype(np.float32))
-        with torch.no_grad(), torch.autocast("cpu", torch.bfloat16, enabled=bf16):
-            img = g(z, nu).float()[:, 0].numpy()
+        nu = space.encode(table).astype(np.float32)
+        z = rng.standard_normal((batch, 100)).astype(np.float32)
+        if session is not None:
+            img = session.run(None, {"noise": z, "nu": nu})[0][:, 0]
+        else:
+            with torch.no_grad(), torch.autocast("cpu", torch.bfloat16, enabled=bf16):
+                img = g(torch.from_numpy(z), torch.from_numpy(nu)).float()[:, 0].numpy()
         d = denorm(img, scale_ratio(table[:, 1]))
         cloud = im2pc(d, table[:, 1], table[:, 2], 40.0, lidar)
         return len(cloud)
@@ -84,11 +89,22 @@ def main() -> int:
            "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
            "matmul_gflops_fp32": round(matmul_flops(torch.float32) / 1e9, 1),
            "matmul_gflops_bf16": round(matmul_flops(torch.bfloat16) / 1e9, 1), "rows": []}
+    import tempfile
+
+    import onnxruntime as ort
+
+    from training.export import export_onnx
     for name, g in nets.items():
-        for bf16 in (False, True):
+        with tempfile.TemporaryDirectory() as tmp:
+            export_onnx(g, Path(tmp) / "g.onnx")
+            session = ort.InferenceSession(str(Path(tmp) / "g.onnx"),
+                                           providers=["CPUExecutionProvider"])
+        for runtime, bf16 in (("torch", False), ("torch", True), ("onnxruntime", False)):
             for b in (int(x) for x in args.batches.split(",")):
-                cps, ppc = clouds_per_second(g, b, bf16, args.seconds, rng)
-                row = {"network": name, "dtype": "bf16" if bf16 else "fp32", "batch": b,
+                cps, ppc = clouds_per_second(g, b, bf16, args.seconds, rng,
+                                             session if runtime == "onnxruntime" else None)
+                row = {"network": name, "runtime": runtime,
+                       "dtype": "bf16" if bf16 else "fp32", "batch": b,
                        "clouds_per_s": round(cps, 1), "points_per_cloud": round(ppc, 1),
                        "time_for_1e6_clouds_min": round(1e6 / cps / 60, 1)}
                 res["rows"].append(row)

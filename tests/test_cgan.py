@@ -206,3 +206,26 @@ def test_snapshots_and_divergence_guard(data, tmp_path):
     saved = torch.load(tmp_path / "bad" / "checkpoint.pt", map_location="cpu",
                        weights_only=False)
     assert saved["step"] == 40
+
+
+def test_quick_eval_bands_pairs_and_tau_sweep(data, tmp_path):
+    from training.quick_eval import band_of, evaluate, tau_sweep, untrained_copy
+    assert band_of(3000.0, False) == "aircraft 3-6 km"
+    assert band_of(17999.0, False) == "aircraft 15-18 km"
+    assert band_of(18000.0, False) == "aircraft 15-18 km"
+    assert band_of(120.0, True) == "drone 100-225 m"
+    assert band_of(600.0, True) == "drone 475-600 m"
+    cfg = config_from("tiny", steps=3, width=0.0625, checkpoint_every=1000, seed=3)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    model = APCGModel(export_model(tmp_path / "run", tmp_path / "model"), runtime="onnx")
+    ds = DepthDataset(data, "test")
+    rep = evaluate(model, ds, n_pairs=40)
+    assert sum(b["pairs"] for b in rep.values()) == min(40, len(ds))
+    for name, b in rep.items():  # every pair sits in the band its range says
+        assert name.startswith(("aircraft", "drone"))
+        assert 0.0 <= b["jsd"] <= 1.0 and b["mmd"] >= 0.0 and b["points_standard"] > 0
+    sweep = tau_sweep(model, ds, taus=(-0.99, 0.0, 0.9), n_pairs=40)
+    ratios = [sweep["taus"][k]["points_ratio"] for k in ("-0.99", "0", "0.9")]
+    assert ratios[0] >= ratios[1] >= ratios[2]  # a higher threshold keeps fewer pixels
+    assert sweep["best"] in (-0.99, 0.0, 0.9) and model.tau == -0.95  # restored
+    assert untrained_copy(model, tmp_path / "fresh").meta["net"] == model.meta["net"]

@@ -2,6 +2,7 @@
 beside the same numbers for the untrained network of the same shape (SPEC section 9).
 
     python -m training.quick_eval --model DIR --data DIR [--pairs 400] [-o eval.json]
+    python -m training.quick_eval --model DIR --data DIR --tau-sweep [-o tau.json]
 
 The standard clouds come from the dataset's test split (exact, from the shards); the generated
 ones from the model at the same conditions (one sample each, seeded). Clouds are subsampled to
@@ -74,19 +75,59 @@ def evaluate(model: APCGModel, ds: DepthDataset, n_pairs: int = 400, seed: int =
     return out
 
 
+TAUS = (-0.99, -0.98, -0.95, -0.9, -0.8, -0.6, -0.3, 0.0)
+
+
+def tau_sweep(model: APCGModel, ds: DepthDataset, taus=TAUS, n_pairs: int = 400,
+              seed: int = 0) -> dict:
+    """Mean MMD, JSD and generated / standard point-count ratio over all bands at each Im2PC
+    threshold (same conditions, same noise); ``best`` has the fewest pairs without a score
+    (an empty generated cloud), then the lowest mean of the per-band MMDs."""
+    kept = model.tau
+    rows = {}
+    try:
+        for tau in taus:
+            model.tau = float(tau)
+            per_band = evaluate(model, ds, n_pairs, seed)
+            def mean(key, bands=per_band):
+                vals = [b[key] for b in bands.values() if b[key] is not None]
+                return float(np.mean(vals)) if vals else float("inf")
+
+            rows[f"{tau:g}"] = {
+                "mmd": mean("mmd"), "jsd": mean("jsd"),
+                "points_ratio": float(np.mean([b["points_generated"] / b["points_standard"]
+                                               for b in per_band.values()])),
+                "no_score": int(sum(b["no_score"] for b in per_band.values()))}
+    finally:
+        model.tau = kept
+    # a threshold that leaves clouds empty is worse than any that scores them all
+    best = min(rows, key=lambda k: (rows[k]["no_score"], rows[k]["mmd"]))
+    return {"taus": rows, "best": float(best)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True)
     ap.add_argument("--data", required=True)
     ap.add_argument("--pairs", type=int, default=400)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--tau-sweep", action="store_true",
+                    help="score the model at several Im2PC thresholds instead")
     ap.add_argument("-o", "--output")
     args = ap.parse_args(argv)
     model = APCGModel(args.model, runtime="onnx")
     ds = DepthDataset(args.data, "test")
-    report = {"command": "python -m training.quick_eval " + " ".join(
-        argv if argv is not None else sys.argv[1:]), "trained": evaluate(model, ds, args.pairs,
-                                                                        args.seed)}
+    command = "python -m training.quick_eval " + " ".join(
+        argv if argv is not None else sys.argv[1:])
+    if args.tau_sweep:
+        report = {"command": command, **tau_sweep(model, ds, n_pairs=args.pairs,
+                                                  seed=args.seed)}
+        text = json.dumps(report, indent=1)
+        print(text)
+        if args.output:
+            Path(args.output).write_text(text + "\n")
+        return 0
+    report = {"command": command, "trained": evaluate(model, ds, args.pairs, args.seed)}
     with tempfile.TemporaryDirectory() as tmp:
         report["untrained"] = evaluate(untrained_copy(model, Path(tmp)), ds, args.pairs,
                                        args.seed)
