@@ -175,9 +175,10 @@ def sync_pose(obj) -> bool:
 
 
 def condition_row(obj) -> np.ndarray:
-    """The target's condition [type index, r0, beta0, pitch, yaw, roll] (m, rad)."""
+    """The target's condition [type index, r0, beta0, pitch, yaw, roll] (m, rad); a model of
+    your own (no catalog index) carries 0, which the simulator does not use."""
     p = pose_of(obj)
-    return np.array([[float(obj.get(INDEX_KEY, -1)), p["range_m"], p["elevation"],
+    return np.array([[float(max(int(obj.get(INDEX_KEY, -1)), 0)), p["range_m"], p["elevation"],
                       p["pitch"], p["yaw"], p["roll"]]])
 
 

@@ -95,13 +95,29 @@ class APCG_OT_add_aircraft(bpy.types.Operator):
     yaw_deg: FloatProperty(name="Yaw (deg)", default=0.0, min=-180.0, max=180.0)
     roll_deg: FloatProperty(name="Roll (deg)", default=0.0, min=-180.0, max=180.0)
     azimuth_deg: FloatProperty(name="Azimuth (deg)", default=0.0, min=-180.0, max=180.0)
+    use_active_mesh: BoolProperty(
+        name="Use the active mesh", default=False,
+        description="Make the active mesh object (your own imported model; local frame = body "
+                    "frame: x nose, y left wing, z up, origin at the centre of mass) the target "
+                    "instead of a catalog type")
 
     def execute(self, context):
         try:
-            lidar = _active_lidar(context, create=True)
-            obj = api.add_aircraft(lidar, self.type_name, self.range_m, self.elevation_deg,
-                                   self.pitch_deg, self.yaw_deg, self.roll_deg,
-                                   self.azimuth_deg)
+            if self.use_active_mesh:
+                model = context.active_object
+                if model is None or model.type != "MESH" or api.is_target(model):
+                    raise APCGError("select the mesh object of your model first (it must not "
+                                    "already be a target)")
+                lidar = next((o for o in context.scene.objects if is_lidar(o)), None)
+                lidar = lidar or api.add_lidar()
+                obj = api.make_target(lidar, model, self.range_m, self.elevation_deg,
+                                      self.pitch_deg, self.yaw_deg, self.roll_deg,
+                                      self.azimuth_deg)
+            else:
+                lidar = _active_lidar(context, create=True)
+                obj = api.add_aircraft(lidar, self.type_name, self.range_m, self.elevation_deg,
+                                       self.pitch_deg, self.yaw_deg, self.roll_deg,
+                                       self.azimuth_deg)
         except Exception as exc:  # noqa: BLE001
             return _report_error(self, exc)
         _select_only(context, obj)

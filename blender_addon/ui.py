@@ -21,6 +21,10 @@ class APCG_PT_panel(bpy.types.Panel):
         col.operator("apcg.add_lidar", icon="OUTLINER_OB_EMPTY")
         col.operator_menu_enum("apcg.add_aircraft", "type_name", text="Add Aircraft",
                                icon="ADD")
+        if obj is not None and obj.type == "MESH" and not is_target(obj) and not is_cloud(obj):
+            op = col.operator("apcg.add_aircraft", text="Make Active Mesh a Target",
+                              icon="OBJECT_DATA")
+            op.use_active_mesh = True
         if lidar is not None:
             box = layout.box()
             box.label(text=f"Lidar: {lidar.name}", icon="LIGHT_SPOT")

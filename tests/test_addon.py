@@ -216,6 +216,23 @@ def test_pose_is_editable_both_ways(scene):
     assert list(jet["apcg_pose"])[0] == pytest.approx(p["range_m"])  # stored by the handler
 
 
+def test_own_model_as_target(scene):
+    lidar = api.add_lidar()
+    bpy.ops.mesh.primitive_uv_sphere_add(radius=3.0, location=(5.0, 5.0, 5.0))
+    ball = bpy.context.active_object
+    assert bpy.ops.apcg.add_aircraft(use_active_mesh=True, range_m=900.0,
+                                     elevation_deg=3.0) == {"FINISHED"}
+    assert api.is_target(ball) and ball.parent == lidar
+    assert ball["apcg_depth_length_m"] == pytest.approx(6.0, rel=0.01)
+    (cloud,) = api.scan(lidar)
+    got, _ = api.cloud_from_object(cloud)
+    # a sphere of radius 3 at 900 m: the nearest return is 3 m in front of the centre
+    assert got.range_m.min() == pytest.approx(897.0, abs=0.16)
+    assert got.range_m.max() < 900.0 + 0.15  # the silhouette: tangent rays, quantized
+    with pytest.raises(RuntimeError, match="select the mesh object of your model"):
+        bpy.ops.apcg.add_aircraft(use_active_mesh=True)  # the ball already is a target
+
+
 def test_bad_input_is_named(scene):
     lidar = api.add_lidar()
     with pytest.raises(Exception, match="unknown aircraft type 'A999'"):
