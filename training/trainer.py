@@ -274,9 +274,8 @@ class Trainer:
             _broadcast(self.G, buffers_only=True)
         self.step += 1
         return {"step": self.step, "epoch": round(self.batch_counter / self.bpe, 4),
-                "loss_d": float(loss_d.detach()), "loss_g": float(loss_g.detach()),
-                "gp": float(gp.detach()),
-                "wasserstein": float((d_real.mean() - d_fake.mean()).detach())}
+                "loss_d": _g7(loss_d), "loss_g": _g7(loss_g), "gp": _g7(gp),
+                "wasserstein": _g7(d_real.mean() - d_fake.mean())}
 
     def fit(self, max_seconds: float | None = None) -> dict:
         """Train to ``total_steps`` (or until ``max_seconds`` pass); checkpoint on the way."""
@@ -327,6 +326,11 @@ class Trainer:
         return {"step": self.step, "total_steps": self.total_steps, "last": last,
                 "seconds": round(time.perf_counter() - t0, 3),
                 "param_checksum": param_checksum(self.G) + param_checksum(self.D)}
+
+
+def _g7(t) -> float:
+    """A logged loss: 7 significant digits keep the log small (it ships with the model)."""
+    return float(f"{float(t.detach()):.7g}")
 
 
 class TrainingDiverged(APCGError):
