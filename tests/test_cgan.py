@@ -264,3 +264,20 @@ def test_evaluate_report_bands_floor_and_a_shifted_generator(data, tmp_path):
     out = write_report({**rep, "model": "m", "command": "apcg evaluate ..."}, tmp_path / "rep")
     assert {p.name for p in out.iterdir()} == {"metrics.json", "report.md", "fig17.png"}
     assert "apcg evaluate" in (out / "report.md").read_text()
+
+
+def test_figures_13_and_14_from_a_run(data, tmp_path):
+    from training.figures import fig13, fig14, read_log
+    bpe = DepthDataset(data, "train").batches_per_epoch(32)
+    cfg = config_from("tiny", steps=2 * bpe + 2, width=0.0625, checkpoint_every=bpe,
+                      keep_every=bpe, seed=6)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    d13 = fig13(tmp_path / "run", tmp_path / "f13.png")
+    assert d13["epoch"] == [1, 2, 3] and all(v >= 0 for v in d13["abs_loss_d"])
+    log = read_log(tmp_path / "run")
+    assert np.all(np.diff(log["hours"]) >= 0)
+    d14 = fig14(tmp_path / "run", data, tmp_path / "f14.png", n_pairs=20)
+    assert [r["step"] for r in d14["rows"]] == [bpe, 2 * bpe]
+    assert d14["rows"][0]["hours"] <= d14["rows"][1]["hours"]
+    for name in ("f13.png", "f13.json", "f14.png", "f14.json"):
+        assert (tmp_path / name).stat().st_size > 0

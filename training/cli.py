@@ -97,6 +97,7 @@ def register_export(sub) -> None:
     p.add_argument("--run", required=True, help="training run directory")
     p.add_argument("-o", "--output", required=True, help="model directory")
     p.add_argument("--tau", type=float, default=None, help="Im2PC threshold to record")
+    p.add_argument("--checkpoint", help="a kept checkpoint of the run (default: the latest)")
     p.set_defaults(func=_run_export)
 
 
@@ -105,7 +106,7 @@ def _run_export(args) -> int:
 
     from .export import export_model
     out = export_model(args.run, args.output, tau=args.tau if args.tau is not None
-                       else TAU_DEFAULT)
+                       else TAU_DEFAULT, checkpoint=args.checkpoint)
     print(json.dumps({"model": str(out)}))
     return 0
 
@@ -141,4 +142,30 @@ def _run_evaluate(args) -> int:
     out = write_report(report, args.output)
     print(markdown(report))
     print(f"wrote {out}/metrics.json, report.md, fig17.png")
+    return 0
+
+
+def register_figure(sub) -> None:
+    p = sub.add_parser("figure", help="the paper's training figures (13, 14) as PNG + JSON",
+                       description="13: |L_D| and L_G per epoch from a run's log. 14: MMD and "
+                                   "JSD of the run's kept checkpoints against training time.")
+    p.add_argument("number", type=int, choices=[13, 14])
+    p.add_argument("--run", required=True, help="training run directory")
+    p.add_argument("--data", help="dataset directory (figure 14)")
+    p.add_argument("--pairs", type=int, default=400, help="test pairs per checkpoint (14)")
+    p.add_argument("-o", "--output", required=True, help="PNG path (the data goes beside it)")
+    p.set_defaults(func=_run_figure)
+
+
+def _run_figure(args) -> int:
+    from apcg_core.errors import InputError
+
+    from .figures import fig13, fig14
+    if args.number == 13:
+        fig13(args.run, args.output)
+    else:
+        if not args.data:
+            raise InputError("figure 14 needs --data (the dataset whose test split scores)")
+        fig14(args.run, args.data, args.output, n_pairs=args.pairs)
+    print(f"wrote {args.output} and its .json")
     return 0

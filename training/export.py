@@ -31,11 +31,13 @@ def export_onnx(g: Generator, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None) -> Path:
+def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
+                 checkpoint=None) -> Path:
+    """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest."""
     run = Path(run_dir)
-    ck = run / "checkpoint.pt"
+    ck = Path(checkpoint) if checkpoint else run / "checkpoint.pt"
     if not ck.exists():
-        raise InputError(f"{run} has no checkpoint.pt to export")
+        raise InputError(f"{ck} does not exist: nothing to export")
     st = torch.load(ck, map_location="cpu", weights_only=False)
     cfg = json.loads((run / "train_config.json").read_text())
     head = read_header(data_dir or cfg["data"])
@@ -52,9 +54,12 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None) -> P
             "trained_epochs": round(st["batch_counter"] / max(1, _bpe(head, st)), 3),
             "dataset": head.get("name"), "train": st["train"]}
     (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
-    for name in ("train_config.json", "log.csv"):
-        if (run / name).exists():
-            shutil.copy(run / name, out / name)
+    if (run / "train_config.json").exists():
+        shutil.copy(run / "train_config.json", out / "train_config.json")
+    if (run / "log.csv").exists():  # the log up to the exported step
+        lines = (run / "log.csv").read_text().splitlines(keepends=True)
+        keep = [lines[0]] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) <= st["step"]]
+        (out / "log.csv").write_text("".join(keep))
     return out
 
 
