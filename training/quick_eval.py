@@ -81,8 +81,8 @@ TAUS = (-0.99, -0.98, -0.95, -0.9, -0.8, -0.6, -0.3, 0.0)
 def tau_sweep(model: APCGModel, ds: DepthDataset, taus=TAUS, n_pairs: int = 400,
               seed: int = 0) -> dict:
     """Mean MMD, JSD and generated / standard point-count ratio over all bands at each Im2PC
-    threshold (same conditions, same noise); ``best`` has the fewest pairs without a score
-    (an empty generated cloud), then the lowest mean of the per-band MMDs."""
+    threshold (same conditions, same noise); ``best`` has the lowest mean of the per-band MMDs
+    among the thresholds that leave at most 1% of the generated clouds empty."""
     kept = model.tau
     rows = {}
     try:
@@ -100,8 +100,10 @@ def tau_sweep(model: APCGModel, ds: DepthDataset, taus=TAUS, n_pairs: int = 400,
                 "no_score": int(sum(b["no_score"] for b in per_band.values()))}
     finally:
         model.tau = kept
-    # a threshold that leaves clouds empty is worse than any that scores them all
-    best = min(rows, key=lambda k: (rows[k]["no_score"], rows[k]["mmd"]))
+    # the lowest MMD among thresholds that leave at most 1% of the clouds empty
+    allowed = [k for k in rows if rows[k]["no_score"] <= 0.01 * n_pairs] or list(rows)
+    best = min(allowed, key=lambda k: (rows[k]["no_score"] if k not in allowed else 0,
+                                       rows[k]["mmd"]))
     return {"taus": rows, "best": float(best)}
 
 
