@@ -1,0 +1,183 @@
+"""Speed against error: time per point cloud against MMD and JSD to the exact reference, per
+slant-range band, for every way this project makes clouds, measured in one run.
+
+    .venv/bin/python bench/speed_error.py --data data/cpu [--per-band 24] [--model DIR ...]
+        [--json bench/results/speed_error.json] [--plot docs/speed_error.png]
+
+The reference is the standard cloud of each held-out condition (the dataset's test split: one
+ray through each cell centre, embree, quantized ranges). Methods:
+
+* ``embree`` / ``blender``: exact ray casting (blender: one Geometry Nodes evaluation per type);
+* ``embree kxk``: k x k rays per cell, nearest kept (a beam footprint, not the standard);
+* ``points``: the paper's z-buffer over a 10,000-point fine cloud;
+* ``APCG <model>``: generation, batched (the default model unless --model is given);
+* ``nearest sample``: the training sample of the same type nearest in condition space (nu), its
+  cloud moved along the line of sight to the query's range (a lookup, no model).
+
+Time is wall time per cloud in one process, batched per type where the method allows, meshes
+and models loaded beforehand. Every row carries its point counts; JSD carries its bins.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from apcg_core.catalog.catalog import default_catalog  # noqa: E402
+from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian  # noqa: E402
+from apcg_core.metrics import jsd, mmd  # noqa: E402
+from training.data import DepthDataset  # noqa: E402
+from training.evaluate import band_order, stratified_subset  # noqa: E402
+from training.quick_eval import band_of  # noqa: E402
+
+BINS = 28
+
+
+def simulated(backend: str, ds, idx, supersample: int = 1):
+    """Clouds of the test samples ``idx`` by one simulator backend, and seconds per cloud."""
+    from dataset_builder.simulate import Simulator
+    cat = default_catalog()
+    table = ds.conditions[idx]
+    out = [None] * len(idx)
+    with Simulator(backend, ds.lidar, supersample=supersample) as sim:
+        codes = table[:, 0].astype(int)
+        for code in np.unique(codes):  # meshes and casters built before the clock starts
+            sim.simulate_type(cat, ds.types[code]["catalog_index"], table[codes == code][:1])
+        t0 = time.perf_counter()
+        for code in np.unique(codes):
+            sel = np.flatnonzero(codes == code)
+            res = sim.simulate_type(cat, ds.types[code]["catalog_index"], table[sel])
+            for k, c in zip(sel, res.clouds(), strict=True):
+                out[k] = c.xyz
+        dt = time.perf_counter() - t0
+    return out, dt / len(idx)
+
+
+def generated(model, ds, idx, seed: int = 0):
+    table = ds.conditions[idx]
+    model.generate(table[:8], seed=seed)  # warm the runtime
+    t0 = time.perf_counter()
+    res = model.generate(table, count=1, seed=seed)
+    dt = time.perf_counter() - t0
+    return [c.xyz for c in res.cloud.split(len(idx))], dt / len(idx)
+
+
+def nearest_sample(ds_train, ds, idx):
+    """The same type's training sample nearest in nu, moved to the query's range."""
+    t0 = time.perf_counter()
+    out = []
+    for i in idx:
+        same = np.flatnonzero(ds_train.conditions[:, 0] == ds.conditions[i, 0])
+        d = np.abs(ds_train.nu[same, 1:] - ds.nu[i, 1:]).sum(axis=1)
+        j = int(same[np.argmin(d)])
+        a, b, r = cartesian_to_spherical(ds_train.standard_cloud(j))
+        shift = ds.conditions[i, 1] - ds_train.conditions[j, 1]
+        out.append(spherical_to_cartesian(a, b, r + shift))
+    return out, (time.perf_counter() - t0) / len(idx)
+
+
+def score(refs, clouds, bands, seed: int = 0) -> dict:
+    per = {}
+    for k, (ref, c) in enumerate(zip(refs, clouds, strict=True)):
+        per.setdefault(bands[k], []).append((mmd(ref, c, max_points=2048, seed=seed + k),
+                                             jsd(ref, c, bins=BINS, max_points=2048,
+                                                 seed=seed + k), len(ref), len(c)))
+    out = {}
+    for name in sorted(per, key=band_order):
+        rows = per[name]
+        m = [r[0] for r in rows if r[0] is not None]
+        j = [r[1] for r in rows if r[1] is not None]
+        out[name] = {"pairs": len(rows), "empty": len(rows) - len(m),
+                     "mmd": float(np.mean(m)) if m else None,
+                     "jsd": float(np.mean(j)) if j else None,
+                     "points_reference": float(np.mean([r[2] for r in rows])),
+                     "points": float(np.mean([r[3] for r in rows]))}
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--per-band", type=int, default=24)
+    ap.add_argument("--model", action="append", help="model directory (repeatable; default: "
+                                                    "the shipped default model)")
+    ap.add_argument("--backends", default="embree,blender,points")
+    ap.add_argument("--supersample", default="2,3")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json")
+    ap.add_argument("--plot")
+    args = ap.parse_args()
+    from apcg_core.generation import APCGModel
+    ds = DepthDataset(args.data, "test")
+    models = [APCGModel(m, runtime="onnx") for m in (args.model or [None])]
+    near = models[0].space.is_drone(ds.conditions[:, 0].astype(int))
+    n_bands = 9
+    idx = stratified_subset(ds, args.per_band * n_bands, args.seed, near)
+    bands = [band_of(ds.conditions[i, 1], bool(near[i])) for i in idx]
+    refs = [ds.standard_cloud(int(i)) for i in idx]
+    methods = {}
+    for b in args.backends.split(","):
+        methods[b] = simulated(b, ds, idx)
+    for k in (int(x) for x in args.supersample.split(",") if x):
+        methods[f"embree {k}x{k}"] = simulated("embree", ds, idx, supersample=k)
+    for m in models:
+        methods[f"APCG {Path(m.directory).name} (width {m.meta['net']['width']})"] = generated(
+            m, ds, idx, args.seed)
+    methods["nearest sample"] = nearest_sample(DepthDataset(args.data, "train"), ds, idx)
+    report = {"command": "python bench/speed_error.py " + " ".join(sys.argv[1:]),
+              "pairs": len(idx), "jsd_bins": BINS, "methods": {}}
+    for name, (clouds, sec) in methods.items():
+        report["methods"][name] = {"ms_per_cloud": round(1e3 * sec, 3),
+                                   "bands": score(refs, clouds, bands, args.seed)}
+        print(name, report["methods"][name]["ms_per_cloud"], "ms/cloud", flush=True)
+    text = json.dumps(report, indent=1)
+    if args.json:
+        Path(args.json).write_text(text + "\n")
+    print(markdown(report))
+    if args.plot:
+        plot(report, Path(args.plot))
+    return 0
+
+
+def markdown(report: dict) -> str:
+    lines = ["| method | ms / cloud | " + " | ".join(
+        f"{b} MMD / JSD" for b in next(iter(report["methods"].values()))["bands"]) + " |"]
+    lines.append("|---|---|" + "---|" * len(next(iter(report["methods"].values()))["bands"]))
+    for name, m in report["methods"].items():
+        cells = [("-" if v["mmd"] is None else f"{v['mmd']:.3f}") + " / "
+                 + ("-" if v["jsd"] is None else f"{v['jsd']:.2f}") for v in m["bands"].values()]
+        lines.append(f"| {name} | {m['ms_per_cloud']:.2f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(report: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True)
+    for ax, metric in zip(axes, ("mmd", "jsd"), strict=True):
+        for name, m in report["methods"].items():
+            vals = [v[metric] for v in m["bands"].values() if v[metric] is not None]
+            ax.scatter([m["ms_per_cloud"]] * len(vals), vals, s=12)
+            ax.scatter([m["ms_per_cloud"]], [np.mean(vals)], marker="D", s=50, label=name)
+        ax.set_xscale("log")
+        ax.set_xlabel("ms per cloud (this machine, one process)")
+        ax.set_ylabel(metric.upper() + (f" ({report['jsd_bins']}^3 bins)"
+                                        if metric == "jsd" else "") + " to the exact reference")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Speed against error, per slant-range band (dots) and mean (diamonds)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
