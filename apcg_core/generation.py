@@ -50,6 +50,7 @@ class APCGModel:
         self.lidar = LidarParams.from_dict(self.meta["lidar"])
         self.types = self.meta["types"]
         self.tau = float(self.meta.get("tau", TAU_DEFAULT))
+        self.norm = bool(self.meta.get("norm", True))
         if runtime not in RUNTIMES:
             raise InputError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
         self.runtime = self._pick(runtime)
@@ -139,8 +140,8 @@ class APCGModel:
         nu = self.space.encode(table)
         noise = np.random.default_rng(seed).standard_normal((len(table), NOISE_DIM))
         img_n = self.images_from(noise, nu)
-        q = scale_ratio(table[:, 1])
-        d = denorm(img_n, q)
+        # a model trained without Norm (eq. 17) made the depth image itself
+        d = denorm(img_n, scale_ratio(table[:, 1])) if self.norm else img_n
         codes = table[:, 0].astype(np.int64)
         cloud = im2pc(d, table[:, 1], table[:, 2], self.depth_length(codes), self.lidar,
                       tau=self.tau)

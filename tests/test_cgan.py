@@ -281,3 +281,19 @@ def test_figures_13_and_14_from_a_run(data, tmp_path):
     assert d14["rows"][0]["hours"] <= d14["rows"][1]["hours"]
     for name in ("f13.png", "f13.json", "f14.png", "f14.json"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_a_model_trained_without_norm_generates_without_denorm(data, tmp_path):
+    cfg = config_from("tiny", steps=2, width=0.0625, checkpoint_every=1000, seed=7, norm=False)
+    tr = Trainer(data, tmp_path / "run", cfg, progress=False)
+    idx = tr.data.batch_indices(cfg.seed, 0, cfg.batch_size)
+    raw = tr.data.images(idx, normalized=False)
+    real, _ = tr._batch()
+    assert np.array_equal(real[:, 0].numpy(), raw)  # the images it learns are not normalised
+    tr.fit()
+    model = APCGModel(export_model(tmp_path / "run", tmp_path / "m"), runtime="onnx")
+    assert model.meta["norm"] is False and model.norm is False
+    res = model.generate(DepthDataset(data, "test").conditions[:4], seed=2)
+    img = model.images_from(np.random.default_rng(2).standard_normal((4, 100)),
+                            model.space.encode(res.table))
+    assert np.allclose(res.images, img)  # no DeNorm between the generator and Im2PC

@@ -29,6 +29,8 @@ def register_train(sub) -> None:
     p.add_argument("--no-conv", action="store_true", help="ablation: fully connected layers")
     p.add_argument("--no-attention", action="store_true", help="ablation: no self-attention")
     p.add_argument("--bce", action="store_true", help="ablation: BCE loss, no Wasserstein/GP")
+    p.add_argument("--no-norm", action="store_true",
+                   help="train on depth images without Norm (the paper's 'APCG w/o Norm.')")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
     p.add_argument("--keep-every", type=int,
                    help="also keep a copy of the checkpoint every this many steps")
@@ -52,6 +54,8 @@ def _run_train(args) -> int:
         over["attention"] = False
     if args.bce:
         over["loss"] = "bce"
+    if args.no_norm:
+        over["norm"] = False
     if args.resume:
         from pathlib import Path
 

@@ -52,7 +52,8 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
                                           "depth_length_m")} for t in head["types"]],
             "tau": tau, "trained_steps": st["step"],
             "trained_epochs": round(st["batch_counter"] / max(1, _bpe(head, st)), 3),
-            "dataset": head.get("name"), "train": st["train"]}
+            "dataset": head.get("name"), "train": st["train"],
+            "norm": bool(st["train"].get("norm", True))}
     (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
     if (run / "train_config.json").exists():
         shutil.copy(run / "train_config.json", out / "train_config.json")

@@ -51,6 +51,7 @@ class TrainConfig:
     bf16: bool = False
     channels_last: bool = False
     checkpoint_every: int = 500
+    norm: bool = True  # train on Norm(depth) (eq. 17); False: "APCG w/o Norm." (paper Fig. 17)
     keep_every: int = 0  # also keep checkpoints/step-NNNNNN.pt every this many steps (0: never)
     diverge_gp: float = 50.0  # stop when the gradient penalty's mean over 50 steps exceeds it
     log_every: int = 10
@@ -224,7 +225,7 @@ class Trainer:
         idx = self.data.batch_indices(self.cfg.seed, self.batch_counter, self.cfg.batch_size,
                                       self.rank, self.world)
         self.batch_counter += 1
-        real = torch.from_numpy(self.data.images(idx))[:, None]
+        real = torch.from_numpy(self.data.images(idx, normalized=self.cfg.norm))[:, None]
         nu = torch.from_numpy(self.data.nu[idx])
         if self.cfg.channels_last:
             real = real.contiguous(memory_format=torch.channels_last)
