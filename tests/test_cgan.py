@@ -297,3 +297,18 @@ def test_a_model_trained_without_norm_generates_without_denorm(data, tmp_path):
     img = model.images_from(np.random.default_rng(2).standard_normal((4, 100)),
                             model.space.encode(res.table))
     assert np.allclose(res.images, img)  # no DeNorm between the generator and Im2PC
+
+
+def test_jsd_bins_study_separates_good_from_wrong(data, tmp_path):
+    from training.evaluate import jsd_bins_study
+    cfg = config_from("tiny", steps=2, width=0.0625, checkpoint_every=1000, seed=8)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    model = APCGModel(export_model(tmp_path / "run", tmp_path / "m"), runtime="onnx")
+    study = jsd_bins_study(model, data, bins=(2, 4, 28), per_band=6)
+    for band in study["bins"].values():
+        for c in ("2", "4", "28"):  # a copy 5 m off never scores better than the jittered copy
+            assert band[c]["wrong"] >= band[c]["floor"] - 1e-9
+        # more bins: the floor rises toward 1 (the sparse-cloud degeneracy of SPEC section 9)
+        assert band["28"]["floor"] >= band["2"]["floor"]
+    assert study["best"] in (2, 4, 28)
+    assert study["min_gap"][str(study["best"])] == max(study["min_gap"].values())

@@ -126,7 +126,10 @@ def register_evaluate(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="report directory")
     p.add_argument("--pairs", type=int, default=2000,
                    help="stratified subset of the test split (0: all); default 2000")
-    p.add_argument("--bins", type=int, default=28, help="JSD bins per axis (default 28)")
+    p.add_argument("--bins", type=int, default=6,
+                   help="JSD bins per axis (default 6, chosen by --jsd-bins-study)")
+    p.add_argument("--jsd-bins-study", action="store_true",
+                   help="instead: measure which bin count separates good from wrong clouds")
     p.add_argument("--min-points", type=int, default=8,
                    help="flag, not average, pairs with fewer points (default 8)")
     p.add_argument("--seed", type=int, default=0)
@@ -135,10 +138,20 @@ def register_evaluate(sub) -> None:
 
 
 def _run_evaluate(args) -> int:
+    from pathlib import Path
+
     from apcg_core.generation import APCGModel
 
-    from .evaluate import evaluate, markdown, write_report
+    from .evaluate import evaluate, jsd_bins_study, markdown, write_report
     model = APCGModel(args.model, runtime=args.runtime)
+    if args.jsd_bins_study:
+        study = jsd_bins_study(model, args.data, seed=args.seed)
+        study["command"] = "apcg evaluate " + " ".join(sys.argv[2:])
+        out = Path(args.output)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "jsd_bins.json").write_text(json.dumps(study, indent=1) + "\n")
+        print(json.dumps({"best": study["best"], "min_gap": study["min_gap"]}))
+        return 0
     report = evaluate(model, args.data, n_pairs=args.pairs or None, seed=args.seed,
                       bins=args.bins, min_points=args.min_points, progress=True)
     report["model"] = str(model.directory)
