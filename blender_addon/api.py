@@ -71,6 +71,13 @@ def _lidar_and_targets(lidar, targets):
     return targets
 
 
+def _pose_meta(pose: dict) -> dict:
+    """A pose as the condition block of a cloud file's metadata (degrees, metres)."""
+    return {"condition": {"range_m": pose["range_m"], **{
+        f"{k}_deg": math.degrees(pose[k]) for k in ("elevation", "pitch", "yaw", "roll")}},
+        "azimuth_deg": math.degrees(pose["azimuth"])}
+
+
 def scan_target(target, backend: str = "blender", quantize: bool = True, supersample: int = 1,
                 occlusion: bool = True, simulator=None, name: str | None = None):
     """The lidar's view of one target as a new cloud object (``None`` if nothing is seen)."""
@@ -93,12 +100,7 @@ def scan_target(target, backend: str = "blender", quantize: bool = True, supersa
         hidden = int((~keep).sum())
         cloud = cloud.select(keep)
     meta = {"type": target.get(TYPE_KEY), "catalog_index": int(target.get(INDEX_KEY, -1)),
-            "condition": {"range_m": pose["range_m"],
-                          "elevation_deg": math.degrees(pose["elevation"]),
-                          "pitch_deg": math.degrees(pose["pitch"]),
-                          "yaw_deg": math.degrees(pose["yaw"]),
-                          "roll_deg": math.degrees(pose["roll"])},
-            "azimuth_deg": math.degrees(pose["azimuth"]), "backend": sim.backend,
+            **_pose_meta(pose), "backend": sim.backend,
             "quantized": sim.quantize, "supersample": sim.supersample,
             "lidar": params.to_dict(), "depth_length_m": float(target.get(LENGTH_KEY, 0.0)),
             "clipped": bool(res.clipped[0]), "occluded_points": hidden}
@@ -182,12 +184,7 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
     res = model.generate(row[None], count=count, seed=seed)
     meta = {"model": str(model.directory), "runtime": model.runtime, "seed": seed,
             "count": count, "type": target.get(TYPE_KEY),
-            "condition": {"range_m": pose["range_m"],
-                          "elevation_deg": math.degrees(pose["elevation"]),
-                          "pitch_deg": math.degrees(pose["pitch"]),
-                          "yaw_deg": math.degrees(pose["yaw"]),
-                          "roll_deg": math.degrees(pose["roll"])},
-            "azimuth_deg": math.degrees(pose["azimuth"]), "tau": model.tau,
+            **_pose_meta(pose), "tau": model.tau,
             "lidar": model.lidar.to_dict()}
     return cloud_object(res.cloud, name or f"{target.name} APCG", lidar=lidar_of(target),
                         source="generated", r0=pose["range_m"], beta0=pose["elevation"],

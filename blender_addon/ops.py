@@ -310,15 +310,7 @@ class APCG_OT_export_cloud(bpy.types.Operator, ExportHelper):
 CLASSES = (APCG_OT_add_lidar, APCG_OT_add_aircraft, APCG_OT_scan, APCG_OT_generate,
            APCG_OT_import_cloud, APCG_OT_export_cloud)
 
-
-def register() -> None:
-    for c in CLASSES:
-        bpy.utils.register_class(c)
-
-
-def unregister() -> None:
-    for c in reversed(CLASSES):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)
 
 
 __all__ = ["register", "unregister"]

@@ -59,12 +59,4 @@ class APCG_PT_panel(bpy.types.Panel):
 
 CLASSES = (APCG_PT_panel,)
 
-
-def register() -> None:
-    for c in CLASSES:
-        bpy.utils.register_class(c)
-
-
-def unregister() -> None:
-    for c in reversed(CLASSES):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)
