@@ -312,3 +312,21 @@ def test_jsd_bins_study_separates_good_from_wrong(data, tmp_path):
         assert band["28"]["floor"] >= band["2"]["floor"]
     assert study["best"] in (2, 4, 28)
     assert study["min_gap"][str(study["best"])] == max(study["min_gap"].values())
+
+
+def test_figures_18_and_19(data, tmp_path):
+    from training.figures import fig18, fig19
+    cfg = config_from("tiny", steps=2, width=0.0625, checkpoint_every=1000, seed=9)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    model = APCGModel(export_model(tmp_path / "run", tmp_path / "m"), runtime="onnx")
+    d18 = fig18(model, tmp_path / "f18.png", counts=(4, 16))
+    assert [(r["types"], r["clouds"]) for r in d18["rows"]] == [
+        (t, n) for t in (2, 4, 8) for n in (4, 16)]
+    assert all(r["seconds"] > 0 for r in d18["rows"])
+    d19 = fig19(model, data, tmp_path / "f19.png", n_pairs=30, n_bins=2)
+    rows = d19.get("aircraft", []) + d19.get("drone", [])
+    assert sum(r["pairs"] for r in rows) == 30
+    for r in rows:  # both references scored, per range bin
+        assert r["mmd_standard"] is None or r["mmd_standard"] >= 0
+        assert ("mmd_noised" in r) and ("jsd_noised" in r)
+    assert (tmp_path / "f18.json").exists() and (tmp_path / "f19.png").stat().st_size > 0

@@ -163,11 +163,14 @@ def _run_evaluate(args) -> int:
 
 
 def register_figure(sub) -> None:
-    p = sub.add_parser("figure", help="the paper's training figures (13, 14) as PNG + JSON",
+    p = sub.add_parser("figure", help="the paper's figures 13, 14, 18, 19 as PNG + JSON",
                        description="13: |L_D| and L_G per epoch from a run's log. 14: MMD and "
-                                   "JSD of the run's kept checkpoints against training time.")
-    p.add_argument("number", type=int, choices=[13, 14])
-    p.add_argument("--run", required=True, help="training run directory")
+                                   "JSD of the run's kept checkpoints against training time. "
+                                   "18: generation time against the number of clouds. 19: "
+                                   "generated clouds against standard and cell-jittered ones.")
+    p.add_argument("number", type=int, choices=[13, 14, 18, 19])
+    p.add_argument("--run", help="training run directory (13, 14)")
+    p.add_argument("--model", help="model directory (18, 19; default: the default model)")
     p.add_argument("--data", help="dataset directory (figure 14)")
     p.add_argument("--pairs", type=int, default=400, help="test pairs per checkpoint (14)")
     p.add_argument("-o", "--output", required=True, help="PNG path (the data goes beside it)")
@@ -177,12 +180,22 @@ def register_figure(sub) -> None:
 def _run_figure(args) -> int:
     from apcg_core.errors import InputError
 
-    from .figures import fig13, fig14
+    from .figures import fig13, fig14, fig18, fig19
+    if args.number in (13, 14) and not args.run:
+        raise InputError(f"figure {args.number} needs --run (a training run directory)")
+    if args.number in (14, 19) and not args.data:
+        raise InputError(f"figure {args.number} needs --data (the dataset whose test split "
+                         "scores)")
     if args.number == 13:
         fig13(args.run, args.output)
-    else:
-        if not args.data:
-            raise InputError("figure 14 needs --data (the dataset whose test split scores)")
+    elif args.number == 14:
         fig14(args.run, args.data, args.output, n_pairs=args.pairs)
+    else:
+        from apcg_core.generation import APCGModel
+        model = APCGModel(args.model, runtime="onnx")
+        if args.number == 18:
+            fig18(model, args.output)
+        else:
+            fig19(model, args.data, args.output, n_pairs=args.pairs)
     print(f"wrote {args.output} and its .json")
     return 0

@@ -4,6 +4,12 @@
     apcg figure 14 --run RUN --data DIR -o fig14.png
                                               MMD and JSD against training time, one point per
                                               kept checkpoint (checkpoints/step-*.pt)
+    apcg figure 18 [--model DIR] -o fig18.png  generation time against the number of clouds,
+                                              for 2, 4 and 8 types and random counts
+    apcg figure 19 [--model DIR] --data DIR -o fig19.png
+                                              MMD and JSD of generated clouds against slant
+                                              range, scored against the standard clouds and
+                                              against their cell-jittered ("noised") copies
 """
 
 from __future__ import annotations
@@ -98,6 +104,114 @@ def fig14(run, data_dir, out, n_pairs: int = 400, seed: int = 0) -> dict:
     ax.set_title(f"MMD and JSD against training time, {Path(run).name} (paper Fig. 14)")
     ax.grid(alpha=0.3)
     ax.legend()
+    _save(fig, out, data)
+    return data
+
+
+def fig18(model, out, counts=(100, 300, 1000, 3000), seed: int = 0) -> dict:
+    """Seconds to generate N clouds (noise to point clouds) for 2, 4 and 8 types, the N
+    conditions drawn at random over Table 1 (the paper's Fig. 18; it claims < 6 s for 10^6 on a
+    GPU)."""
+    import time
+    rng = np.random.default_rng(seed)
+    model.generate(_random_table(model, 8, 2, rng), seed=seed)  # warm the runtime
+    rows = []
+    for n_types in (2, 4, 8):
+        for n in counts:
+            table = _random_table(model, n, n_types, rng)
+            t0 = time.perf_counter()
+            res = model.generate(table, count=1, seed=seed)
+            rows.append({"types": n_types, "clouds": n, "seconds": time.perf_counter() - t0,
+                         "points": len(res.cloud)})
+            print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+    data = {"rows": rows, "runtime": model.runtime, "model": str(model.directory)}
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    for n_types in (2, 4, 8):
+        r = [x for x in rows if x["types"] == n_types]
+        ax.plot([x["clouds"] for x in r], [x["seconds"] for x in r], "o-",
+                label=f"{n_types} types")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("point clouds generated")
+    ax.set_ylabel("seconds (this machine, CPU)")
+    ax.set_title(f"Generation time ({model.runtime}; paper Fig. 18)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    _save(fig, out, data)
+    return data
+
+
+def _random_table(model, n: int, n_types: int, rng) -> np.ndarray:
+    """n random conditions over the model's condition space, types drawn from n_types."""
+    codes = rng.choice(len(model.types), n_types, replace=False)
+    table = model.space.decode(rng.uniform(-1, 1, (n, 6)))
+    table[:, 0] = rng.choice(codes, n)
+    lo, hi = model.space.range_bounds(table[:, 0].astype(int))  # the type's own range band
+    table[:, 1] = lo + rng.random(n) * (hi - lo)
+    return table
+
+
+def fig19(model, data_dir, out, n_pairs: int = 600, seed: int = 0, n_bins: int = 10) -> dict:
+    """MMD and JSD of generated clouds, scored against the standard clouds ("standard") and
+    against their cell-jittered copies ("noised"), per slant-range bin (the paper's Fig. 19)."""
+    from apcg_core.metrics import jsd, mmd
+
+    from .data import DepthDataset
+    from .evaluate import _jittered
+    from .quick_eval import JSD_BINS_EVAL
+    ds = DepthDataset(data_dir, "test")
+    rng = np.random.default_rng(seed)
+    idx = np.sort(rng.choice(len(ds), min(n_pairs, len(ds)), replace=False))
+    table = ds.conditions[idx]
+    res = model.generate(table, count=1, seed=seed)
+    gen = [c.xyz for c in res.cloud.split(len(idx))]
+    near = model.space.is_drone(table[:, 0].astype(int))
+    data = {"jsd_bins": JSD_BINS_EVAL, "pairs": len(idx)}
+    for kind in ("aircraft", "drone"):
+        sel = np.flatnonzero(near == (kind == "drone"))
+        if len(sel) == 0:
+            continue
+        edges = np.linspace(table[sel, 1].min(), table[sel, 1].max() + 1e-6, n_bins + 1)
+        rows = []
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            ks = [k for k in sel if lo <= table[k, 1] < hi]
+            if not ks:
+                continue
+            vals = {"standard": [], "noised": []}
+            for k in ks:
+                std = ds.standard_cloud(int(idx[k]))
+                for name, ref in (("standard", std),
+                                  ("noised", _jittered(ds, int(idx[k]), seed + int(k)))):
+                    vals[name].append((mmd(ref, gen[k], max_points=2048, seed=seed),
+                                       jsd(ref, gen[k], bins=JSD_BINS_EVAL, max_points=2048,
+                                           seed=seed)))
+            row = {"range_m": float((lo + hi) / 2), "pairs": len(ks)}
+            for name, v in vals.items():
+                for j, metric in enumerate(("mmd", "jsd")):
+                    x = [p[j] for p in v if p[j] is not None]
+                    row[f"{metric}_{name}"] = float(np.mean(x)) if x else None
+            rows.append(row)
+        data[kind] = rows
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6), constrained_layout=True)
+    for col, kind in enumerate(("aircraft", "drone")):
+        for row_i, metric in enumerate(("mmd", "jsd")):
+            ax = axes[row_i, col]
+            for name, style in (("standard", "o-"), ("noised", "s--")):
+                pts = [(r["range_m"], r[f"{metric}_{name}"]) for r in data.get(kind, [])
+                       if r[f"{metric}_{name}"] is not None]
+                if pts:
+                    ax.plot(*zip(*pts, strict=True), style, label=name)
+            ax.set_title(f"{kind}: {metric.upper()}")
+            ax.set_xlabel("slant range (m)")
+            ax.grid(alpha=0.3)
+            ax.legend()
+    fig.suptitle("Generated clouds against standard and cell-jittered clouds (paper Fig. 19)")
     _save(fig, out, data)
     return data
 
