@@ -320,8 +320,9 @@ def test_figures_18_and_19(data, tmp_path):
     Trainer(data, tmp_path / "run", cfg, progress=False).fit()
     model = APCGModel(export_model(tmp_path / "run", tmp_path / "m"), runtime="onnx")
     d18 = fig18(model, tmp_path / "f18.png", counts=(4, 16))
+    kinds = [t for t in (2, 4, 8) if t <= len(model.types)]  # the tiny dataset has few types
     assert [(r["types"], r["clouds"]) for r in d18["rows"]] == [
-        (t, n) for t in (2, 4, 8) for n in (4, 16)]
+        (t, n) for t in kinds for n in (4, 16)]
     assert all(r["seconds"] > 0 for r in d18["rows"])
     d19 = fig19(model, data, tmp_path / "f19.png", n_pairs=30, n_bins=2)
     rows = d19.get("aircraft", []) + d19.get("drone", [])
