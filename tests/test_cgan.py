@@ -331,3 +331,23 @@ def test_figures_18_and_19(data, tmp_path):
         assert r["mmd_standard"] is None or r["mmd_standard"] >= 0
         assert ("mmd_noised" in r) and ("jsd_noised" in r)
     assert (tmp_path / "f18.json").exists() and (tmp_path / "f19.png").stat().st_size > 0
+
+
+def test_fd_depth_encoder_and_distance(data, tmp_path):
+    from training.fd_depth import fd_depth, frechet_distance, load_encoder, train_encoder
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((400, 5))
+    assert frechet_distance(a, a) == pytest.approx(0.0, abs=1e-6)
+    # two Gaussians with the same covariance: the distance is the squared mean shift
+    shift = np.array([2.0, 0, 0, 0, 0])
+    b = rng.standard_normal((200_000, 5))
+    c = rng.standard_normal((200_000, 5)) + shift
+    assert frechet_distance(b, c) == pytest.approx(4.0, rel=0.02)
+    meta = train_encoder(data, tmp_path / "enc", epochs=3, progress=False)
+    assert meta["test_accuracy_type"] > 0.8 > meta["chance"]  # A320neo vs Mavic 3
+    enc = load_encoder(tmp_path / "enc")
+    cfg = config_from("tiny", steps=1, width=0.0625, checkpoint_every=1000, seed=10)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    untrained = APCGModel(export_model(tmp_path / "run", tmp_path / "m"), runtime="onnx")
+    score = fd_depth(enc, untrained, data, n_pairs=40)
+    assert score["fd_depth"] > score["fd_depth_real_halves"] >= 0.0

@@ -199,3 +199,42 @@ def _run_figure(args) -> int:
             fig19(model, args.data, args.output, n_pairs=args.pairs)
     print(f"wrote {args.output} and its .json")
     return 0
+
+
+def register_fd_depth(sub) -> None:
+    p = sub.add_parser("fd-depth", help="FD-depth: the Fréchet distance over features of our "
+                                        "own depth-image encoder (not FID)",
+                       description="train: a CNN that tells the type from a normalised depth "
+                                   "image (its held-out accuracy is saved). score: the "
+                                   "Fréchet distance between real and generated test images "
+                                   "in its feature space.")
+    s = p.add_subparsers(dest="fd_cmd", required=True)
+    t = s.add_parser("train", help="train the encoder on a dataset's train split")
+    t.add_argument("--data", required=True)
+    t.add_argument("-o", "--output", required=True, help="encoder directory")
+    t.add_argument("--epochs", type=float, default=4.0)
+    t.add_argument("--seed", type=int, default=0)
+    t.set_defaults(func=_run_fd_train)
+    c = s.add_parser("score", help="FD-depth of a model on a dataset's test split")
+    c.add_argument("--encoder", required=True)
+    c.add_argument("--data", required=True)
+    c.add_argument("--model", help="model directory (default: the default model)")
+    c.add_argument("--pairs", type=int, default=2000)
+    c.add_argument("--seed", type=int, default=0)
+    c.set_defaults(func=_run_fd_score)
+
+
+def _run_fd_train(args) -> int:
+    from .fd_depth import train_encoder
+    print(json.dumps(train_encoder(args.data, args.output, epochs=args.epochs,
+                                   seed=args.seed)))
+    return 0
+
+
+def _run_fd_score(args) -> int:
+    from apcg_core.generation import APCGModel
+
+    from .fd_depth import fd_depth
+    print(json.dumps(fd_depth(args.encoder, APCGModel(args.model, runtime="onnx"), args.data,
+                              n_pairs=args.pairs, seed=args.seed)))
+    return 0
