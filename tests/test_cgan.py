@@ -351,3 +351,20 @@ def test_fd_depth_encoder_and_distance(data, tmp_path):
     untrained = APCGModel(export_model(tmp_path / "run", tmp_path / "m"), runtime="onnx")
     score = fd_depth(enc, untrained, data, n_pairs=40)
     assert score["fd_depth"] > score["fd_depth_real_halves"] >= 0.0
+
+
+def test_ablation_runs_all_eight_variants_under_one_budget(data, tmp_path):
+    from training.ablation import VARIANTS, run_ablation, variant_name
+    rep = run_ablation(data, tmp_path / "abl", steps=2, width=0.0625, pairs=20,
+                       progress=False, encoder_epochs=1)
+    assert len(VARIANTS) == 8 and len({variant_name(v) for v in VARIANTS}) == 8
+    assert [r["variant"] for r in rep["rows"]] == [variant_name(v) for v in VARIANTS]
+    assert all(r["steps"] == 2 and r["fd_depth"] >= 0 for r in rep["rows"])
+    fc = next(r for r in rep["rows"] if r["variant"] == "fc-noattn-bce")
+    saved = json.loads((tmp_path / "abl" / "fc-noattn-bce" / "train_config.json").read_text())
+    assert saved["train"]["conv"] is False and saved["train"]["loss"] == "bce"
+    assert saved["train"]["attention"] is False and fc["loss"] == "bce"
+    assert "| no (FC) | no | no (BCE) |" in (tmp_path / "abl" / "table3.md").read_text()
+    again = run_ablation(data, tmp_path / "abl", steps=2, width=0.0625, pairs=20,
+                         progress=False)  # finished runs are scored, not retrained
+    assert [r["steps"] for r in again["rows"]] == [2] * 8

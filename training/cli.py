@@ -238,3 +238,27 @@ def _run_fd_score(args) -> int:
     print(json.dumps(fd_depth(args.encoder, APCGModel(args.model, runtime="onnx"), args.data,
                               n_pairs=args.pairs, seed=args.seed)))
     return 0
+
+
+def register_ablation(sub) -> None:
+    p = sub.add_parser("ablation", help="Table 3: the 8 network / loss variants under one "
+                                        "budget, scored by FD-depth, MMD and JSD",
+                       description="Trains (or resumes) the 8 combinations of TConv / FC, "
+                                   "self-attention on / off and Wasserstein-GP / BCE with the "
+                                   "same steps, then writes table3.md and table3.json.")
+    p.add_argument("--data", required=True)
+    p.add_argument("-o", "--output", required=True, help="directory for the 8 runs + table")
+    p.add_argument("--steps", type=int, default=600, help="generator steps per variant")
+    p.add_argument("--width", type=float, default=0.25)
+    p.add_argument("--encoder", help="FD-depth encoder (default: trained into OUTPUT/encoder)")
+    p.add_argument("--pairs", type=int, default=400)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_run_ablation)
+
+
+def _run_ablation(args) -> int:
+    from .ablation import markdown, run_ablation
+    rep = run_ablation(args.data, args.output, steps=args.steps, width=args.width,
+                       encoder=args.encoder, pairs=args.pairs, seed=args.seed)
+    print(markdown(rep))
+    return 0
