@@ -29,6 +29,9 @@ def register_train(sub) -> None:
     p.add_argument("--no-conv", action="store_true", help="ablation: fully connected layers")
     p.add_argument("--no-attention", action="store_true", help="ablation: no self-attention")
     p.add_argument("--bce", action="store_true", help="ablation: BCE loss, no Wasserstein/GP")
+    p.add_argument("--model", dest="family", default="cgan",
+                   choices=["cgan", "point-gan", "voxel-gan", "diffusion"],
+                   help="what to train: the paper's cGAN (default) or a comparison family")
     p.add_argument("--no-norm", action="store_true",
                    help="train on depth images without Norm (the paper's 'APCG w/o Norm.')")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
@@ -56,6 +59,8 @@ def _run_train(args) -> int:
         over["loss"] = "bce"
     if args.no_norm:
         over["norm"] = False
+    if args.family != "cgan":
+        over["family"] = args.family
     if args.resume:
         from pathlib import Path
 
@@ -140,10 +145,9 @@ def register_evaluate(sub) -> None:
 def _run_evaluate(args) -> int:
     from pathlib import Path
 
-    from apcg_core.generation import APCGModel
-
+    from .baselines.model import load_any
     from .evaluate import evaluate, jsd_bins_study, markdown, write_report
-    model = APCGModel(args.model, runtime=args.runtime)
+    model = load_any(args.model, runtime=args.runtime)
     if args.jsd_bins_study:
         study = jsd_bins_study(model, args.data, seed=args.seed)
         study["command"] = "apcg evaluate " + " ".join(sys.argv[2:])
@@ -191,8 +195,8 @@ def _run_figure(args) -> int:
     elif args.number == 14:
         fig14(args.run, args.data, args.output, n_pairs=args.pairs)
     else:
-        from apcg_core.generation import APCGModel
-        model = APCGModel(args.model, runtime="onnx")
+        from .baselines.model import load_any
+        model = load_any(args.model, runtime="onnx")
         if args.number == 18:
             fig18(model, args.output)
         else:

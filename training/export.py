@@ -8,6 +8,7 @@ import shutil
 import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from apcg_core.depth import TAU_DEFAULT
@@ -41,11 +42,13 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
     st = torch.load(ck, map_location="cpu", weights_only=False)
     cfg = json.loads((run / "train_config.json").read_text())
     head = read_header(data_dir or cfg["data"])
-    g = Generator(NetConfig(**st["net"]))
-    g.load_state_dict(st["G"])
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    export_onnx(g, out / "generator.onnx")
+    family = st["train"].get("family", "cgan")
+    if family == "cgan":
+        g = Generator(NetConfig(**st["net"]))
+        g.load_state_dict(st["G"])
+        export_onnx(g, out / "generator.onnx")
     meta = {"format": "apcg-model", "format_version": 1, "net": st["net"],
             "condition_space": head["condition_space"], "lidar": head["lidar"],
             "types": [{k: t[k] for k in ("code", "name", "catalog_index", "kind", "range_band",
@@ -54,7 +57,15 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
             "trained_epochs": round(st["batch_counter"] / max(1, _bpe(head, st)), 3),
             "dataset": head.get("name"), "train": st["train"],
             "norm": bool(st["train"].get("norm", True))}
-    (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
+    if family == "cgan":
+        (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
+    else:  # a comparison family: torch weights and the expected-count table
+        from .baselines.data import CountLookup
+        from .baselines.model import export_baseline
+        from .data import DepthDataset
+        train = DepthDataset(data_dir or cfg["data"], "train")
+        counts = CountLookup(train.conditions[:, 0], train.nu, np.diff(train.offsets))
+        export_baseline(st, head, counts, out, meta)
     if (run / "train_config.json").exists():
         shutil.copy(run / "train_config.json", out / "train_config.json")
     if (run / "log.csv").exists():  # the log up to the exported step

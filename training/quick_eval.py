@@ -125,7 +125,8 @@ def main(argv=None) -> int:
                     help="score the model at several Im2PC thresholds instead")
     ap.add_argument("-o", "--output")
     args = ap.parse_args(argv)
-    model = APCGModel(args.model, runtime="onnx")
+    from .baselines.model import load_any
+    model = load_any(args.model, runtime="onnx")
     ds = DepthDataset(args.data, "test")
     command = "python -m training.quick_eval " + " ".join(
         argv if argv is not None else sys.argv[1:])

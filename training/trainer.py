@@ -52,6 +52,10 @@ class TrainConfig:
     channels_last: bool = False
     checkpoint_every: int = 500
     norm: bool = True  # train on Norm(depth) (eq. 17); False: "APCG w/o Norm." (paper Fig. 17)
+    family: str = "cgan"  # or a comparison family: point-gan, voxel-gan, diffusion (issue 8)
+    n_points: int = 256  # point-gan / diffusion: points per generated set
+    voxel_res: int = 32  # voxel-gan: occupancy grid resolution
+    diffusion_steps: int = 200  # diffusion: T of the DDPM schedule
     keep_every: int = 0  # also keep checkpoints/step-NNNNNN.pt every this many steps (0: never)
     diverge_gp: float = 50.0  # stop when the gradient penalty's mean over 50 steps exceeds it
     log_every: int = 10
@@ -108,19 +112,27 @@ class Trainer:
         self.data = DepthDataset(data_dir, "train")
         self.data_dir = str(data_dir)
         torch.manual_seed(cfg.seed)  # initial weights
-        net = self.net_config = cfg.net(self.data.height, self.data.width)
-        self.G, self.D = Generator(net), Discriminator(net)
-        if cfg.channels_last:
+        if cfg.family == "cgan":
+            net = self.net_config = cfg.net(self.data.height, self.data.width)
+            self.G, self.D = Generator(net), Discriminator(net)
+        else:
+            from .baselines.family import CanonicalClouds, build_family
+            net = self.net_config = build_family(cfg)
+            self.G, self.D = net.networks()
+            self.clouds = CanonicalClouds(self.data)
+        if cfg.channels_last and cfg.family == "cgan":
             self.G = self.G.to(memory_format=torch.channels_last)
             self.D = self.D.to(memory_format=torch.channels_last)
         self.opt_g = torch.optim.Adam(self.G.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
-        self.opt_d = torch.optim.Adam(self.D.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
+        self.opt_d = (torch.optim.Adam(self.D.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
+                      if self.D is not None else None)
         self.step = 0
         self.batch_counter = 0
         self.seconds_before = 0.0  # training time of earlier runs (from the log, on resume)
         self.bpe = self.data.batches_per_epoch(cfg.batch_size, self.world)
+        batches_per_step = 1 if cfg.family == "diffusion" else cfg.n_critic
         self.total_steps = cfg.steps if cfg.steps is not None else int(
-            math.ceil(cfg.epochs * self.bpe / cfg.n_critic))
+            math.ceil(cfg.epochs * self.bpe / batches_per_step))
         ckpt = self.run / "checkpoint.pt"
         existed = (self.run / "train_config.json").exists()
         if self.world > 1:  # every rank looks before rank 0 writes the run's files
@@ -140,14 +152,17 @@ class Trainer:
                  "dataset": self.data.header.get("name"), "world": self.world}, indent=1))
         if self.world > 1:
             _broadcast(self.G)
-            _broadcast(self.D)
+            if self.D is not None:
+                _broadcast(self.D)
         self._tb = None
 
     # --- checkpoints -------------------------------------------------------------------------
     def _state(self) -> dict:
         return {"step": self.step, "batch_counter": self.batch_counter,
-                "G": self.G.state_dict(), "D": self.D.state_dict(),
-                "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict(),
+                "G": self.G.state_dict(),
+                "D": self.D.state_dict() if self.D is not None else None,
+                "opt_g": self.opt_g.state_dict(),
+                "opt_d": self.opt_d.state_dict() if self.opt_d is not None else None,
                 "train": asdict(self.cfg), "net": self.net_config.to_dict()}
 
     def save(self) -> None:
@@ -167,9 +182,10 @@ class Trainer:
             raise InputError(f"checkpoint {path} has network {st['net']}, not "
                              f"{self.net_config.to_dict()}; resume with the same preset")
         self.G.load_state_dict(st["G"])
-        self.D.load_state_dict(st["D"])
         self.opt_g.load_state_dict(st["opt_g"])
-        self.opt_d.load_state_dict(st["opt_d"])
+        if self.D is not None:
+            self.D.load_state_dict(st["D"])
+            self.opt_d.load_state_dict(st["opt_d"])
         self.step, self.batch_counter = st["step"], st["batch_counter"]
         log = self.run / "log.csv"
         if log.exists() and self.rank == 0:  # drop rows past the checkpoint: they are redone
@@ -225,6 +241,8 @@ class Trainer:
         idx = self.data.batch_indices(self.cfg.seed, self.batch_counter, self.cfg.batch_size,
                                       self.rank, self.world)
         self.batch_counter += 1
+        if self.cfg.family != "cgan":
+            return self._family_batch(idx), torch.from_numpy(self.data.nu[idx])
         real = torch.from_numpy(self.data.images(idx, normalized=self.cfg.norm))[:, None]
         nu = torch.from_numpy(self.data.nu[idx])
         if self.cfg.channels_last:
@@ -234,8 +252,36 @@ class Trainer:
     def _autocast(self):
         return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.cfg.bf16)
 
+    def _family_batch(self, idx) -> torch.Tensor:
+        cfg = self.cfg
+        if cfg.family == "voxel-gan":
+            return torch.from_numpy(self.clouds.voxels(idx, cfg.voxel_res))
+        return torch.from_numpy(self.clouds.points(idx, cfg.n_points,
+                                                   seed=[cfg.seed, self.batch_counter]))
+
+    def _diffusion_step(self) -> dict:
+        """One DDPM step: predict the noise added to a batch of canonical point sets."""
+        x0, nu = self._batch()
+        gen = _step_generator(self.cfg.seed, self.step, 0, self.rank)
+        t = torch.randint(0, self.net_config.schedule.T, (len(x0),), generator=gen)
+        eps = torch.randn(x0.shape, generator=gen)
+        self.G.train()
+        with self._autocast():
+            pred = self.G(self.net_config.schedule.noisy(x0, t, eps), t, nu).float()
+        loss = F.mse_loss(pred, eps)
+        self.opt_g.zero_grad(set_to_none=True)
+        loss.backward()
+        _allreduce_grads(self.G, self.world)
+        self.opt_g.step()
+        self.step += 1
+        zero = 0.0
+        return {"step": self.step, "epoch": round(self.batch_counter / self.bpe, 4),
+                "loss_d": zero, "loss_g": _g7(loss), "gp": zero, "wasserstein": zero}
+
     def train_step(self) -> dict:
         cfg = self.cfg
+        if cfg.family == "diffusion":
+            return self._diffusion_step()
         wgan = cfg.loss == "wgan-gp"
         b = cfg.batch_size
         self.G.train()
@@ -339,6 +385,8 @@ class TrainingDiverged(APCGError):
 
 
 def param_checksum(model) -> float:
+    if model is None:
+        return 0.0
     return float(sum(p.detach().double().sum() for p in model.parameters()))
 
 

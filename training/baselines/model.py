@@ -1,0 +1,119 @@
+"""A trained comparison model as a directory (model.json + weights.pt + counts.npz) and its
+generation: canonical sets -> the condition's expected point count -> observation frame ->
+snapped to the lidar's cells (one return per cell, range quantized), so every method's clouds
+are what the SPC-Lidar records."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from apcg_core.cloud import PointCloud
+from apcg_core.condition import ConditionSpace
+from apcg_core.errors import InputError
+from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian
+from apcg_core.generation import NOISE_DIM, APCGModel, GenerationResult
+from apcg_core.lidar import LidarParams
+
+from .data import CountLookup, from_canonical, voxel_centres
+from .family import FamilyConfig
+
+
+def load_any(directory=None, runtime: str = "onnx"):
+    """The model in ``directory``: the cGAN (APCGModel) or a comparison family."""
+    if directory is not None:
+        meta = Path(directory) / "model.json"
+        if meta.exists() and json.loads(meta.read_text()).get("family", "cgan") != "cgan":
+            return BaselineModel(directory)
+    return APCGModel(directory, runtime=runtime)
+
+
+def export_baseline(st: dict, head: dict, counts: CountLookup, out: Path, meta: dict) -> None:
+    torch.save({"G": st["G"], "net": st["net"]}, out / "weights.pt")
+    np.savez(out / "counts.npz", codes=counts.codes, nu=counts.nu, counts=counts.counts,
+             k=counts.k)
+    (out / "model.json").write_text(json.dumps({**meta, "family": st["net"]["family"]},
+                                               indent=1) + "\n")
+
+
+class BaselineModel:
+    runtime = "torch"
+    norm = True
+    tau = None
+
+    def __init__(self, directory, sampling_steps: int | None = None) -> None:
+        self.directory = Path(directory)
+        self.meta = json.loads((self.directory / "model.json").read_text())
+        self.cfg = FamilyConfig(**self.meta["net"])
+        self.space = ConditionSpace.from_dict(self.meta["condition_space"])
+        self.lidar = LidarParams.from_dict(self.meta["lidar"])
+        self.types = self.meta["types"]
+        st = torch.load(self.directory / "weights.pt", map_location="cpu", weights_only=False)
+        self.net, _ = self.cfg.networks()
+        self.net.load_state_dict(st["G"])
+        self.net.eval()
+        with np.load(self.directory / "counts.npz") as z:
+            self.counts = CountLookup(z["codes"], z["nu"], z["counts"], int(z["k"]))
+        self.sampling_steps = sampling_steps
+
+    def depth_length(self, codes) -> np.ndarray:
+        return np.array([t["depth_length_m"] for t in self.types])[np.asarray(codes, int)]
+
+    @torch.no_grad()
+    def canonical(self, nu: np.ndarray, seed: int) -> list[np.ndarray]:
+        gen = torch.Generator().manual_seed(int(seed))
+        nu_t = torch.from_numpy(nu.astype(np.float32))
+        if self.cfg.family == "diffusion":
+            pts = self.cfg.schedule.sample(self.net, nu_t, self.cfg.n_points, gen,
+                                           self.sampling_steps)
+            return list(pts.numpy())
+        z = torch.randn(len(nu), NOISE_DIM, generator=gen)
+        out = self.net(z, nu_t).numpy()
+        if self.cfg.family == "point-gan":
+            return list(out)
+        centres = voxel_centres(self.cfg.voxel_res)
+        sets = []
+        for p in out.reshape(len(nu), -1):  # occupied voxels, most probable first
+            order = np.argsort(-p)
+            sets.append(centres[order[p[order] > 0.5]])
+        return sets
+
+    def generate(self, table, count: int = 1, seed: int = 0) -> GenerationResult:
+        table = self.space.check(table)
+        if not isinstance(count, (int, np.integer)) or count < 1:
+            raise InputError(f"count must be an integer >= 1, got {count!r}")
+        table = np.repeat(table, count, axis=0)
+        nu = self.space.encode(table)
+        sets = self.canonical(nu, seed)
+        lengths = self.depth_length(table[:, 0])
+        rng = np.random.default_rng(seed)
+        parts = []
+        for i, pts in enumerate(sets):
+            n = self.counts(int(table[i, 0]), nu[i])
+            if self.cfg.family != "voxel-gan" and len(pts) > n:
+                pts = pts[rng.permutation(len(pts))[:n]]
+            elif self.cfg.family == "voxel-gan":
+                pts = pts[:n]
+            xyz = from_canonical(pts, table[i, 1], table[i, 2], lengths[i])
+            parts.append(self._snap(xyz, table[i, 2], i))
+        cloud = PointCloud(*[np.concatenate([p[k] for p in parts]) for k in range(5)])
+        return GenerationResult(cloud, None, table)
+
+    def _snap(self, xyz: np.ndarray, beta0: float, sample: int):
+        """Points -> the lidar's cells: the nearest point of each cell, its range quantized."""
+        lidar = self.lidar
+        alpha, beta, r = cartesian_to_spherical(xyz)
+        w, h = lidar.cell_of_angles(alpha, beta, beta0)
+        ok = lidar.inside(w, h)
+        w, h, r = w[ok], h[ok], r[ok]
+        order = np.lexsort((r, h, w))
+        w, h, r = w[order], h[order], r[order]
+        first = np.ones(len(w), bool)
+        first[1:] = (w[1:] != w[:-1]) | (h[1:] != h[:-1])
+        w, h, r = w[first], h[first], lidar.quantize_range(r[first])
+        a, b = lidar.cell_centre_angles(w, h, beta0)
+        return (spherical_to_cartesian(a, b, r), r, w, h,
+                np.full(len(r), sample, np.int64))
