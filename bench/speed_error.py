@@ -114,9 +114,9 @@ def main() -> int:
     ap.add_argument("--json")
     ap.add_argument("--plot")
     args = ap.parse_args()
-    from apcg_core.generation import APCGModel
+    from training.baselines.model import load_any
     ds = DepthDataset(args.data, "test")
-    models = [APCGModel(m, runtime="onnx") for m in (args.model or [None])]
+    models = [load_any(m, runtime="onnx") for m in (args.model or [None])]
     near = models[0].space.is_drone(ds.conditions[:, 0].astype(int))
     n_bands = 9
     idx = stratified_subset(ds, args.per_band * n_bands, args.seed, near)
@@ -128,8 +128,10 @@ def main() -> int:
     for k in (int(x) for x in args.supersample.split(",") if x):
         methods[f"embree {k}x{k}"] = simulated("embree", ds, idx, supersample=k)
     for m in models:
-        methods[f"APCG {Path(m.directory).name} (width {m.meta['net']['width']})"] = generated(
-            m, ds, idx, args.seed)
+        net = m.meta["net"]
+        label = (f"APCG {Path(m.directory).name} (width {net['width']})" if "width" in net
+                 else f"{net['family']} {Path(m.directory).name}")
+        methods[label] = generated(m, ds, idx, args.seed)
     methods["nearest sample"] = nearest_sample(DepthDataset(args.data, "train"), ds, idx)
     report = {"command": "python bench/speed_error.py " + " ".join(sys.argv[1:]),
               "pairs": len(idx), "jsd_bins": BINS, "methods": {}}
