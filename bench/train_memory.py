@@ -1,0 +1,87 @@
+"""Peak memory and time per step of training, per model family (the paper's Fig. 15), each in
+its own process so the peaks do not mix.
+
+    .venv/bin/python bench/train_memory.py --data data/cpu [--steps 20]
+        [--json bench/results/train_memory.json] [--plot docs/fig15.png]
+
+Peak memory is the process's maximum resident set (ru_maxrss) on CPU, or torch's peak
+allocated device memory on a GPU; both include the dataset held in memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = {
+    "cgan (cpu preset, width 0.25, bf16)": {"preset": "cpu"},
+    "cgan (paper, width 1.0)": {"preset": "paper", "bf16": True},
+    "point-gan": {"preset": "cpu", "family": "point-gan", "bf16": False},
+    "voxel-gan": {"preset": "cpu", "family": "voxel-gan", "bf16": False},
+    "diffusion": {"preset": "cpu", "family": "diffusion", "bf16": False},
+}
+
+CHILD = """
+import json, resource, sys, time, torch
+from training.trainer import Trainer, config_from
+spec = json.loads(sys.argv[1])
+preset = spec.pop("preset")
+cfg = config_from(preset, steps=int(sys.argv[4]), checkpoint_every=10**9, **spec)
+tr = Trainer(sys.argv[2], sys.argv[3], cfg, progress=False)
+tr.train_step()  # warm-up
+t0 = time.perf_counter()
+for _ in range(int(sys.argv[4])):
+    tr.train_step()
+dt = (time.perf_counter() - t0) / int(sys.argv[4])
+gpu = torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None
+print(json.dumps({"seconds_per_step": dt,
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "peak_gpu_mb": gpu}))
+"""
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--only", help="comma-separated config names to run")
+    ap.add_argument("--json")
+    ap.add_argument("--plot")
+    args = ap.parse_args()
+    rows = []
+    for name, spec in CONFIGS.items():
+        if args.only and name not in args.only.split(","):
+            continue
+        with tempfile.TemporaryDirectory() as tmp:
+            r = subprocess.run([sys.executable, "-c", CHILD, json.dumps(spec), args.data,
+                                str(Path(tmp) / "run"), str(args.steps)], cwd=ROOT,
+                               capture_output=True, text=True)
+        if r.returncode:
+            print(r.stderr[-2000:], file=sys.stderr)
+            raise SystemExit(f"{name} failed")
+        row = {"config": name, **json.loads(r.stdout.strip().splitlines()[-1])}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    out = {"command": "python bench/train_memory.py " + " ".join(sys.argv[1:]),
+           "steps": args.steps, "rows": rows}
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+    if args.plot:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        fig, ax = plt.subplots(figsize=(8, 4), constrained_layout=True)
+        ax.barh([r["config"] for r in rows], [r["peak_rss_mb"] for r in rows])
+        ax.set_xlabel("peak resident memory while training (MB, CPU)")
+        ax.set_title("Training memory per model (paper Fig. 15)")
+        fig.savefig(args.plot, dpi=110)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
