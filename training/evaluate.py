@@ -100,6 +100,9 @@ def evaluate(model, data_dir, n_pairs: int | None = 2000, seed: int = 0, bins: i
         if progress and (j + 1) % 500 == 0:
             print(f"scored {j + 1}/{len(idx)} pairs", file=sys.stderr, flush=True)
     out = {"bands": {}, "pairs": len(idx), "bins": bins, "min_points": min_points,
+           "per_pair": [{"sample_id": int(ds.sample_id[i]), "band": bands_j, "range_m":
+                         float(table[j, 1]), **rows[j]}
+                        for j, (i, bands_j) in enumerate(zip(idx, bands, strict=True))],
            "max_points": MAX_POINTS, "seed": seed, "floor_per_band": FLOOR_PER_BAND,
            "pointflow_per_band": POINTFLOW_PER_BAND}
     bands = np.array(bands)
