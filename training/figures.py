@@ -52,18 +52,10 @@ def fig13(run, out) -> dict:
             "abs_loss_d": [float(np.abs(log["loss_d"][epoch == e]).mean()) for e in epochs],
             "loss_g": [float(log["loss_g"][epoch == e].mean()) for e in epochs],
             "gp": [float(log["gp"][epoch == e].mean()) for e in epochs]}
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
-    ax.plot(data["epoch"], data["abs_loss_d"], label="|L_D|")
-    ax.plot(data["epoch"], data["loss_g"], label="L_G")
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("loss (mean over the epoch)")
-    ax.set_title(f"Training losses of {Path(run).name} (paper Fig. 13)")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    _save(fig, out, data)
+    _lines([(data["epoch"], data["abs_loss_d"], "-", "|L_D|"),
+            (data["epoch"], data["loss_g"], "-", "L_G")], "epoch",
+           "loss (mean over the epoch)", f"Training losses of {Path(run).name} (paper Fig. 13)",
+           out, data)
     return data
 
 
@@ -93,18 +85,10 @@ def fig14(run, data_dir, out, n_pairs: int = 400, seed: int = 0) -> dict:
                      "jsd": float(np.mean(jsds))})
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     data = {"rows": rows, "pairs": n_pairs, "seed": seed}
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
     h = [r["hours"] for r in rows]
-    ax.plot(h, [r["mmd"] for r in rows], "o-", label="MMD")
-    ax.plot(h, [r["jsd"] for r in rows], "s-", label="JSD")
-    ax.set_xlabel("training time (h, this machine)")
-    ax.set_title(f"MMD and JSD against training time, {Path(run).name} (paper Fig. 14)")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    _save(fig, out, data)
+    _lines([(h, [r["mmd"] for r in rows], "o-", "MMD"),
+            (h, [r["jsd"] for r in rows], "s-", "JSD")], "training time (h, this machine)", "",
+           f"MMD and JSD against training time, {Path(run).name} (paper Fig. 14)", out, data)
     return data
 
 
@@ -126,22 +110,13 @@ def fig18(model, out, counts=(100, 300, 1000, 3000), seed: int = 0) -> dict:
                          "points": len(res.cloud)})
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     data = {"rows": rows, "runtime": model.runtime, "model": str(model.directory)}
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    series = []
     for n_types in type_counts:
         r = [x for x in rows if x["types"] == n_types]
-        ax.plot([x["clouds"] for x in r], [x["seconds"] for x in r], "o-",
-                label=f"{n_types} types")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("point clouds generated")
-    ax.set_ylabel("seconds (this machine, CPU)")
-    ax.set_title(f"Generation time ({model.runtime}; paper Fig. 18)")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    _save(fig, out, data)
+        series.append(([x["clouds"] for x in r], [x["seconds"] for x in r], "o-",
+                       f"{n_types} types"))
+    _lines(series, "point clouds generated", "seconds (this machine, CPU)",
+           f"Generation time ({model.runtime}; paper Fig. 18)", out, data, log=True)
     return data
 
 
@@ -215,6 +190,25 @@ def fig19(model, data_dir, out, n_pairs: int = 600, seed: int = 0, n_bins: int =
     fig.suptitle("Generated clouds against standard and cell-jittered clouds (paper Fig. 19)")
     _save(fig, out, data)
     return data
+
+
+def _lines(series, xlabel: str, ylabel: str, title: str, out, data, log: bool = False):
+    """One line plot of (x, y, style, label) series, saved with its data."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    for x, y, style, label in series:
+        ax.plot(x, y, style, label=label)
+    if log:
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    _save(fig, out, data)
 
 
 def _save(fig, out, data) -> None:
