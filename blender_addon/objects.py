@@ -221,7 +221,7 @@ def make_target(lidar, obj, range_m: float, elevation_deg: float, pitch_deg: flo
     return obj
 
 
-def targets_of(lidar, selected_only: bool = False, context=None) -> list:
+def targets_of(lidar, selected_only: bool = False) -> list:
     kids = [o for o in lidar.children if is_target(o)]
     if selected_only:
         kids = [o for o in kids if o.select_get()]

@@ -132,6 +132,13 @@ class _ChunkedOperator:
     def _prepare(self, context) -> list:  # pragma: no cover - overridden
         raise NotImplementedError
 
+    _closers: list = []  # what _prepare opened (a simulator's private scene), closed at the end
+
+    def _close(self) -> None:
+        for close in self._closers:
+            close()
+        self._closers = []
+
     def execute(self, context):
         try:
             self._made = []
@@ -140,6 +147,8 @@ class _ChunkedOperator:
         except Exception as exc:  # noqa: BLE001
             self._cleanup()
             return _report_error(self, exc)
+        finally:
+            self._close()
         self.report({"INFO"}, f"{self.bl_label}: {len(self._made)} point cloud(s)")
         return {"FINISHED"}
 
@@ -149,6 +158,7 @@ class _ChunkedOperator:
         try:
             self._jobs = self._prepare(context)
         except Exception as exc:  # noqa: BLE001
+            self._close()
             return _report_error(self, exc)
         self._made, self._done = [], 0
         wm = context.window_manager
@@ -184,6 +194,7 @@ class _ChunkedOperator:
         return {"FINISHED"}
 
     def _finish(self, context) -> None:
+        self._close()
         wm = context.window_manager
         if self._timer is not None:
             wm.event_timer_remove(self._timer)
@@ -234,16 +245,9 @@ class APCG_OT_scan(_ChunkedOperator, bpy.types.Operator):
         ts = _targets(context, lidar, self.selected_only)
         sim = Simulator(self.backend, lidar_params(lidar), quantize=self.quantize,
                         supersample=self.supersample)
-
-        def job(t, last):
-            def run():
-                try:
-                    return api.scan_target(t, occlusion=self.occlusion, simulator=sim)
-                finally:
-                    if last:
-                        sim.close()
-            return run
-        return [job(t, i == len(ts) - 1) for i, t in enumerate(ts)]
+        self._closers = [sim.close]
+        return [(lambda t=t: api.scan_target(t, occlusion=self.occlusion, simulator=sim))
+                for t in ts]
 
 
 class APCG_OT_generate(_ChunkedOperator, bpy.types.Operator):

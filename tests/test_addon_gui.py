@@ -54,3 +54,4 @@ def test_modal_scan_undo_and_escape_in_a_window(tmp_path, display):
     assert rep["after_undo"] == 0 and rep["after_redo"] == 12
     assert rep["invoke_again"] == ["RUNNING_MODAL"]
     assert 2 <= rep["before_esc"] < 12 and rep["after_esc"] == 0
+    assert rep["scenes_after_scan"] == rep["scenes_after_esc"] == 1  # nothing left behind

@@ -110,8 +110,7 @@ def tau_sweep(model: APCGModel, ds: DepthDataset, taus=TAUS, n_pairs: int = 400,
         model.tau = kept
     # the lowest MMD among thresholds that leave at most 1% of the clouds empty
     allowed = [k for k in rows if rows[k]["no_score"] <= 0.01 * n_pairs] or list(rows)
-    best = min(allowed, key=lambda k: (rows[k]["no_score"] if k not in allowed else 0,
-                                       rows[k]["mmd"]))
+    best = min(allowed, key=lambda k: rows[k]["mmd"])
     return {"taus": rows, "best": float(best)}
 
 

@@ -49,6 +49,7 @@ def setup():
 
 def after_scan():
     report["after_modal_scan"] = clouds()
+    report["scenes_after_scan"] = len(bpy.data.scenes)  # the simulator's private scene is gone
     with override():
         bpy.ops.ed.undo()
     report["after_undo"] = clouds()
@@ -72,6 +73,7 @@ def press_esc():
 
 def after_esc():
     report["after_esc"] = clouds()
+    report["scenes_after_esc"] = len(bpy.data.scenes)
 
 
 # (seconds before the step, or a condition to wait for; the step)

@@ -4,6 +4,7 @@ them."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from functools import cached_property
 
 from apcg_core.errors import InputError
 
@@ -24,7 +25,7 @@ class FamilyConfig:
             raise InputError(f"unknown model family {self.family!r}; accepted: "
                              f"{', '.join(FAMILIES)}")
 
-    @property
+    @cached_property
     def schedule(self) -> Schedule:
         return Schedule(self.diffusion_steps)
 
