@@ -273,6 +273,14 @@ def test_evaluate_report_bands_floor_and_a_shifted_generator(data, tmp_path):
     out = write_report({**rep, "model": "m", "command": "apcg evaluate ..."}, tmp_path / "rep")
     assert {p.name for p in out.iterdir()} == {"metrics.json", "report.md", "fig17.png"}
     assert "apcg evaluate" in (out / "report.md").read_text()
+    # the command, with the untrained network scored beside the model
+    from apcg_core.cli import main
+    assert main(["evaluate", "--model", str(model.directory), "--data", str(data), "-o",
+                 str(tmp_path / "cli"), "--pairs", "20", "--min-points", "1",
+                 "--with-untrained"]) == 0
+    m = json.loads((tmp_path / "cli" / "metrics.json").read_text())
+    assert all("untrained" in b and "mmd" in b["untrained"] for b in m["bands"].values())
+    assert "MMD untrained" in (tmp_path / "cli" / "report.md").read_text()
 
 
 def test_figures_13_and_14_from_a_run(data, tmp_path):

@@ -139,6 +139,8 @@ def register_evaluate(sub) -> None:
                    help="flag, not average, pairs with fewer points (default 8)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="onnx")
+    p.add_argument("--with-untrained", action="store_true",
+                   help="also score a freshly initialised copy of the network (cGAN models)")
     p.set_defaults(func=_run_evaluate)
 
 
@@ -158,6 +160,18 @@ def _run_evaluate(args) -> int:
         return 0
     report = evaluate(model, args.data, n_pairs=args.pairs or None, seed=args.seed,
                       bins=args.bins, min_points=args.min_points, progress=True)
+    if args.with_untrained:
+        import tempfile
+
+        from .quick_eval import untrained_copy
+        with tempfile.TemporaryDirectory() as tmp:
+            fresh = evaluate(untrained_copy(model, Path(tmp)), args.data,
+                             n_pairs=args.pairs or None, seed=args.seed, bins=args.bins,
+                             min_points=args.min_points)
+        for name, b in report["bands"].items():
+            u = fresh["bands"][name]
+            b["untrained"] = {k: u[k] for k in ("mmd", "jsd", "chamfer_m2", "points_generated",
+                                                "no_score")}
     report["model"] = str(model.directory)
     report["command"] = "apcg evaluate " + " ".join(sys.argv[2:])
     out = write_report(report, args.output)
