@@ -17,3 +17,14 @@ def pytest_sessionfinish(session, exitstatus):
         if skipped:
             print(f"\nAPCG_FAIL_ON_SKIP: {skipped} skipped test(s) count as failures")
             session.exitstatus = 1
+
+
+def pytest_configure(config):
+    # The tests' networks are tiny: one torch thread is as fast, and it keeps a busy machine
+    # (another job using every core) from slowing the tests many times over through thread
+    # oversubscription.
+    try:
+        import torch
+    except ImportError:
+        return
+    torch.set_num_threads(1)
