@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from apcg_core.cloud import PointCloud
 from apcg_core.condition import scale_ratio
 from apcg_core.depth import BACKGROUND, norm
 from apcg_core.errors import InputError
@@ -67,15 +68,19 @@ class DepthDataset:
         out = out.reshape(len(idx), H, W)
         return norm(out, self.q[idx]) if normalized else out
 
-    def standard_cloud(self, i: int) -> np.ndarray:
-        """The standard point cloud (n, 3) of sample ``i`` (observation frame, metres)."""
+    def sample_cloud(self, i: int) -> PointCloud:
+        """The standard cloud of sample ``i`` with its cells and ranges (observation frame)."""
         lidar = self.lidar
         sl = slice(self.offsets[i], self.offsets[i + 1])
         row, col = np.divmod(self.pixel[sl], self.width)
-        a, b = lidar.cell_centre_angles(lidar.w_of_col(col), lidar.h_of_row(row),
-                                        self.conditions[i, 2])
+        w, h = lidar.w_of_col(col), lidar.h_of_row(row)
+        a, b = lidar.cell_centre_angles(w, h, self.conditions[i, 2])
         r = self.conditions[i, 1] + self.delta_range_m[sl].astype(np.float64)
-        return spherical_to_cartesian(a, b, r)
+        return PointCloud(spherical_to_cartesian(a, b, r), r, w, h)
+
+    def standard_cloud(self, i: int) -> np.ndarray:
+        """The standard point cloud (n, 3) of sample ``i`` (observation frame, metres)."""
+        return self.sample_cloud(i).xyz
 
     def batches_per_epoch(self, batch_size: int, world: int = 1) -> int:
         n = len(self) // (batch_size * world)

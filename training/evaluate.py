@@ -87,10 +87,11 @@ def evaluate(model, data_dir, n_pairs: int | None = 2000, seed: int = 0, bins: i
         res = model.generate(table[s:s + 512], count=1, seed=seed + s)
         gen += [c.xyz for c in res.cloud.split(len(res.table))]
     t_gen = time.perf_counter() - t0
-    rows, floor_rows, bands = [], [], []
+    rows, floor_rows, bands, stds = [], [], [], []
     floor_count: dict = {}
     for j, i in enumerate(idx):
         std = ds.standard_cloud(int(i))
+        stds.append(std)
         rows.append(score_pair(std, gen[j], bins, seed + j))
         bands.append(band_of(table[j, 1], bool(near_all[i])))
         if floor_count.get(bands[-1], 0) < FLOOR_PER_BAND:
@@ -113,7 +114,7 @@ def evaluate(model, data_dir, n_pairs: int | None = 2000, seed: int = 0, bins: i
         pf = sel[:POINTFLOW_PER_BAND]
         try:
             entry["pointflow"] = pointflow_scores(
-                [gen[k] for k in pf], [ds.standard_cloud(int(idx[k])) for k in pf],
+                [gen[k] for k in pf], [stds[k] for k in pf],
                 max_points=512, seed=seed).to_dict()
         except Exception as exc:  # noqa: BLE001 - e.g. every generated cloud empty
             entry["pointflow"] = {"error": str(exc)}
@@ -124,13 +125,7 @@ def evaluate(model, data_dir, n_pairs: int | None = 2000, seed: int = 0, bins: i
 
 
 def _jittered(ds: DepthDataset, i: int, seed: int) -> np.ndarray:
-    from apcg_core.cloud import PointCloud
-    sl = slice(ds.offsets[i], ds.offsets[i + 1])
-    row, col = np.divmod(ds.pixel[sl], ds.width)
-    w, h = ds.lidar.w_of_col(col), ds.lidar.h_of_row(row)
-    r = ds.conditions[i, 1] + ds.delta_range_m[sl].astype(np.float64)
-    cloud = PointCloud(np.zeros((len(r), 3)), r, w, h)
-    return cell_jitter(cloud, ds.conditions[i, 2], ds.lidar, seed).xyz
+    return cell_jitter(ds.sample_cloud(i), ds.conditions[i, 2], ds.lidar, seed).xyz
 
 
 def _fmt(v, digits=3) -> str:
@@ -232,8 +227,9 @@ def jsd_bins_study(model, data_dir, bins=(4, 6, 8, 12, 16, 20, 28), per_band: in
                     for c, d in per_c.items()} for band, per_c in rows.items()}
     gaps = {c: min((table[b][str(c)]["wrong"] or 0) - (table[b][str(c)]["floor"] or 0)
                    for b in table) for c in bins}
+    sizes = np.diff(ds.offsets)
+    bands = [band_of(ds.conditions[i, 1], bool(near[i])) for i in idx]
     return {"bins": table, "min_gap": {str(c): g for c, g in gaps.items()},
             "best": int(max(gaps, key=gaps.get)), "shift_m": shift_m,
-            "points": {b: float(np.mean([len(ds.standard_cloud(int(i))) for i in idx
-                                         if band_of(ds.conditions[i, 1], bool(near[i])) == b]))
-                       for b in table}}
+            "points": {b: float(np.mean([sizes[i] for i, bi in zip(idx, bands, strict=True)
+                                         if bi == b])) for b in table}}
