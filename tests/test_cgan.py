@@ -133,6 +133,48 @@ def test_resume_continues_exactly(data, tmp_path):
         Trainer(data, tmp_path / "full", cfg, progress=False)
 
 
+def test_generator_average_is_exact_resumable_and_exported(data, tmp_path):
+    from training.trainer import ema_update
+    a, b = torch.nn.BatchNorm1d(2), torch.nn.BatchNorm1d(2)
+    with torch.no_grad():
+        a.weight.copy_(torch.tensor([1.0, 2.0]))
+        b.weight.copy_(torch.tensor([3.0, 6.0]))
+        b.running_mean.copy_(torch.tensor([0.5, -0.5]))
+    ema_update(a, b, 0.75)  # 0.75 * [1, 2] + 0.25 * [3, 6]
+    assert torch.allclose(a.weight, torch.tensor([1.5, 3.0]))
+    assert torch.equal(a.running_mean, b.running_mean)  # statistics follow the live network
+    cfg = config_from("tiny", steps=6, checkpoint_every=3, seed=5, ema=0.9)
+    full = Trainer(data, tmp_path / "full", cfg, progress=False)
+    full.fit()
+    diff = [float((p - q).detach().abs().max()) for p, q in zip(full.G.parameters(),
+                                                       full.G_ema.parameters(), strict=True)]
+    assert max(diff) > 0  # the average lags the weights
+    part = Trainer(data, tmp_path / "part", replace(cfg, steps=3), progress=False)
+    part.fit()
+    again = Trainer(data, tmp_path / "part", cfg, resume=True, progress=False)
+    again.fit()
+    for x, y in zip(full.G_ema.state_dict().values(), again.G_ema.state_dict().values(),
+                    strict=True):
+        assert torch.equal(x, y)  # the average is checkpointed: resume stays exact
+    # switched on when resuming a run that had none: it starts from the weights of that step
+    plain = Trainer(data, tmp_path / "plain", replace(cfg, ema=0.0, steps=3), progress=False)
+    plain.fit()
+    late = Trainer(data, tmp_path / "plain", cfg, resume=True, progress=False)
+    assert late.ema_since == 3 and all(
+        torch.equal(x, y) for x, y in zip(late.G.parameters(), late.G_ema.parameters()))
+    late.fit()
+    out = export_model(tmp_path / "full", tmp_path / "m")
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["generator_weights"].startswith("moving average (decay 0.9)")
+    model = APCGModel(out, runtime="torch")
+    for k, v in full.G_ema.state_dict().items():
+        if v.is_floating_point():  # (BatchNorm's batch counter is not part of the model)
+            assert torch.equal(model.torch_generator().state_dict()[k], v), k
+    raw = APCGModel(export_model(tmp_path / "full", tmp_path / "raw", raw=True), runtime="torch")
+    assert raw.meta["generator_weights"] == "raw"
+    k = next(iter(full.G.state_dict()))
+    assert torch.equal(raw.torch_generator().state_dict()[k], full.G.state_dict()[k])
+
 def _image_distance(model_g, ds: DepthDataset, n=64, seed=0):
     """Mean absolute difference between the mean generated and mean real training image, and
     between the generated and real target occupancy rates."""

@@ -39,6 +39,9 @@ def register_train(sub) -> None:
                    help="also keep a copy of the checkpoint every this many steps")
     p.add_argument("--diverge-gp", type=float,
                    help="stop when the gradient penalty's 50-step mean exceeds this (0: never)")
+    p.add_argument("--ema", type=float,
+                   help="decay of the generator's moving average that export uses (cpu preset "
+                        "0.999; 0 turns it off; may be switched on when resuming)")
     p.add_argument("--max-minutes", type=float, help="stop (after a checkpoint) after this long")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--no-progress", action="store_true")
@@ -50,7 +53,7 @@ def _run_train(args) -> int:
     over = {"steps": args.steps, "epochs": args.epochs, "seed": args.seed, "width": args.width,
             "n_critic": args.n_critic, "batch_size": args.batch_size,
             "checkpoint_every": args.checkpoint_every, "threads": args.threads,
-            "keep_every": args.keep_every, "diverge_gp": args.diverge_gp}
+            "keep_every": args.keep_every, "diverge_gp": args.diverge_gp, "ema": args.ema}
     if args.no_conv:
         over["conv"] = False
     if args.no_attention:
@@ -70,7 +73,7 @@ def _run_train(args) -> int:
             saved = torch.load(ck, map_location="cpu", weights_only=False)["train"]
             saved.update({k: v for k, v in over.items() if v is not None and k in
                           ("steps", "epochs", "checkpoint_every", "threads", "keep_every",
-                           "diverge_gp")})
+                           "diverge_gp", "ema")})
             from .trainer import TrainConfig
             saved["betas"] = tuple(saved["betas"])
             cfg = TrainConfig(**saved)
@@ -107,6 +110,8 @@ def register_export(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="model directory")
     p.add_argument("--tau", type=float, default=None, help="Im2PC threshold to record")
     p.add_argument("--checkpoint", help="a kept checkpoint of the run (default: the latest)")
+    p.add_argument("--raw", action="store_true",
+                   help="export the generator's raw weights, not their moving average")
     p.set_defaults(func=_run_export)
 
 
@@ -115,7 +120,7 @@ def _run_export(args) -> int:
 
     from .export import export_model
     out = export_model(args.run, args.output, tau=args.tau if args.tau is not None
-                       else TAU_DEFAULT, checkpoint=args.checkpoint)
+                       else TAU_DEFAULT, checkpoint=args.checkpoint, raw=args.raw)
     print(json.dumps({"model": str(out)}))
     return 0
 

@@ -33,8 +33,10 @@ def export_onnx(g: Generator, path: Path) -> None:
 
 
 def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
-                 checkpoint=None) -> Path:
-    """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest."""
+                 checkpoint=None, raw: bool = False) -> Path:
+    """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest.
+    The generator's moving average is exported when the run kept one, the raw weights when
+    ``raw`` or when it did not."""
     run = Path(run_dir)
     ck = Path(checkpoint) if checkpoint else run / "checkpoint.pt"
     if not ck.exists():
@@ -45,6 +47,9 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     family = st["train"].get("family", "cgan")
+    averaged = st.get("G_ema") is not None and not raw
+    if averaged:
+        st["G"] = st["G_ema"]
     if family == "cgan":
         g = Generator(NetConfig(**st["net"]))
         g.load_state_dict(st["G"])
@@ -56,7 +61,9 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
             "tau": tau, "trained_steps": st["step"],
             "trained_epochs": round(st["batch_counter"] / max(1, _bpe(head, st)), 3),
             "dataset": head.get("name"), "train": st["train"],
-            "norm": bool(st["train"].get("norm", True))}
+            "norm": bool(st["train"].get("norm", True)),
+            "generator_weights": (f"moving average (decay {st['train']['ema']:g}) since step "
+                                  f"{st.get('ema_since', 0)}" if averaged else "raw")}
     if family == "cgan":
         (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
     else:  # a comparison family: torch weights and the expected-count table
