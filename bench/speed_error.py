@@ -35,9 +35,9 @@ from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian  # n
 from apcg_core.metrics import jsd, mmd  # noqa: E402
 from training.data import DepthDataset  # noqa: E402
 from training.evaluate import band_order, stratified_subset  # noqa: E402
-from training.quick_eval import band_of  # noqa: E402
+from training.quick_eval import JSD_BINS_EVAL, band_of  # noqa: E402
 
-BINS = 28
+BINS = JSD_BINS_EVAL  # as in `apcg evaluate` (chosen by measurement; see the README)
 
 
 def simulated(backend: str, ds, idx, supersample: int = 1):

@@ -12,12 +12,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import tempfile
+from dataclasses import asdict
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from training.compare import training_memory  # noqa: E402
+from training.trainer import config_from  # noqa: E402
+
 CONFIGS = {
     "cgan (cpu preset, width 0.25, bf16)": {"preset": "cpu"},
     "cgan (paper, width 1.0)": {"preset": "paper", "bf16": True},
@@ -25,24 +28,6 @@ CONFIGS = {
     "voxel-gan": {"preset": "cpu", "family": "voxel-gan", "bf16": False},
     "diffusion": {"preset": "cpu", "family": "diffusion", "bf16": False},
 }
-
-CHILD = """
-import json, resource, sys, time, torch
-from training.trainer import Trainer, config_from
-spec = json.loads(sys.argv[1])
-preset = spec.pop("preset")
-cfg = config_from(preset, steps=int(sys.argv[4]), checkpoint_every=10**9, **spec)
-tr = Trainer(sys.argv[2], sys.argv[3], cfg, progress=False)
-tr.train_step()  # warm-up
-t0 = time.perf_counter()
-for _ in range(int(sys.argv[4])):
-    tr.train_step()
-dt = (time.perf_counter() - t0) / int(sys.argv[4])
-gpu = torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None
-print(json.dumps({"seconds_per_step": dt,
-                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "peak_gpu_mb": gpu}))
-"""
 
 
 def main() -> int:
@@ -57,14 +42,9 @@ def main() -> int:
     for name, spec in CONFIGS.items():
         if args.only and name not in args.only.split(","):
             continue
-        with tempfile.TemporaryDirectory() as tmp:
-            r = subprocess.run([sys.executable, "-c", CHILD, json.dumps(spec), args.data,
-                                str(Path(tmp) / "run"), str(args.steps)], cwd=ROOT,
-                               capture_output=True, text=True)
-        if r.returncode:
-            print(r.stderr[-2000:], file=sys.stderr)
-            raise SystemExit(f"{name} failed")
-        row = {"config": name, **json.loads(r.stdout.strip().splitlines()[-1])}
+        spec = dict(spec)
+        cfg = asdict(config_from(spec.pop("preset"), **spec))
+        row = {"config": name, **training_memory(cfg, args.data, args.steps)}
         rows.append(row)
         print(json.dumps(row), flush=True)
     out = {"command": "python bench/train_memory.py " + " ".join(sys.argv[1:]),

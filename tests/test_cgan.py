@@ -160,8 +160,8 @@ def test_generator_average_is_exact_resumable_and_exported(data, tmp_path):
     plain = Trainer(data, tmp_path / "plain", replace(cfg, ema=0.0, steps=3), progress=False)
     plain.fit()
     late = Trainer(data, tmp_path / "plain", cfg, resume=True, progress=False)
-    assert late.ema_since == 3 and all(
-        torch.equal(x, y) for x, y in zip(late.G.parameters(), late.G_ema.parameters()))
+    assert late.ema_since == 3 and all(torch.equal(x, y) for x, y in zip(
+        late.G.parameters(), late.G_ema.parameters(), strict=True))
     late.fit()
     out = export_model(tmp_path / "full", tmp_path / "m")
     meta = json.loads((out / "model.json").read_text())
@@ -454,3 +454,33 @@ def test_comparison_families_train_resume_export_and_generate(data, tmp_path, fa
         assert np.allclose(r - np.floor(r), 0.5, atol=1e-6)  # quantized ranges
     again_res = model.generate(ds.conditions[:5], count=2, seed=3)
     assert np.array_equal(res.cloud.xyz, again_res.cloud.xyz)  # seeded
+
+
+def test_compare_lists_every_method_with_budget_memory_speed_and_bands(data, tmp_path):
+    from training.baselines.model import load_any
+    from training.compare import compare, markdown, parse_models, write
+    runs = {}
+    for name, family, steps in (("cgan", "cgan", 3), ("point-gan", "point-gan", 2)):
+        cfg = config_from("tiny", steps=steps, width=0.0625, seed=12, family=family,
+                          n_points=64)
+        Trainer(data, tmp_path / name, cfg, progress=False).fit()
+        runs[name] = str(export_model(tmp_path / name, tmp_path / f"m-{name}"))
+    models = [(n, load_any(p)) for n, p in
+              parse_models([f"{n}={p}" for n, p in runs.items()])]
+    rep = compare(models, data, n_pairs=12, memory_steps=1)
+    rep["command"] = "apcg compare ..."
+    assert [r["method"] for r in rep["rows"]] == ["cgan", "point-gan"]
+    for r, steps in zip(rep["rows"], (3, 2), strict=True):
+        assert r["budget"]["steps"] == steps and r["budget"]["hours"] > 0
+        assert r["training_memory"]["peak_rss_mb"] > 50  # a real torch process
+        assert r["ms_per_cloud"] > 0
+        assert sum(b["pairs"] for b in r["bands"].values()) == rep["pairs"]
+        assert all("untrained" in b for b in r["bands"].values())
+    # the same pairs for every method
+    assert rep["rows"][0]["bands"].keys() == rep["rows"][1]["bands"].keys()
+    md = markdown(rep)
+    assert "| cgan | 3 |" in md and "| point-gan | 2 |" in md
+    out = write(rep, tmp_path / "report")
+    assert (out / "compare.png").stat().st_size > 0
+    with pytest.raises(Exception, match="NAME=DIR"):
+        parse_models(["just/a/path"])

@@ -145,7 +145,7 @@ def register_evaluate(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="onnx")
     p.add_argument("--with-untrained", action="store_true",
-                   help="also score a freshly initialised copy of the network (cGAN models)")
+                   help="also score a freshly initialised copy of the network")
     p.set_defaults(func=_run_evaluate)
 
 
@@ -168,9 +168,9 @@ def _run_evaluate(args) -> int:
     if args.with_untrained:
         import tempfile
 
-        from .quick_eval import untrained_copy
+        from .quick_eval import untrained_like
         with tempfile.TemporaryDirectory() as tmp:
-            fresh = evaluate(untrained_copy(model, Path(tmp)), args.data,
+            fresh = evaluate(untrained_like(model, Path(tmp)), args.data,
                              n_pairs=args.pairs or None, seed=args.seed, bins=args.bins,
                              min_points=args.min_points)
         for name, b in report["bands"].items():
@@ -284,4 +284,38 @@ def _run_ablation(args) -> int:
     rep = run_ablation(args.data, args.output, steps=args.steps, width=args.width,
                        encoder=args.encoder, pairs=args.pairs, seed=args.seed)
     print(markdown(rep))
+    return 0
+
+
+def register_compare(sub) -> None:
+    p = sub.add_parser("compare", help="every method side by side: budget, memory, speed, "
+                                       "MMD / JSD per band",
+                       description="Scores each model on the same held-out pairs beside its "
+                                   "untrained network, measures its training memory in a fresh "
+                                   "process and its generation time; writes compare.json, "
+                                   "compare.md and compare.png.")
+    p.add_argument("--data", required=True, help="dataset directory (its test split is used)")
+    p.add_argument("-o", "--output", required=True, help="report directory")
+    p.add_argument("--model", action="append", required=True, metavar="NAME=DIR",
+                   help="a method to compare (repeatable), e.g. cgan=apcg_core/models/default")
+    p.add_argument("--pairs", type=int, default=1000, help="held-out pairs (default 1000)")
+    p.add_argument("--memory-steps", type=int, default=5,
+                   help="training steps timed for the memory peak (0: skip)")
+    p.add_argument("--no-untrained", action="store_true",
+                   help="skip the untrained networks")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_run_compare)
+
+
+def _run_compare(args) -> int:
+    from .baselines.model import load_any
+    from .compare import compare, markdown, parse_models, write
+    models = [(name, load_any(path)) for name, path in parse_models(args.model)]
+    report = compare(models, args.data, n_pairs=args.pairs, seed=args.seed,
+                     memory_steps=args.memory_steps, with_untrained=not args.no_untrained,
+                     progress=True)
+    report["command"] = "apcg compare " + " ".join(sys.argv[2:])
+    out = write(report, args.output)
+    print(markdown(report))
+    print(f"wrote {out}/compare.json, compare.md, compare.png")
     return 0

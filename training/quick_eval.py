@@ -51,6 +51,14 @@ def untrained_copy(model: APCGModel, out: Path, seed: int = 0) -> APCGModel:
     return APCGModel(out, runtime="onnx")
 
 
+def untrained_like(model, out: Path, seed: int = 0):
+    """A freshly initialised copy of any model (the cGAN or a comparison family)."""
+    if model.meta.get("family", "cgan") != "cgan":
+        from .baselines.model import untrained_baseline
+        return untrained_baseline(model, out, seed)
+    return untrained_copy(model, out, seed)
+
+
 # JSD bins per axis chosen by measurement (training.evaluate.jsd_bins_study: c = 6 separates a
 # cloud's cell-jittered copy from the same copy 5 m off best in every band; at the literature's
 # 28 even the jittered copy scores 0.42-0.98). The paper's habit, 28, is reported beside it.
@@ -139,7 +147,7 @@ def main(argv=None) -> int:
         return 0
     report = {"command": command, "trained": evaluate(model, ds, args.pairs, args.seed)}
     with tempfile.TemporaryDirectory() as tmp:
-        report["untrained"] = evaluate(untrained_copy(model, Path(tmp)), ds, args.pairs,
+        report["untrained"] = evaluate(untrained_like(model, Path(tmp)), ds, args.pairs,
                                        args.seed)
     text = json.dumps(report, indent=1)
     print(text)

@@ -39,6 +39,19 @@ def export_baseline(st: dict, head: dict, counts: CountLookup, out: Path, meta: 
                                                indent=1) + "\n")
 
 
+def untrained_baseline(model: BaselineModel, out: Path, seed: int = 0) -> BaselineModel:
+    """The same network as ``model``, freshly initialised (seeded), as a model directory."""
+    import shutil
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(seed)
+    net, _ = model.cfg.networks()
+    torch.save({"G": net.state_dict(), "net": model.meta["net"]}, out / "weights.pt")
+    for name in ("counts.npz", "model.json"):
+        shutil.copy(model.directory / name, out / name)
+    return BaselineModel(out, model.sampling_steps)
+
+
 class BaselineModel:
     runtime = "torch"
     norm = True

@@ -1,0 +1,174 @@
+"""`apcg compare`: every method side by side, the paper's way (its Figs. 14, 15, 17), from one
+command: each model's training budget, its peak memory while training, its generation time per
+cloud and its MMD / JSD per slant-range band, beside its own untrained network.
+
+    apcg compare --data DIR -o REPORT --model cgan=DIR --model point-gan=DIR ... [--pairs N]
+
+Writes REPORT/compare.json, REPORT/compare.md and REPORT/compare.png. Memory is measured by
+training a few steps of each model's own configuration in a fresh process (the peak of a process
+includes everything it ever held, so the models must not share one).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from apcg_core.errors import InputError
+
+from .evaluate import band_order, evaluate
+from .figures import read_log
+
+MEMORY_CHILD = """
+import json, resource, sys, time, torch
+from training.trainer import Trainer, TrainConfig
+spec = json.loads(sys.argv[1])
+spec["betas"] = tuple(spec["betas"])
+n = int(sys.argv[4])
+cfg = TrainConfig(**{**spec, "steps": n + 1, "checkpoint_every": 10**9, "keep_every": 0})
+tr = Trainer(sys.argv[2], sys.argv[3], cfg, progress=False)
+tr.train_step()  # warm-up
+t0 = time.perf_counter()
+for _ in range(n):
+    tr.train_step()
+dt = (time.perf_counter() - t0) / n
+gpu = torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None
+print(json.dumps({"seconds_per_step": dt,
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "peak_gpu_mb": gpu}))
+"""
+
+
+def training_memory(train_cfg: dict, data_dir, steps: int = 5) -> dict:
+    """Peak resident memory (MB) and seconds per step while training ``steps`` steps of a
+    configuration (TrainConfig as a dict), in a fresh process."""
+    with tempfile.TemporaryDirectory() as tmp:
+        r = subprocess.run([sys.executable, "-c", MEMORY_CHILD, json.dumps(train_cfg),
+                            str(data_dir), str(Path(tmp) / "run"), str(steps)],
+                           cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                           text=True)
+    if r.returncode:
+        raise RuntimeError(f"memory measurement failed: {r.stderr[-1500:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def budget(model) -> dict:
+    """What a model's training cost: steps, epochs and logged training hours."""
+    meta = model.meta
+    hours = None
+    if (Path(model.directory) / "log.csv").exists():
+        hours = float(read_log(model.directory)["hours"][-1])
+    train = meta.get("train", {})
+    return {"steps": meta.get("trained_steps"), "epochs": meta.get("trained_epochs"),
+            "hours": hours, "batch_size": train.get("batch_size"),
+            "n_critic": train.get("n_critic") if train.get("family", "cgan") != "diffusion"
+            else None}
+
+
+def parse_models(specs) -> list[tuple[str, str]]:
+    out = []
+    for s in specs:
+        name, sep, path = s.partition("=")
+        if not sep or not name or not path:
+            raise InputError(f"--model takes NAME=DIR (e.g. cgan=apcg_core/models/default), "
+                             f"got {s!r}")
+        out.append((name, path))
+    if len({n for n, _ in out}) != len(out):
+        raise InputError("--model names must differ")
+    return out
+
+
+def compare(models, data_dir, n_pairs: int = 1000, seed: int = 0, memory_steps: int = 5,
+            with_untrained: bool = True, progress: bool = False) -> dict:
+    """``models``: (name, loaded model) pairs. Every model is scored on the same pairs."""
+    from .quick_eval import untrained_like
+    rows = []
+    for name, model in models:
+        if progress:
+            print(f"{name}: scoring", file=sys.stderr, flush=True)
+        rep = evaluate(model, data_dir, n_pairs=n_pairs, seed=seed)
+        row = {"method": name, "model": str(model.directory),
+               "family": model.meta.get("family", "cgan"), "budget": budget(model),
+               "ms_per_cloud": round(1e3 * rep["seconds"]["generate"] / rep["pairs"], 3),
+               "bands": {b: {k: v[k] for k in ("pairs", "scored", "no_score", "mmd", "jsd",
+                                               "points_standard", "points_generated")}
+                         for b, v in rep["bands"].items()}}
+        if with_untrained:
+            with tempfile.TemporaryDirectory() as tmp:
+                fresh = evaluate(untrained_like(model, Path(tmp)), data_dir, n_pairs=n_pairs,
+                                 seed=seed)
+            for b, v in row["bands"].items():
+                v["untrained"] = {k: fresh["bands"][b][k] for k in ("mmd", "jsd")}
+        if memory_steps and "train" in model.meta:
+            if progress:
+                print(f"{name}: training memory", file=sys.stderr, flush=True)
+            row["training_memory"] = training_memory(model.meta["train"], data_dir,
+                                                     memory_steps)
+        rows.append(row)
+    return {"pairs": rep["pairs"], "bins": rep["bins"], "seed": seed, "rows": rows}
+
+
+def _f(v, d=3) -> str:
+    return "-" if v is None else f"{v:.{d}f}"
+
+
+def markdown(report: dict) -> str:
+    bands = sorted(report["rows"][0]["bands"], key=band_order)
+    head = ["method", "steps", "epochs", "train h", "peak MB", "s/step", "ms/cloud"]
+    lines = [f"# Comparison of methods on {report['pairs']} held-out pairs", "",
+             f"Reproduce: `{report['command']}`", "",
+             f"MMD / JSD ({report['bins']}^3 bins) to the standard cloud, per slant-range band; "
+             "in brackets the same network untrained. Peak MB: the resident memory of a fresh "
+             "process training the model's own configuration (CPU, dataset in memory).", "",
+             "| " + " | ".join(head + bands) + " |", "|" + "---|" * (len(head) + len(bands))]
+    for r in report["rows"]:
+        b, mem = r["budget"], r.get("training_memory", {})
+        cells = [r["method"], str(b["steps"]), _f(b["epochs"], 1), _f(b["hours"], 2),
+                 _f(mem.get("peak_rss_mb"), 0), _f(mem.get("seconds_per_step"), 2),
+                 _f(r["ms_per_cloud"], 2)]
+        for name in bands:
+            v = r["bands"][name]
+            u = v.get("untrained")
+            cells.append(f"{_f(v['mmd'])} / {_f(v['jsd'], 2)}" + (
+                f" ({_f(u['mmd'])} / {_f(u['jsd'], 2)})" if u else ""))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(report: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(2, 2, figsize=(11, 6.5), constrained_layout=True)
+    bands = sorted(report["rows"][0]["bands"], key=band_order)
+    for col, kind in enumerate(("aircraft", "drone")):
+        names = [n for n in bands if n.startswith(kind)]
+        x = np.arange(len(names))
+        for row, metric in enumerate(("mmd", "jsd")):
+            ax = axes[row, col]
+            for r in report["rows"]:
+                ax.plot(x, [r["bands"][n][metric] or np.nan for n in names], "o-",
+                        label=r["method"])
+            ax.set_xticks(x, [n.split(" ", 1)[1] for n in names], rotation=20)
+            ax.set_title(f"{kind}: {metric.upper()}"
+                         + (f" ({report['bins']}^3 bins)" if metric == "jsd" else ""))
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+    fig.suptitle("Every method against the simulator per slant-range band (paper Fig. 17)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write(report: dict, out_dir) -> Path:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "compare.json").write_text(json.dumps(report, indent=1) + "\n")
+    (out / "compare.md").write_text(markdown(report))
+    plot(report, out / "compare.png")
+    return out
