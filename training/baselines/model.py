@@ -1,7 +1,7 @@
 """A trained comparison model as a directory (model.json + weights.pt + counts.npz) and its
-generation: canonical sets -> the condition's expected point count -> observation frame ->
-snapped to the lidar's cells (one return per cell, range quantized), so every method's clouds
-are what the SPC-Lidar records."""
+generation: canonical sets -> observation frame -> snapped to the lidar's cells (one return per
+cell, range quantized) -> the condition's expected point count (a random subset of the cells), so
+every method's clouds are what the SPC-Lidar records."""
 
 from __future__ import annotations
 
@@ -20,6 +20,8 @@ from apcg_core.lidar import LidarParams
 
 from .data import CountLookup, from_canonical, voxel_centres
 from .family import FamilyConfig
+
+VOXEL_SURPLUS = 4
 
 
 def load_any(directory=None, runtime: str = "onnx"):
@@ -76,7 +78,10 @@ class BaselineModel:
         return np.array([t["depth_length_m"] for t in self.types])[np.asarray(codes, int)]
 
     @torch.no_grad()
-    def canonical(self, nu: np.ndarray, seed: int) -> list[np.ndarray]:
+    def canonical(self, nu: np.ndarray, seed: int, counts) -> list[np.ndarray]:
+        """Point sets in the canonical frame; the voxel GAN gives the ``counts[i]`` most
+        probable voxels of each grid (a threshold at 0.5 leaves a young network's sparse grids
+        nearly empty and has no say in how many points the lidar would record)."""
         gen = torch.Generator().manual_seed(int(seed))
         nu_t = torch.from_numpy(nu.astype(np.float32))
         if self.cfg.family == "diffusion":
@@ -88,11 +93,8 @@ class BaselineModel:
         if self.cfg.family == "point-gan":
             return list(out)
         centres = voxel_centres(self.cfg.voxel_res)
-        sets = []
-        for p in out.reshape(len(nu), -1):  # occupied voxels, most probable first
-            order = np.argsort(-p)
-            sets.append(centres[order[p[order] > 0.5]])
-        return sets
+        return [centres[np.argsort(-p, kind="stable")[:n]]
+                for p, n in zip(out.reshape(len(nu), -1), counts, strict=True)]
 
     def generate(self, table, count: int = 1, seed: int = 0) -> GenerationResult:
         table = self.space.check(table)
@@ -100,18 +102,19 @@ class BaselineModel:
             raise InputError(f"count must be an integer >= 1, got {count!r}")
         table = np.repeat(table, count, axis=0)
         nu = self.space.encode(table)
-        sets = self.canonical(nu, seed)
+        counts = [self.counts(int(table[i, 0]), nu[i]) for i in range(len(table))]
+        # voxels behind one another fall into one cell: offer more than the count asks for
+        sets = self.canonical(nu, seed, [VOXEL_SURPLUS * n for n in counts])
         lengths = self.depth_length(table[:, 0])
         rng = np.random.default_rng(seed)
         parts = []
-        for i, pts in enumerate(sets):
-            n = self.counts(int(table[i, 0]), nu[i])
-            if self.cfg.family != "voxel-gan" and len(pts) > n:
-                pts = pts[rng.permutation(len(pts))[:n]]
-            elif self.cfg.family == "voxel-gan":
-                pts = pts[:n]
+        for i, (pts, n) in enumerate(zip(sets, counts, strict=True)):
             xyz = from_canonical(pts, table[i, 1], table[i, 2], lengths[i])
-            parts.append(self._snap(xyz, table[i, 2], i))
+            cells = self._snap(xyz, table[i, 2], i)
+            if len(cells[0]) > n:  # the expected count for the condition, after snapping
+                keep = np.sort(rng.permutation(len(cells[0]))[:n])
+                cells = tuple(c[keep] for c in cells)
+            parts.append(cells)
         cloud = PointCloud(*[np.concatenate([p[k] for p in parts]) for k in range(5)])
         return GenerationResult(cloud, None, table)
 
