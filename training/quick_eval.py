@@ -2,7 +2,7 @@
 beside the same numbers for the untrained network of the same shape (SPEC section 9).
 
     python -m training.quick_eval --model DIR --data DIR [--pairs 400] [-o eval.json]
-    python -m training.quick_eval --model DIR --data DIR --tau-sweep [-o tau.json]
+    python -m training.quick_eval --model DIR --data DIR --tau-sweep --split train [-o tau.json]
 
 The standard clouds come from the dataset's test split (exact, from the shards); the generated
 ones from the model at the same conditions (one sample each, seeded). Clouds are subsampled to
@@ -130,11 +130,13 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tau-sweep", action="store_true",
                     help="score the model at several Im2PC thresholds instead")
+    ap.add_argument("--split", choices=["test", "train"], default="test",
+                    help="conditions to score on (choose tau on train, report on test)")
     ap.add_argument("-o", "--output")
     args = ap.parse_args(argv)
     from .baselines.model import load_any
     model = load_any(args.model, runtime="onnx")
-    ds = DepthDataset(args.data, "test")
+    ds = DepthDataset(args.data, args.split)
     command = "python -m training.quick_eval " + " ".join(
         argv if argv is not None else sys.argv[1:])
     if args.tau_sweep:
