@@ -270,7 +270,9 @@ def test_quick_eval_bands_pairs_and_tau_sweep(data, tmp_path):
     ratios = [sweep["taus"][k]["points_ratio"] for k in ("-0.99", "0", "0.9")]
     assert ratios[0] >= ratios[1] >= ratios[2]  # a higher threshold keeps fewer pixels
     assert sweep["best"] in (-0.99, 0.0, 0.9) and model.tau == -0.95  # restored
-    assert untrained_copy(model, tmp_path / "fresh").meta["net"] == model.meta["net"]
+    model.tau = -0.5
+    fresh = untrained_copy(model, tmp_path / "fresh")
+    assert fresh.meta["net"] == model.meta["net"] and fresh.tau == -0.5  # the same pipeline
 
 
 def test_evaluate_report_bands_floor_and_a_shifted_generator(data, tmp_path):

@@ -38,7 +38,8 @@ def band_of(range_m: float, near: bool) -> str:
 
 
 def untrained_copy(model: APCGModel, out: Path, seed: int = 0) -> APCGModel:
-    """The same network, freshly initialised (seeded), as a model directory."""
+    """The same network, freshly initialised (seeded), as a model directory; it uses the
+    model's current Im2PC threshold, so both go through the same pipeline."""
     import torch
 
     from apcg_core.nn import Generator, NetConfig
@@ -47,7 +48,7 @@ def untrained_copy(model: APCGModel, out: Path, seed: int = 0) -> APCGModel:
     torch.manual_seed(seed)
     out.mkdir(parents=True, exist_ok=True)
     export_onnx(Generator(NetConfig(**model.meta["net"])), out / "generator.onnx")
-    (out / "model.json").write_text(json.dumps(model.meta))
+    (out / "model.json").write_text(json.dumps({**model.meta, "tau": model.tau}))
     return APCGModel(out, runtime="onnx")
 
 
