@@ -34,7 +34,7 @@ from apcg_core.catalog.catalog import default_catalog  # noqa: E402
 from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian  # noqa: E402
 from apcg_core.metrics import jsd, mmd  # noqa: E402
 from training.data import DepthDataset  # noqa: E402
-from training.evaluate import band_order, stratified_subset  # noqa: E402
+from training.evaluate import MIN_POINTS, band_order, stratified_subset  # noqa: E402
 from training.quick_eval import JSD_BINS_EVAL, band_of  # noqa: E402
 
 BINS = JSD_BINS_EVAL  # as in `apcg evaluate` (chosen by measurement; see the README)
@@ -92,9 +92,13 @@ def score(refs, clouds, bands, seed: int = 0) -> dict:
     out = {}
     for name in sorted(per, key=band_order):
         rows = per[name]
-        m = [r[0] for r in rows if r[0] is not None]
-        j = [r[1] for r in rows if r[1] is not None]
-        out[name] = {"pairs": len(rows), "empty": len(rows) - len(m),
+        # as in `apcg evaluate`: pairs with fewer than MIN_POINTS points on a side are counted
+        # (low), not averaged; MMD's median-distance sigma makes 2-point clouds swing wildly
+        ok = [r for r in rows if min(r[2], r[3]) >= MIN_POINTS]
+        m = [r[0] for r in ok if r[0] is not None]
+        j = [r[1] for r in ok if r[1] is not None]
+        out[name] = {"pairs": len(rows), "empty": sum(min(r[2], r[3]) == 0 for r in rows),
+                     "low": sum(0 < min(r[2], r[3]) < MIN_POINTS for r in rows),
                      "mmd": float(np.mean(m)) if m else None,
                      "jsd": float(np.mean(j)) if j else None,
                      "points_reference": float(np.mean([r[2] for r in rows])),
