@@ -143,6 +143,9 @@ def _kl2(p: np.ndarray, s: np.ndarray) -> float:
     return float((p[nz] * np.log2(p[nz] / s[nz])).sum())
 
 
+SPAN_EPS_M = 1e-6
+
+
 def jsd(a, b, bins: int = JSD_BINS_DEFAULT, max_points: int | None = None,
         seed: int = 0) -> float | None:
     """Jensen-Shannon divergence of occupancy over a c^3 grid (paper eq. A2), log base 2.
@@ -159,7 +162,9 @@ def jsd(a, b, bins: int = JSD_BINS_DEFAULT, max_points: int | None = None,
     both = np.concatenate([a, b])
     lo = both.min(axis=0)
     span = both.max(axis=0) - lo
-    span[span == 0] = 1.0
+    # an axis both clouds hardly span (a flat target seen edge-on) is one bin: cutting a
+    # micrometre into c bins would sort points by float rounding (a copy scored JSD 1)
+    span[span < SPAN_EPS_M] = 1.0
     cell = np.clip(((both - lo) / span * bins).astype(np.int64), 0, bins - 1)
     flat = (cell[:, 0] * bins + cell[:, 1]) * bins + cell[:, 2]
     keys, inv = np.unique(flat, return_inverse=True)

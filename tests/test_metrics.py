@@ -68,6 +68,17 @@ def test_jsd_hand_computed():
     assert jsd(a[:1], b[1:], bins=3) == pytest.approx(1.0)  # disjoint bins
 
 
+
+def test_jsd_of_an_edge_on_cloud_against_a_rounded_copy_is_zero():
+    # 8 points of a flat target seen edge-on at 200 m: one axis spans 1e-5 m; a re-simulated
+    # copy differs by float rounding only and must land in the same bins
+    rng = np.random.default_rng(3)
+    a = np.column_stack([rng.uniform(-0.05, 0.05, 8), np.full(8, 200.0),
+                         rng.uniform(0, 1e-5, 8)])
+    b = a + rng.uniform(-1e-9, 1e-9, a.shape)
+    assert jsd(a, b, bins=6) == 0.0
+    assert jsd(a, a + [0.0, 0.0, 0.5], bins=6) > 0.5  # a real offset still counts
+
 def test_shifted_cloud_scores_worse():
     a = cloud(1, 400)
     near = cloud(2, 400)  # same distribution, new draw
