@@ -1,5 +1,7 @@
 import os
+from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile("default", deadline=None, max_examples=60,
@@ -28,3 +30,13 @@ def pytest_configure(config):
     except ImportError:
         return
     torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="session")
+def tiny_training_data(tmp_path_factory) -> Path:
+    """The training tests' dataset (2 types, 192 samples, a 64 x 16 window), built once."""
+    from dataset_builder.build import build_dataset
+    out = tmp_path_factory.mktemp("tiny_training") / "ds"
+    build_dataset(str(Path(__file__).parent / "data" / "dataset_tiny_window.toml"), out,
+                  progress=False)
+    return out

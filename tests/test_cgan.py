@@ -15,20 +15,14 @@ from torch import nn
 
 from apcg_core.generation import APCGModel
 from apcg_core.nn import Discriminator, Generator, NetConfig, SelfAttention
-from dataset_builder.build import build_dataset
 from training.data import DepthDataset
 from training.export import export_model
 from training.trainer import Trainer, TrainingDiverged, config_from, gradient_penalty
 
-ROOT = Path(__file__).resolve().parents[1]
-SMALL = str(ROOT / "tests" / "data" / "dataset_tiny_window.toml")
 
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("cgan") / "ds"
-    build_dataset(SMALL, out, progress=False)
-    return out
+@pytest.fixture
+def data(tiny_training_data) -> Path:
+    return tiny_training_data
 
 
 def test_generator_structure_is_the_papers():

@@ -6,22 +6,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dataset_builder.build import build_dataset
 from training.baselines.model import load_any
 from training.data import DepthDataset
 from training.export import export_model
 from training.quick_eval import evaluate, untrained_like
 from training.trainer import Trainer, config_from
 
-ROOT = Path(__file__).resolve().parents[1]
-SMALL = str(ROOT / "tests" / "data" / "dataset_tiny_window.toml")
 
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("families") / "ds"
-    build_dataset(SMALL, out, progress=False)
-    return out
+@pytest.fixture
+def data(tiny_training_data) -> Path:
+    return tiny_training_data
 
 
 def _means(report: dict) -> tuple[float, float]:

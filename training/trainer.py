@@ -76,7 +76,8 @@ PRESETS = {
     # This CPU: a quarter of the channels, bf16 autocast. (n_critic 2 diverged at step 1933 of
     # the first default-model run; 5, as in WGAN-GP, costs the same per epoch.)
     # The exported generator is the moving average of the weights (decay 0.999): an undertrained
-    # GAN's raw weights jitter from step to step, and the average draws far cleaner images.
+    # GAN's raw weights jitter from step to step; at step 4000 of the default model the average
+    # scored MMD 0.115 against the raw weights' 0.131 on drones (0.149 / 0.151 on aircraft).
     "cpu": TrainConfig(width=0.25, n_critic=5, bf16=True, epochs=30.0, checkpoint_every=100,
                        keep_every=500, ema=0.999),
     # Tests: tiny and fast.
