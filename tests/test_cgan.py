@@ -409,20 +409,25 @@ def test_fd_depth_encoder_and_distance(data, tmp_path):
 
 
 def test_ablation_runs_all_eight_variants_under_one_budget(data, tmp_path):
-    from training.ablation import VARIANTS, run_ablation, variant_name
+    from training.ablation import NO_NORM, VARIANTS, run_ablation, variant_name
     rep = run_ablation(data, tmp_path / "abl", steps=2, width=0.0625, pairs=20,
                        progress=False, encoder_epochs=1)
-    assert len(VARIANTS) == 8 and len({variant_name(v) for v in VARIANTS}) == 8
-    assert [r["variant"] for r in rep["rows"]] == [variant_name(v) for v in VARIANTS]
+    assert len(VARIANTS) == 8 and len({variant_name(v) for v in VARIANTS + [NO_NORM]}) == 9
+    assert [r["variant"] for r in rep["rows"]] == [variant_name(v) for v in VARIANTS + [NO_NORM]]
+    nonorm = json.loads((tmp_path / "abl" / "tconv-attn-wgan-nonorm" / "model" /
+                         "model.json").read_text())
+    assert nonorm["norm"] is False and rep["rows"][-1]["norm"] is False
+    assert all(r["norm"] for r in rep["rows"][:8])
     assert all(r["steps"] == 2 and r["fd_depth"] >= 0 for r in rep["rows"])
     fc = next(r for r in rep["rows"] if r["variant"] == "fc-noattn-bce")
     saved = json.loads((tmp_path / "abl" / "fc-noattn-bce" / "train_config.json").read_text())
     assert saved["train"]["conv"] is False and saved["train"]["loss"] == "bce"
     assert saved["train"]["attention"] is False and fc["loss"] == "bce"
-    assert "| no (FC) | no | no (BCE) |" in (tmp_path / "abl" / "table3.md").read_text()
+    table = (tmp_path / "abl" / "table3.md").read_text()
+    assert "| no (FC) | no | no (BCE) | yes |" in table and "| yes | yes | yes | no |" in table
     again = run_ablation(data, tmp_path / "abl", steps=2, width=0.0625, pairs=20,
                          progress=False)  # finished runs are scored, not retrained
-    assert [r["steps"] for r in again["rows"]] == [2] * 8
+    assert [r["steps"] for r in again["rows"]] == [2] * 9
 
 
 @pytest.mark.parametrize("family", ["point-gan", "voxel-gan", "diffusion"])

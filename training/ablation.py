@@ -5,6 +5,7 @@ MMD / JSD on held-out conditions.
 
     apcg ablation --data DIR -o RUNS [--steps 600] [--width 0.25] [--encoder DIR]
 
+A ninth run, the full network without Norm (the paper's "APCG w/o Norm."), shares the budget.
 Each run resumes where it stopped; finished runs are scored, not retrained.
 """
 
@@ -22,16 +23,20 @@ from .trainer import Trainer, config_from
 
 VARIANTS = [dict(conv=c, attention=a, loss=loss) for c, a, loss in
             itertools.product((True, False), (True, False), ("wgan-gp", "bce"))]
+# The paper's "APCG w/o Norm.": the full network trained on depth images without Eq. (2),
+# under the same budget, so w/ and w/o Norm compare like for like.
+NO_NORM = dict(conv=True, attention=True, loss="wgan-gp", norm=False)
 
 
 def variant_name(v: dict) -> str:
     return (f"{'tconv' if v['conv'] else 'fc'}-{'attn' if v['attention'] else 'noattn'}-"
-            f"{'wgan' if v['loss'] == 'wgan-gp' else 'bce'}")
+            f"{'wgan' if v['loss'] == 'wgan-gp' else 'bce'}"
+            f"{'' if v.get('norm', True) else '-nonorm'}")
 
 
 def run_ablation(data_dir, out_dir, steps: int = 600, width: float = 0.25, encoder=None,
                  pairs: int = 400, seed: int = 0, progress: bool = True,
-                 variants=VARIANTS, encoder_epochs: float = 4.0) -> dict:
+                 variants=VARIANTS, encoder_epochs: float = 4.0, no_norm: bool = True) -> dict:
     from apcg_core.generation import APCGModel
 
     from .data import DepthDataset
@@ -48,7 +53,7 @@ def run_ablation(data_dir, out_dir, steps: int = 600, width: float = 0.25, encod
     enc_meta = json.loads((Path(encoder) / "encoder.json").read_text())
     test = DepthDataset(data_dir, "test")
     rows = []
-    for v in variants:
+    for v in list(variants) + ([NO_NORM] if no_norm else []):
         name = variant_name(v)
         run = out / name
         cfg = config_from("cpu", width=width, steps=steps, seed=seed, keep_every=0, **v)
@@ -66,7 +71,7 @@ def run_ablation(data_dir, out_dir, steps: int = 600, width: float = 0.25, encod
         jsds = [b["jsd"] for b in bands.values() if b["jsd"] is not None]
         fd = fd_depth(encoder, model, data_dir, n_pairs=max(pairs, 400), seed=seed)
         log = (run / "log.csv").read_text().splitlines()
-        rows.append({"variant": name, **v, "steps": tr.step,
+        rows.append({"variant": name, "norm": True, **v, "steps": tr.step,
                      "train_seconds": float(log[-1].split(",")[-1]) if len(log) > 1 else wall,
                      "fd_depth": fd["fd_depth"], "fd_depth_real_halves":
                      fd["fd_depth_real_halves"], "mmd": float(np.mean(mmds)) if mmds else None,
@@ -99,12 +104,13 @@ def markdown(report: dict) -> str:
              f"{e['test_accuracy_type']:.3f} held out, chance {e['chance']:.3f}); not FID. "
              f"MMD / JSD ({report['jsd_bins']}^3 bins): means over slant-range bands, "
              f"{report['pairs']} held-out pairs.", "",
-             "| TConv | self-attention | Wasserstein | FD-depth | MMD | JSD | train s |",
-             "|---|---|---|---|---|---|---|"]
+             "| TConv | self-attention | Wasserstein | Norm | FD-depth | MMD | JSD | train s |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
         lines.append(f"| {'yes' if r['conv'] else 'no (FC)'} | "
                      f"{'yes' if r['attention'] else 'no'} | "
                      f"{'yes' if r['loss'] == 'wgan-gp' else 'no (BCE)'} | "
+                     f"{'yes' if r.get('norm', True) else 'no'} | "
                      f"{_f(r['fd_depth'], 2)} | {_f(r['mmd'])} | {_f(r['jsd'])} | "
                      f"{r['train_seconds']:.0f} |")
     return "\n".join(lines) + "\n"

@@ -268,7 +268,8 @@ def register_ablation(sub) -> None:
                                         "budget, scored by FD-depth, MMD and JSD",
                        description="Trains (or resumes) the 8 combinations of TConv / FC, "
                                    "self-attention on / off and Wasserstein-GP / BCE with the "
-                                   "same steps, then writes table3.md and table3.json.")
+                                   "same steps, plus the full network without Norm, then "
+                                   "writes table3.md and table3.json.")
     p.add_argument("--data", required=True)
     p.add_argument("-o", "--output", required=True, help="directory for the 8 runs + table")
     p.add_argument("--steps", type=int, default=600, help="generator steps per variant")
@@ -276,13 +277,16 @@ def register_ablation(sub) -> None:
     p.add_argument("--encoder", help="FD-depth encoder (default: trained into OUTPUT/encoder)")
     p.add_argument("--pairs", type=int, default=400)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--skip-no-norm", action="store_true",
+                   help="leave out the ninth run (the full network without Norm)")
     p.set_defaults(func=_run_ablation)
 
 
 def _run_ablation(args) -> int:
     from .ablation import markdown, run_ablation
     rep = run_ablation(args.data, args.output, steps=args.steps, width=args.width,
-                       encoder=args.encoder, pairs=args.pairs, seed=args.seed)
+                       encoder=args.encoder, pairs=args.pairs, seed=args.seed,
+                       no_norm=not args.skip_no_norm)
     print(markdown(rep))
     return 0
 
