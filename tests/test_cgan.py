@@ -206,6 +206,35 @@ def test_two_process_data_parallel_training_stays_in_sync(data, tmp_path):
     assert (tmp_path / "ddp" / "checkpoint.pt").exists()
 
 
+def test_an_hours_budget_stops_training_and_holds_across_resumes(data, tmp_path):
+    cfg = config_from("tiny", steps=100000, checkpoint_every=1000, seed=3, hours=0.0004)
+    first = Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    seconds = [float(r["seconds"]) for r in csv.DictReader(open(tmp_path / "run" / "log.csv"))]
+    assert 0 < first["step"] < 100000 and seconds[-1] >= 1.44 > seconds[-2]
+    again = Trainer(data, tmp_path / "run", cfg, resume=True, progress=False).fit()
+    assert again["step"] == first["step"]  # the budget is spent: a resume adds nothing
+    more = Trainer(data, tmp_path / "run", replace(cfg, hours=0.0008), resume=True,
+                   progress=False).fit()
+    assert more["step"] > first["step"]
+    seconds = [float(r["seconds"]) for r in csv.DictReader(open(tmp_path / "run" / "log.csv"))]
+    assert seconds[-1] >= 2.88 > seconds[-2] and np.all(np.diff(seconds) > 0)
+    with pytest.raises(Exception, match=r"hours .* must be > 0, got -1"):
+        Trainer(data, tmp_path / "bad", replace(cfg, hours=-1.0), progress=False)
+
+
+def test_two_processes_stop_together_on_an_hours_budget(data, tmp_path):
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "apcg_core.cli", "train", "--data", str(data), "-o", str(tmp_path / "ddp"),
+           "--preset", "tiny", "--steps", "100000", "--hours", "0.001", "--no-progress",
+           "--threads", "1"]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    rows = [json.loads(line) for line in run.stdout.splitlines() if line.startswith("{")]
+    assert sorted(r["rank"] for r in rows) == [0, 1]
+    assert 0 < rows[0]["step"] == rows[1]["step"] < 100000
+    assert rows[0]["param_checksum"] == rows[1]["param_checksum"]
+
+
 def test_onnx_matches_torch_and_generation_is_seeded(data, tmp_path):
     cfg = config_from("tiny", steps=5, seed=2)
     Trainer(data, tmp_path / "run", cfg, progress=False).fit()
@@ -332,8 +361,13 @@ def test_figures_13_and_14_from_a_run(data, tmp_path):
     log = read_log(tmp_path / "run")
     assert np.all(np.diff(log["hours"]) >= 0)
     d14 = fig14(tmp_path / "run", data, tmp_path / "f14.png", n_pairs=20)
-    assert [r["step"] for r in d14["rows"]] == [bpe, 2 * bpe]
-    assert d14["rows"][0]["hours"] <= d14["rows"][1]["hours"]
+    rows = d14["runs"]["run"]
+    assert [r["step"] for r in rows] == [bpe, 2 * bpe]
+    assert rows[0]["hours"] <= rows[1]["hours"]
+    both = fig14({"a": tmp_path / "run", "b": tmp_path / "run"}, data, tmp_path / "g14.png",
+                 n_pairs=20, tau=-0.5)  # several runs scored on the same pairs, at one tau
+    assert both["runs"]["a"] == both["runs"]["b"] and both["tau"] == -0.5
+    assert "--run a=" in both["command"] and "--tau -0.5" in both["command"]
     for name in ("f13.png", "f13.json", "f14.png", "f14.json"):
         assert (tmp_path / name).stat().st_size > 0
 

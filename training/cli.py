@@ -43,6 +43,9 @@ def register_train(sub) -> None:
                    help="decay of the generator's moving average that export uses (cpu preset "
                         "0.999; 0 turns it off; may be switched on when resuming)")
     p.add_argument("--max-minutes", type=float, help="stop (after a checkpoint) after this long")
+    p.add_argument("--hours", type=float,
+                   help="a training-time budget: stop once the run's training time, summed "
+                        "over resumes, reaches it (saved with the run; equal-hours comparisons)")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_train)
@@ -53,7 +56,8 @@ def _run_train(args) -> int:
     over = {"steps": args.steps, "epochs": args.epochs, "seed": args.seed, "width": args.width,
             "n_critic": args.n_critic, "batch_size": args.batch_size,
             "checkpoint_every": args.checkpoint_every, "threads": args.threads,
-            "keep_every": args.keep_every, "diverge_gp": args.diverge_gp, "ema": args.ema}
+            "keep_every": args.keep_every, "diverge_gp": args.diverge_gp, "ema": args.ema,
+            "hours": args.hours}
     if args.no_conv:
         over["conv"] = False
     if args.no_attention:
@@ -73,7 +77,7 @@ def _run_train(args) -> int:
             saved = torch.load(ck, map_location="cpu", weights_only=False)["train"]
             saved.update({k: v for k, v in over.items() if v is not None and k in
                           ("steps", "epochs", "checkpoint_every", "threads", "keep_every",
-                           "diverge_gp", "ema")})
+                           "diverge_gp", "ema", "hours")})
             from .trainer import TrainConfig
             saved["betas"] = tuple(saved["betas"])
             cfg = TrainConfig(**saved)
@@ -192,7 +196,11 @@ def register_figure(sub) -> None:
                                    "18: generation time against the number of clouds. 19: "
                                    "generated clouds against standard and cell-jittered ones.")
     p.add_argument("number", type=int, choices=[13, 14, 18, 19])
-    p.add_argument("--run", help="training run directory (13, 14)")
+    p.add_argument("--run", action="append", metavar="[NAME=]RUN",
+                   help="training run directory (13; 14 takes several, any family)")
+    p.add_argument("--tau", type=float,
+                   help="Im2PC threshold for the cGAN checkpoints of figure 14 (default: the "
+                        "export default; use the shipped model's tau to match it)")
     p.add_argument("--model", help="model directory (18, 19; default: the default model)")
     p.add_argument("--data", help="dataset directory (figure 14)")
     p.add_argument("--pairs", type=int, default=400, help="test pairs per checkpoint (14)")
@@ -203,6 +211,8 @@ def register_figure(sub) -> None:
 def _run_figure(args) -> int:
     from apcg_core.errors import InputError
 
+    from pathlib import Path
+
     from .figures import fig13, fig14, fig18, fig19
     if args.number in (13, 14) and not args.run:
         raise InputError(f"figure {args.number} needs --run (a training run directory)")
@@ -210,9 +220,15 @@ def _run_figure(args) -> int:
         raise InputError(f"figure {args.number} needs --data (the dataset whose test split "
                          "scores)")
     if args.number == 13:
-        fig13(args.run, args.output)
+        if len(args.run) > 1:
+            raise InputError(f"figure 13 takes one --run, got {len(args.run)}")
+        fig13(args.run[0].split("=", 1)[-1], args.output)
     elif args.number == 14:
-        fig14(args.run, args.data, args.output, n_pairs=args.pairs)
+        runs = [(r.split("=", 1)[0], r.split("=", 1)[1]) if "=" in r
+                else (Path(r).name, r) for r in args.run]
+        if len({n for n, _ in runs}) < len(runs):
+            raise InputError(f"figure 14: run names must differ, got {[n for n, _ in runs]}")
+        fig14(runs, args.data, args.output, n_pairs=args.pairs, tau=args.tau)
     else:
         from .baselines.model import load_any
         model = load_any(args.model, runtime="onnx")

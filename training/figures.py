@@ -1,9 +1,10 @@
 """The paper's training figures, each a PNG plus the data behind it (JSON):
 
     apcg figure 13 --run RUN -o fig13.png     |L_D| and L_G per epoch, from the training log
-    apcg figure 14 --run RUN --data DIR -o fig14.png
+    apcg figure 14 --run [NAME=]RUN ... --data DIR [--tau T] -o fig14.png
                                               MMD and JSD against training time, one point per
-                                              kept checkpoint (checkpoints/step-*.pt)
+                                              kept checkpoint (checkpoints/step-*.pt), one line
+                                              per run (any model family)
     apcg figure 18 [--model DIR] -o fig18.png  generation time against the number of clouds,
                                               for 2, 4 and 8 types and random counts
     apcg figure 19 [--model DIR] --data DIR -o fig19.png
@@ -59,36 +60,55 @@ def fig13(run, out) -> dict:
     return data
 
 
-def fig14(run, data_dir, out, n_pairs: int = 400, seed: int = 0) -> dict:
-    """Mean MMD and JSD (all bands) of each kept checkpoint against training time."""
-    from apcg_core.generation import APCGModel
+def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | None = None
+          ) -> dict:
+    """Mean MMD and JSD (all bands) of each kept checkpoint against training time, for one run
+    or several ({name: run} or [(name, run)]; any model family), on the same held-out pairs.
 
+    ``tau`` is the Im2PC threshold the cGAN checkpoints are exported with (default: the export
+    default); score a shipped model's run at the tau chosen for it."""
+    from apcg_core.depth import TAU_DEFAULT
+
+    from .baselines.model import load_any
     from .data import DepthDataset
     from .export import export_model
     from .quick_eval import evaluate
-    snaps = sorted((Path(run) / "checkpoints").glob("step-*.pt"))
-    if not snaps:
-        raise InputError(f"{run} has no kept checkpoints (train with --keep-every)")
-    log = read_log(run)
+    if isinstance(runs, (str, Path)):
+        runs = [(Path(runs).name, runs)]
+    runs = list(runs.items()) if isinstance(runs, dict) else list(runs)
+    tau = TAU_DEFAULT if tau is None else float(tau)
     ds = DepthDataset(data_dir, "test")
-    rows = []
-    for snap in snaps:
-        step = int(snap.stem.split("-")[1])
-        with tempfile.TemporaryDirectory() as tmp:
-            model = APCGModel(export_model(run, tmp, checkpoint=snap), runtime="onnx")
-            bands = evaluate(model, ds, n_pairs, seed)
-        at = np.searchsorted(log["step"], step)
-        hours = float(log["hours"][min(at, len(log["hours"]) - 1)])
-        mmds = [b["mmd"] for b in bands.values() if b["mmd"] is not None]
-        jsds = [b["jsd"] for b in bands.values() if b["jsd"] is not None]
-        rows.append({"step": step, "hours": hours, "mmd": float(np.mean(mmds)),
-                     "jsd": float(np.mean(jsds))})
-        print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
-    data = {"rows": rows, "pairs": n_pairs, "seed": seed}
-    h = [r["hours"] for r in rows]
-    _lines([(h, [r["mmd"] for r in rows], "o-", "MMD"),
-            (h, [r["jsd"] for r in rows], "s-", "JSD")], "training time (h, this machine)", "",
-           f"MMD and JSD against training time, {Path(run).name} (paper Fig. 14)", out, data)
+    table = {}
+    for name, run in runs:
+        snaps = sorted((Path(run) / "checkpoints").glob("step-*.pt"))
+        if not snaps:
+            raise InputError(f"{run} has no kept checkpoints (train with --keep-every)")
+        log = read_log(run)
+        rows = table[name] = []
+        for snap in snaps:
+            step = int(snap.stem.split("-")[1])
+            with tempfile.TemporaryDirectory() as tmp:
+                model = load_any(export_model(run, tmp, tau=tau, checkpoint=snap))
+                bands = evaluate(model, ds, n_pairs, seed)
+            at = np.searchsorted(log["step"], step)
+            hours = float(log["hours"][min(at, len(log["hours"]) - 1)])
+            mmds = [b["mmd"] for b in bands.values() if b["mmd"] is not None]
+            jsds = [b["jsd"] for b in bands.values() if b["jsd"] is not None]
+            rows.append({"step": step, "hours": hours, "mmd": float(np.mean(mmds)),
+                         "jsd": float(np.mean(jsds))})
+            print(json.dumps({"run": name, **rows[-1]}), file=sys.stderr, flush=True)
+    data = {"runs": table, "pairs": n_pairs, "seed": seed, "tau": tau,
+            "command": "apcg figure 14 " + " ".join(f"--run {n}={r}" for n, r in runs)
+            + f" --data {data_dir} --pairs {n_pairs} --tau {tau} -o {out}"}
+    series = []
+    for name, rows in table.items():
+        h = [r["hours"] for r in rows]
+        label = "" if len(table) == 1 else f" {name}"
+        series += [(h, [r["mmd"] for r in rows], "o-", "MMD" + label),
+                   (h, [r["jsd"] for r in rows], "s--", "JSD" + label)]
+    title = next(iter(table)) if len(table) == 1 else "all methods"
+    _lines(series, "training time (h, this machine)", "",
+           f"MMD and JSD against training time, {title} (paper Fig. 14)", out, data)
     return data
 
 

@@ -60,6 +60,8 @@ class TrainConfig:
     keep_every: int = 0  # also keep checkpoints/step-NNNNNN.pt every this many steps (0: never)
     diverge_gp: float = 50.0  # stop when the gradient penalty's mean over 50 steps exceeds it
     ema: float = 0.0  # decay of an exponential moving average of the generator (0: none)
+    hours: float | None = None  # a time budget: stop once training time, summed over resumes,
+    # reaches it (equal-hours comparisons of model families; steps / epochs still cap the run)
     log_every: int = 10
     threads: int | None = None
     extra: dict = field(default_factory=dict)
@@ -141,6 +143,8 @@ class Trainer:
         if not 0.0 <= cfg.ema < 1.0:
             raise InputError(f"ema (the generator average's decay) must be in [0, 1), got "
                              f"{cfg.ema}")
+        if cfg.hours is not None and not cfg.hours > 0:
+            raise InputError(f"hours (the training-time budget) must be > 0, got {cfg.hours}")
         self.G_ema = copy.deepcopy(self.G).eval() if cfg.ema > 0 else None
         self.ema_since = 0  # the step the average started from (later when added on resume)
         self.opt_g = torch.optim.Adam(self.G.parameters(), lr=cfg.lr, betas=tuple(cfg.betas))
@@ -363,6 +367,16 @@ class Trainer:
                 "loss_d": _g7(loss_d), "loss_g": _g7(loss_g), "gp": _g7(gp),
                 "wasserstein": _g7(d_real.mean() - d_fake.mean())}
 
+    def _any_rank(self, flag: bool) -> bool:
+        """True on every rank when it is true on one: clocks differ between processes, and a
+        rank that leaves the loop alone would leave the others waiting in all_reduce."""
+        if self.world == 1:
+            return flag
+        import torch.distributed as dist
+        t = torch.tensor([int(flag)])
+        dist.all_reduce(t, op=dist.ReduceOp.MAX)
+        return bool(t.item())
+
     def fit(self, max_seconds: float | None = None) -> dict:
         """Train to ``total_steps`` (or until ``max_seconds`` pass); checkpoint on the way."""
         bar = None
@@ -376,7 +390,9 @@ class Trainer:
         pending = []
         last = {}
         recent_gp: list[float] = []
-        while self.step < self.total_steps:
+        budget_s = None if self.cfg.hours is None else self.cfg.hours * 3600.0
+        while self.step < self.total_steps and (budget_s is None
+                                                or self.seconds_before < budget_s):
             row = self.train_step()
             recent_gp = (recent_gp + [row["gp"]])[-50:]
             self._check_divergence(row, recent_gp)
@@ -400,7 +416,9 @@ class Trainer:
                     self._write_log_rows(pending)
                     pending = []
                 self.save()
-            if max_seconds is not None and time.perf_counter() - t0 > max_seconds:
+            stop = ((max_seconds is not None and time.perf_counter() - t0 > max_seconds)
+                    or (budget_s is not None and row["seconds"] >= budget_s))
+            if self._any_rank(stop):
                 break
         if self.rank == 0 and pending:
             self._write_log_rows(pending)
