@@ -434,6 +434,8 @@ def test_fd_depth_encoder_and_distance(data, tmp_path):
     assert frechet_distance(b, c) == pytest.approx(4.0, rel=0.02)
     meta = train_encoder(data, tmp_path / "enc", epochs=3, progress=False)
     assert meta["test_accuracy_type"] > 0.8 > meta["chance"]  # A320neo vs Mavic 3
+    enc_dir = tmp_path / "enc"
+    assert meta["command"] == f"apcg fd-depth train --data {data} -o {enc_dir} --epochs 3 --seed 0"
     enc = load_encoder(tmp_path / "enc")
     cfg = config_from("tiny", steps=1, width=0.0625, checkpoint_every=1000, seed=10)
     Trainer(data, tmp_path / "run", cfg, progress=False).fit()
@@ -452,6 +454,8 @@ def test_ablation_runs_all_eight_variants_under_one_budget(data, tmp_path):
                          "model.json").read_text())
     assert nonorm["norm"] is False and rep["rows"][-1]["norm"] is False
     assert all(r["norm"] for r in rep["rows"][:8])
+    assert rep["command"] == (f"apcg ablation --data {data} -o {tmp_path / 'abl'} --steps 2 "
+                              "--width 0.0625 --pairs 20 --seed 0")
     assert all(r["steps"] == 2 and r["fd_depth"] >= 0 for r in rep["rows"])
     fc = next(r for r in rep["rows"] if r["variant"] == "fc-noattn-bce")
     saved = json.loads((tmp_path / "abl" / "fc-noattn-bce" / "train_config.json").read_text())

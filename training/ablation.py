@@ -45,6 +45,7 @@ def run_ablation(data_dir, out_dir, steps: int = 600, width: float = 0.25, encod
     from .quick_eval import JSD_BINS_EVAL, evaluate
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    given_encoder = encoder
     if encoder is None:
         encoder = out / "encoder"
         if not (encoder / "encoder.pt").exists():
@@ -84,7 +85,10 @@ def run_ablation(data_dir, out_dir, steps: int = 600, width: float = 0.25, encod
                           "test_accuracy_type": enc_meta["test_accuracy_type"],
                           "chance": enc_meta["chance"]},
               "jsd_bins": JSD_BINS_EVAL, "pairs": pairs, "rows": rows,
-              "command": "apcg ablation " + " ".join(sys.argv[2:])}
+              "command": (f"apcg ablation --data {data_dir} -o {out_dir} --steps {steps} "
+                          f"--width {width:g} --pairs {pairs} --seed {seed}"
+                          + (f" --encoder {given_encoder}" if given_encoder else "")
+                          + ("" if no_norm else " --skip-no-norm"))}
     (out / "table3.json").write_text(json.dumps(report, indent=1) + "\n")
     (out / "table3.md").write_text(markdown(report))
     return report

@@ -209,9 +209,9 @@ def register_figure(sub) -> None:
 
 
 def _run_figure(args) -> int:
-    from apcg_core.errors import InputError
-
     from pathlib import Path
+
+    from apcg_core.errors import InputError
 
     from .figures import fig13, fig14, fig18, fig19
     if args.number in (13, 14) and not args.run:

@@ -81,7 +81,8 @@ def train_encoder(data_dir, out_dir, epochs: float = 4.0, batch: int = 64, seed:
             "steps": steps, "batch": batch, "seed": seed, "lr": lr,
             "test_accuracy_type": acc, "chance": 1.0 / n_types, "n_types": n_types,
             "train_seconds": round(time.perf_counter() - t0, 1), "features": FEATURES,
-            "command": "apcg fd-depth train " + " ".join(sys.argv[3:])}
+            "command": f"apcg fd-depth train --data {data_dir} -o {out_dir} --epochs {epochs:g} "
+                       f"--seed {seed}"}
     (out / "encoder.json").write_text(json.dumps(meta, indent=1) + "\n")
     return meta
 
