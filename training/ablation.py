@@ -100,6 +100,7 @@ def _f(v, d=3) -> str:
 
 def markdown(report: dict) -> str:
     b, e = report["budget"], report["encoder"]
+    floor = report["rows"][0]["fd_depth_real_halves"] if report["rows"] else None
     lines = ["# Table 3: ablation under one budget", "",
              f"Reproduce: `{report['command']}`", "",
              f"Budget per variant: {b['steps']} generator steps, width {b['width']}, batch "
@@ -108,6 +109,9 @@ def markdown(report: dict) -> str:
              f"{e['test_accuracy_type']:.3f} held out, chance {e['chance']:.3f}); not FID. "
              f"MMD / JSD ({report['jsd_bins']}^3 bins): means over slant-range bands, "
              f"{report['pairs']} held-out pairs.", "",
+             f"FD-depth floor (two halves of the real test images against each other): "
+             f"{_f(floor, 1)}. Train s: logged training time on this machine (the budget is "
+             f"the steps; the seconds show what each variant costs).", "",
              "| TConv | self-attention | Wasserstein | Norm | FD-depth | MMD | JSD | train s |",
              "|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
