@@ -357,6 +357,7 @@ def test_figures_13_and_14_from_a_run(data, tmp_path):
                       keep_every=bpe, seed=6)
     Trainer(data, tmp_path / "run", cfg, progress=False).fit()
     d13 = fig13(tmp_path / "run", tmp_path / "f13.png")
+    assert d13["command"] == f"apcg figure 13 --run {tmp_path / 'run'} -o {tmp_path / 'f13.png'}"
     assert d13["epoch"] == [1, 2, 3] and all(v >= 0 for v in d13["abs_loss_d"])
     log = read_log(tmp_path / "run")
     assert np.all(np.diff(log["hours"]) >= 0)
@@ -420,6 +421,8 @@ def test_figures_18_and_19(data, tmp_path):
         assert r["mmd_standard"] is None or r["mmd_standard"] >= 0
         assert ("mmd_noised" in r) and ("jsd_noised" in r)
     assert (tmp_path / "f18.json").exists() and (tmp_path / "f19.png").stat().st_size > 0
+    assert d18["command"].startswith("apcg figure 18 --model ")
+    assert d19["command"].endswith(f"--pairs 30 -o {tmp_path / 'f19.png'}")
 
 
 def test_fd_depth_encoder_and_distance(data, tmp_path):
@@ -454,6 +457,12 @@ def test_ablation_runs_all_eight_variants_under_one_budget(data, tmp_path):
                          "model.json").read_text())
     assert nonorm["norm"] is False and rep["rows"][-1]["norm"] is False
     assert all(r["norm"] for r in rep["rows"][:8])
+    from training.quick_eval import TAUS
+    for r in rep["rows"]:  # each variant's own tau, chosen on training conditions
+        saved_model = json.loads((tmp_path / "abl" / r["variant"] / "model" / "model.json")
+                                 .read_text())
+        assert r["tau"] in TAUS and saved_model["tau"] == r["tau"]
+        assert r["mmd_untrained"] is not None and r["jsd_untrained"] is not None
     assert rep["command"] == (f"apcg ablation --data {data} -o {tmp_path / 'abl'} --steps 2 "
                               "--width 0.0625 --pairs 20 --seed 0")
     assert all(r["steps"] == 2 and r["fd_depth"] >= 0 for r in rep["rows"])

@@ -49,7 +49,8 @@ def fig13(run, out) -> dict:
     log = read_log(run)
     epoch = np.floor(log["epoch"] - 1e-9).astype(int)
     epochs = np.unique(epoch)
-    data = {"epoch": (epochs + 1).tolist(),
+    data = {"command": f"apcg figure 13 --run {_rel(run)} -o {_rel(out)}",
+            "epoch": (epochs + 1).tolist(),
             "abs_loss_d": [float(np.abs(log["loss_d"][epoch == e]).mean()) for e in epochs],
             "loss_g": [float(log["loss_g"][epoch == e].mean()) for e in epochs],
             "gp": [float(log["gp"][epoch == e].mean()) for e in epochs]}
@@ -98,8 +99,8 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
                          "jsd": float(np.mean(jsds))})
             print(json.dumps({"run": name, **rows[-1]}), file=sys.stderr, flush=True)
     data = {"runs": table, "pairs": n_pairs, "seed": seed, "tau": tau,
-            "command": "apcg figure 14 " + " ".join(f"--run {n}={r}" for n, r in runs)
-            + f" --data {data_dir} --pairs {n_pairs} --tau {tau} -o {out}"}
+            "command": "apcg figure 14 " + " ".join(f"--run {n}={_rel(r)}" for n, r in runs)
+            + f" --data {_rel(data_dir)} --pairs {n_pairs} --tau {tau:g} -o {_rel(out)}"}
     series = []
     for name, rows in table.items():
         h = [r["hours"] for r in rows]
@@ -129,7 +130,8 @@ def fig18(model, out, counts=(100, 300, 1000, 3000), seed: int = 0) -> dict:
             rows.append({"types": n_types, "clouds": n, "seconds": time.perf_counter() - t0,
                          "points": len(res.cloud)})
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
-    data = {"rows": rows, "runtime": model.runtime, "model": str(model.directory)}
+    data = {"command": f"apcg figure 18 --model {_rel(model.directory)} -o {_rel(out)}",
+            "rows": rows, "runtime": model.runtime, "model": str(model.directory)}
     series = []
     for n_types in type_counts:
         r = [x for x in rows if x["types"] == n_types]
@@ -165,7 +167,9 @@ def fig19(model, data_dir, out, n_pairs: int = 600, seed: int = 0, n_bins: int =
     res = model.generate(table, count=1, seed=seed)
     gen = [c.xyz for c in res.cloud.split(len(idx))]
     near = model.space.is_drone(table[:, 0].astype(int))
-    data = {"jsd_bins": JSD_BINS_EVAL, "pairs": len(idx)}
+    data = {"command": f"apcg figure 19 --model {_rel(model.directory)} --data {_rel(data_dir)} "
+                       f"--pairs {n_pairs} -o {_rel(out)}",
+            "jsd_bins": JSD_BINS_EVAL, "pairs": len(idx)}
     for kind in ("aircraft", "drone"):
         sel = np.flatnonzero(near == (kind == "drone"))
         if len(sel) == 0:
@@ -229,6 +233,14 @@ def _lines(series, xlabel: str, ylabel: str, title: str, out, data, log: bool = 
     ax.grid(alpha=0.3)
     ax.legend()
     _save(fig, out, data)
+
+
+def _rel(path) -> str:
+    """A path as a command line would give it: relative to the working directory when inside
+    it."""
+    import os
+    p = os.path.abspath(path)
+    return os.path.relpath(p) if p.startswith(os.getcwd() + os.sep) else str(path)
 
 
 def _save(fig, out, data) -> None:
