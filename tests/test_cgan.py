@@ -504,6 +504,16 @@ def test_comparison_families_train_resume_export_and_generate(data, tmp_path, fa
     assert np.array_equal(res.cloud.xyz, again_res.cloud.xyz)  # seeded
 
 
+def test_training_memory_is_the_child_process_own_peak(data):
+    from dataclasses import asdict
+
+    from training.compare import training_memory
+    ballast = np.ones(2 * 2**30 // 8)  # 2 GiB held (and touched) by this process at the fork
+    small = training_memory(asdict(config_from("tiny", width=0.0625)), data, 1)
+    assert ballast[-1] == 1.0
+    assert 50 < small["peak_rss_mb"] < 1500, small  # not the parent's 2 GiB
+
+
 def test_compare_lists_every_method_with_budget_memory_speed_and_bands(data, tmp_path):
     from training.baselines.model import load_any
     from training.compare import compare, markdown, parse_models, write
