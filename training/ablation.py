@@ -3,7 +3,7 @@ self-attention on or off, Wasserstein-GP or BCE loss}, trained under one equal b
 steps, batch, critic steps, width and data), scored by FD-depth (our encoder, not FID) and by
 MMD / JSD on held-out conditions.
 
-    apcg ablation --data DIR -o RUNS [--steps 600] [--width 0.25] [--encoder DIR]
+    apcg ablation --data DIR -o RUNS [--steps 500] [--width 0.25] [--encoder DIR]
 
 A ninth run, the full network without Norm (the paper's "APCG w/o Norm."), shares the budget.
 Each run resumes where it stopped; finished runs are scored, not retrained.
@@ -34,7 +34,7 @@ def variant_name(v: dict) -> str:
             f"{'' if v.get('norm', True) else '-nonorm'}")
 
 
-def run_ablation(data_dir, out_dir, steps: int = 600, width: float = 0.25, encoder=None,
+def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encoder=None,
                  pairs: int = 400, seed: int = 0, progress: bool = True,
                  variants=VARIANTS, encoder_epochs: float = 4.0, no_norm: bool = True) -> dict:
     from apcg_core.generation import APCGModel

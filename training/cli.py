@@ -287,8 +287,9 @@ def register_ablation(sub) -> None:
                                    "same steps, plus the full network without Norm, then "
                                    "writes table3.md and table3.json.")
     p.add_argument("--data", required=True)
-    p.add_argument("-o", "--output", required=True, help="directory for the 8 runs + table")
-    p.add_argument("--steps", type=int, default=600, help="generator steps per variant")
+    p.add_argument("-o", "--output", required=True, help="directory for the 9 runs + table")
+    p.add_argument("--steps", type=int, default=500,
+                   help="generator steps per variant (default 500, the documented Table 3)")
     p.add_argument("--width", type=float, default=0.25)
     p.add_argument("--encoder", help="FD-depth encoder (default: trained into OUTPUT/encoder)")
     p.add_argument("--pairs", type=int, default=400)
