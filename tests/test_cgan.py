@@ -298,6 +298,14 @@ def test_quick_eval_bands_pairs_and_tau_sweep(data, tmp_path):
     assert fresh.meta["net"] == model.meta["net"] and fresh.tau == -0.5  # the same pipeline
 
 
+def test_band_mean_skips_bands_without_a_score():
+    from training.quick_eval import band_mean
+    bands = {"a": {"mmd": 0.1, "jsd": None}, "b": {"mmd": 0.3, "jsd": None},
+             "c": {"mmd": None, "jsd": None}}
+    assert band_mean(bands, "mmd") == pytest.approx(0.2)  # not 0.4 / 3: a gap is not a zero
+    assert band_mean(bands, "jsd") is None
+
+
 def test_evaluate_report_bands_floor_and_a_shifted_generator(data, tmp_path):
     from apcg_core.metrics import mmd
     from training.evaluate import evaluate, stratified_subset, write_report

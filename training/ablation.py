@@ -17,8 +17,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from .trainer import Trainer, config_from
 
 VARIANTS = [dict(conv=c, attention=a, loss=loss) for c, a, loss in
@@ -42,7 +40,7 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
     from .data import DepthDataset
     from .export import export_model
     from .fd_depth import fd_depth, train_encoder
-    from .quick_eval import JSD_BINS_EVAL, evaluate, tau_sweep, untrained_like
+    from .quick_eval import JSD_BINS_EVAL, band_mean, evaluate, tau_sweep, untrained_like
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     given_encoder = encoder
@@ -82,8 +80,9 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
                      "train_seconds": float(log[-1].split(",")[-1]) if len(log) > 1 else wall,
                      "fd_depth": fd["fd_depth"], "fd_depth_real_halves":
                      fd["fd_depth_real_halves"], "tau": sweep["best"],
-                     "mmd": _mean(bands, "mmd"), "jsd": _mean(bands, "jsd"),
-                     "mmd_untrained": _mean(fresh, "mmd"), "jsd_untrained": _mean(fresh, "jsd")})
+                     "mmd": band_mean(bands, "mmd"), "jsd": band_mean(bands, "jsd"),
+                     "mmd_untrained": band_mean(fresh, "mmd"),
+                     "jsd_untrained": band_mean(fresh, "jsd")})
         if progress:
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     report = {"budget": {"steps": steps, "width": width, "batch": 32, "n_critic": 5,
@@ -99,11 +98,6 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
     (out / "table3.json").write_text(json.dumps(report, indent=1) + "\n")
     (out / "table3.md").write_text(markdown(report))
     return report
-
-
-def _mean(bands: dict, key: str):
-    vals = [b[key] for b in bands.values() if b[key] is not None]
-    return float(np.mean(vals)) if vals else None
 
 
 def _f(v, d=3) -> str:

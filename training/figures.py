@@ -73,7 +73,7 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
     from .baselines.model import load_any
     from .data import DepthDataset
     from .export import export_model
-    from .quick_eval import evaluate
+    from .quick_eval import band_mean, evaluate
     if isinstance(runs, (str, Path)):
         runs = [(Path(runs).name, runs)]
     runs = list(runs.items()) if isinstance(runs, dict) else list(runs)
@@ -93,10 +93,8 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
                 bands = evaluate(model, ds, n_pairs, seed)
             at = np.searchsorted(log["step"], step)
             hours = float(log["hours"][min(at, len(log["hours"]) - 1)])
-            mmds = [b["mmd"] for b in bands.values() if b["mmd"] is not None]
-            jsds = [b["jsd"] for b in bands.values() if b["jsd"] is not None]
-            rows.append({"step": step, "hours": hours, "mmd": float(np.mean(mmds)),
-                         "jsd": float(np.mean(jsds))})
+            rows.append({"step": step, "hours": hours, "mmd": band_mean(bands, "mmd"),
+                         "jsd": band_mean(bands, "jsd")})
             print(json.dumps({"run": name, **rows[-1]}), file=sys.stderr, flush=True)
     data = {"runs": table, "pairs": n_pairs, "seed": seed, "tau": tau,
             "command": "apcg figure 14 " + " ".join(f"--run {n}={_rel(r)}" for n, r in runs)
@@ -105,12 +103,17 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
     for name, rows in table.items():
         h = [r["hours"] for r in rows]
         label = "" if len(table) == 1 else f" {name}"
-        series += [(h, [r["mmd"] for r in rows], "o-", "MMD" + label),
-                   (h, [r["jsd"] for r in rows], "s--", "JSD" + label)]
+        # a checkpoint with no scorable pair (all clouds empty) leaves a gap, not a zero
+        series += [(h, [_nan(r["mmd"]) for r in rows], "o-", "MMD" + label),
+                   (h, [_nan(r["jsd"]) for r in rows], "s--", "JSD" + label)]
     title = next(iter(table)) if len(table) == 1 else "all methods"
     _lines(series, "training time (h, this machine)", "",
            f"MMD and JSD against training time, {title} (paper Fig. 14)", out, data)
     return data
+
+
+def _nan(v):
+    return float("nan") if v is None else v
 
 
 def fig18(model, out, counts=(100, 300, 1000, 3000), seed: int = 0) -> dict:

@@ -95,6 +95,12 @@ def evaluate(model: APCGModel, ds: DepthDataset, n_pairs: int = 400, seed: int =
 TAUS = (-0.99, -0.98, -0.95, -0.9, -0.8, -0.6, -0.3, 0.0)
 
 
+def band_mean(bands: dict, key: str) -> float | None:
+    """Mean of one score over the bands that have it (None where no band does)."""
+    vals = [b[key] for b in bands.values() if b[key] is not None]
+    return float(np.mean(vals)) if vals else None
+
+
 def tau_sweep(model: APCGModel, ds: DepthDataset, taus=TAUS, n_pairs: int = 400,
               seed: int = 0) -> dict:
     """Mean MMD, JSD and generated / standard point-count ratio over all bands at each Im2PC
@@ -106,12 +112,10 @@ def tau_sweep(model: APCGModel, ds: DepthDataset, taus=TAUS, n_pairs: int = 400,
         for tau in taus:
             model.tau = float(tau)
             per_band = evaluate(model, ds, n_pairs, seed)
-            def mean(key, bands=per_band):
-                vals = [b[key] for b in bands.values() if b[key] is not None]
-                return float(np.mean(vals)) if vals else float("inf")
-
+            mmd, jsd = band_mean(per_band, "mmd"), band_mean(per_band, "jsd")
             rows[f"{tau:g}"] = {
-                "mmd": mean("mmd"), "jsd": mean("jsd"),
+                "mmd": float("inf") if mmd is None else mmd,
+                "jsd": float("inf") if jsd is None else jsd,
                 "points_ratio": float(np.mean([b["points_generated"] / b["points_standard"]
                                                for b in per_band.values()])),
                 "no_score": int(sum(b["no_score"] for b in per_band.values()))}
