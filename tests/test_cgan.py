@@ -216,6 +216,8 @@ def test_an_hours_budget_stops_training_and_holds_across_resumes(data, tmp_path)
     more = Trainer(data, tmp_path / "run", replace(cfg, hours=0.0008), resume=True,
                    progress=False).fit()
     assert more["step"] > first["step"]
+    record = json.loads((tmp_path / "run" / "train_config.json").read_text())
+    assert record["train"]["hours"] == 0.0008  # the record follows the resume's budget
     seconds = [float(r["seconds"]) for r in csv.DictReader(open(tmp_path / "run" / "log.csv"))]
     assert seconds[-1] >= 2.88 > seconds[-2] and np.all(np.diff(seconds) > 0)
     with pytest.raises(Exception, match=r"hours .* must be > 0, got -1"):

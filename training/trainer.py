@@ -169,6 +169,13 @@ class Trainer:
             if not ckpt.exists():
                 raise InputError(f"nothing to resume in {self.run} (no checkpoint.pt)")
             self._load(ckpt)
+            record = self.run / "train_config.json"
+            if self.rank == 0 and record.exists():  # show the budget in force, not the first's
+                rec = json.loads(record.read_text())
+                rec["train"] = asdict(cfg)
+                tmp = record.with_suffix(".json.tmp")
+                tmp.write_text(json.dumps(rec, indent=1))
+                tmp.replace(record)
         elif self.rank == 0:
             self.run.mkdir(parents=True, exist_ok=True)
             (self.run / "train_config.json").write_text(json.dumps(
