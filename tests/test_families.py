@@ -3,13 +3,12 @@ beats its own untrained network on MMD and JSD against the held-out standard clo
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from training.baselines.model import load_any
 from training.data import DepthDataset
 from training.export import export_model
-from training.quick_eval import evaluate, untrained_like
+from training.quick_eval import band_mean, evaluate, untrained_like
 from training.trainer import Trainer, config_from
 
 
@@ -19,8 +18,7 @@ def data(tiny_training_data) -> Path:
 
 
 def _means(report: dict) -> tuple[float, float]:
-    return (float(np.mean([b["mmd"] for b in report.values()])),
-            float(np.mean([b["jsd"] for b in report.values()])))
+    return band_mean(report, "mmd"), band_mean(report, "jsd")
 
 
 @pytest.mark.parametrize("family,steps,extra", [
