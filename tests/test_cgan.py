@@ -224,6 +224,13 @@ def test_an_hours_budget_stops_training_and_holds_across_resumes(data, tmp_path)
         Trainer(data, tmp_path / "bad", replace(cfg, hours=-1.0), progress=False)
 
 
+def test_a_budget_is_spent_by_a_step_logged_exactly_on_it():
+    from training.trainer import budget_seconds
+    assert 0.0004 * 3600.0 > 1.44  # floating point: the raw product is never reached by 1.440
+    assert budget_seconds(0.0004) <= 1.44 and budget_seconds(0.0008) <= 2.88
+    assert budget_seconds(1.0) == 3600.0
+
+
 def test_two_processes_stop_together_on_an_hours_budget(data, tmp_path):
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
            "-m", "apcg_core.cli", "train", "--data", str(data), "-o", str(tmp_path / "ddp"),

@@ -397,7 +397,7 @@ class Trainer:
         pending = []
         last = {}
         recent_gp: list[float] = []
-        budget_s = None if self.cfg.hours is None else self.cfg.hours * 3600.0
+        budget_s = None if self.cfg.hours is None else budget_seconds(self.cfg.hours)
         while self.step < self.total_steps and (budget_s is None
                                                 or self.seconds_before < budget_s):
             row = self.train_step()
@@ -438,6 +438,15 @@ class Trainer:
                 "seconds": round(time.perf_counter() - t0, 3),
                 "param_checksum": param_checksum(self.G) + param_checksum(self.D)
                 + param_checksum(self.G_ema)}
+
+
+def budget_seconds(hours: float) -> float:
+    """An hours budget in logged seconds.
+
+    The log keeps milliseconds, so the budget does too: 0.0004 h is 1.4400000000000002 s in
+    floating point, and a step logged at 1.440 s must count as having spent it.
+    """
+    return round(hours * 3600.0, 3)
 
 
 def _g7(t) -> float:
