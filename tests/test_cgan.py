@@ -551,6 +551,8 @@ def test_compare_lists_every_method_with_budget_memory_speed_and_bands(data, tmp
         assert r["ms_per_cloud"] > 0
         assert sum(b["pairs"] for b in r["bands"].values()) == rep["pairs"]
         assert all("untrained" in b for b in r["bands"].values())
+        scored = [b["mmd"] for b in r["bands"].values() if b["mmd"] is not None]
+        assert r["mean"]["mmd"] == pytest.approx(np.mean(scored))
     # the same pairs for every method
     assert rep["rows"][0]["bands"].keys() == rep["rows"][1]["bands"].keys()
     md = markdown(rep)

@@ -91,7 +91,7 @@ def parse_models(specs) -> list[tuple[str, str]]:
 def compare(models, data_dir, n_pairs: int = 1000, seed: int = 0, memory_steps: int = 5,
             with_untrained: bool = True, progress: bool = False) -> dict:
     """``models``: (name, loaded model) pairs. Every model is scored on the same pairs."""
-    from .quick_eval import untrained_like
+    from .quick_eval import band_mean, untrained_like
     rows = []
     for name, model in models:
         if progress:
@@ -109,6 +109,10 @@ def compare(models, data_dir, n_pairs: int = 1000, seed: int = 0, memory_steps: 
                                  seed=seed)
             for b, v in row["bands"].items():
                 v["untrained"] = {k: fresh["bands"][b][k] for k in ("mmd", "jsd")}
+        row["mean"] = {k: band_mean(row["bands"], k) for k in ("mmd", "jsd")}
+        if with_untrained:
+            untrained = {b: v["untrained"] for b, v in row["bands"].items()}
+            row["mean"]["untrained"] = {k: band_mean(untrained, k) for k in ("mmd", "jsd")}
         if memory_steps and "train" in model.meta:
             if progress:
                 print(f"{name}: training memory", file=sys.stderr, flush=True)
@@ -124,11 +128,13 @@ def _f(v, d=3) -> str:
 
 def markdown(report: dict) -> str:
     bands = sorted(report["rows"][0]["bands"], key=band_order)
-    head = ["method", "steps", "epochs", "train h", "peak MB", "s/step", "ms/cloud"]
+    head = ["method", "steps", "epochs", "train h", "peak MB", "s/step", "ms/cloud",
+            "mean over bands"]
     lines = [f"# Comparison of methods on {report['pairs']} held-out pairs", "",
              f"Reproduce: `{report['command']}`", "",
              f"MMD / JSD ({report['bins']}^3 bins) to the standard cloud, per slant-range band; "
-             "in brackets the same network untrained. Peak MB: the resident memory of a fresh "
+             "in brackets the same network untrained. The mean over bands weighs every band "
+             "alike and skips bands without a score. Peak MB: the resident memory of a fresh "
              "process training the model's own configuration (CPU, dataset in memory).", "",
              "| " + " | ".join(head + bands) + " |", "|" + "---|" * (len(head) + len(bands))]
     for r in report["rows"]:
@@ -136,8 +142,7 @@ def markdown(report: dict) -> str:
         cells = [r["method"], str(b["steps"]), _f(b["epochs"], 1), _f(b["hours"], 2),
                  _f(mem.get("peak_rss_mb"), 0), _f(mem.get("seconds_per_step"), 2),
                  _f(r["ms_per_cloud"], 2)]
-        for name in bands:
-            v = r["bands"][name]
+        for v in [r["mean"]] + [r["bands"][name] for name in bands]:
             u = v.get("untrained")
             cells.append(f"{_f(v['mmd'])} / {_f(v['jsd'], 2)}" + (
                 f" ({_f(u['mmd'])} / {_f(u['jsd'], 2)})" if u else ""))
@@ -157,7 +162,9 @@ def plot(report: dict, path: Path) -> None:
         for row, metric in enumerate(("mmd", "jsd")):
             ax = axes[row, col]
             for r in report["rows"]:
-                ax.plot(x, [r["bands"][n][metric] or np.nan for n in names], "o-",
+                # None (no score) is a gap; a score of 0.0 is a point
+                ax.plot(x, [np.nan if r["bands"][n][metric] is None else r["bands"][n][metric]
+                            for n in names], "o-",
                         label=r["method"])
             ax.set_xticks(x, [n.split(" ", 1)[1] for n in names], rotation=20)
             ax.set_title(f"{kind}: {metric.upper()}"
