@@ -36,3 +36,20 @@ def test_family_beats_its_untrained_network(data, tmp_path, family, steps, extra
     trained, untrained = _means(evaluate(model, ds, 200)), _means(evaluate(fresh, ds, 200))
     assert trained[0] < untrained[0], (family, "MMD", trained, untrained)
     assert trained[1] < untrained[1], (family, "JSD", trained, untrained)
+
+
+def test_diffusion_sampling_stays_bounded_when_the_noise_prediction_is_wrong():
+    """A denoiser that overshoots (eps = 100 x) fed back into the raw-eps update and overflowed
+    to NaN; the update from the clipped x0 keeps every step finite, the result in the clip."""
+    import torch
+
+    from training.baselines.nets import Schedule
+
+    class Overshooting(torch.nn.Module):
+        def forward(self, x, t, nu):
+            return 100.0 * x
+
+    gen = torch.Generator().manual_seed(0)
+    for steps in (None, 20):
+        x = Schedule(200).sample(Overshooting(), torch.zeros(4, 8), 32, gen, steps)
+        assert torch.isfinite(x).all() and float(x.abs().max()) <= 1.5

@@ -109,6 +109,10 @@ class BaselineModel:
         rng = np.random.default_rng(seed)
         parts = []
         for i, (pts, n) in enumerate(zip(sets, counts, strict=True)):
+            if not np.isfinite(pts).all():  # never drop such points silently (they have no cell)
+                raise RuntimeError(f"the {self.cfg.family} network produced "
+                                   f"{int((~np.isfinite(pts)).any(-1).sum())} non-finite points "
+                                   f"for condition {table[i].tolist()} (sample {i})")
             xyz = from_canonical(pts, table[i, 1], table[i, 2], lengths[i])
             cells = self._snap(xyz, table[i, 2], i)
             if len(cells[0]) > n:  # the expected count for the condition, after snapping

@@ -148,6 +148,10 @@ class Schedule:
             if t_prev < 0:
                 x = x0
                 break
+            # The noise consistent with the clipped x0: with the network's own eps a wrong
+            # prediction feeds back (x grows, eps with it) and a trained model sent 2 of 1,000
+            # held-out clouds to inf and NaN; this way x_prev weighs x by less than 1.
+            eps = (x - ab.sqrt() * x0) / (1 - ab).sqrt()
             var = (1 - ab_prev) / (1 - ab) * (1 - ab / ab_prev)
             mean = ab_prev.sqrt() * x0 + (1 - ab_prev - var).clamp(min=0).sqrt() * eps
             x = mean + var.sqrt() * torch.randn(x.shape, generator=generator)
