@@ -13,6 +13,7 @@ import pytest
 import torch
 from torch import nn
 
+from apcg_core.errors import InputError
 from apcg_core.generation import APCGModel
 from apcg_core.nn import Discriminator, Generator, NetConfig, SelfAttention
 from training.data import DepthDataset
@@ -386,8 +387,20 @@ def test_figures_13_and_14_from_a_run(data, tmp_path):
                  n_pairs=20, tau=-0.5)  # several runs scored on the same pairs, at one tau
     assert both["runs"]["a"] == both["runs"]["b"] and both["tau"] == -0.5
     assert "--run a=" in both["command"] and "--tau -0.5" in both["command"]
+    last = fig14(tmp_path / "run", data, tmp_path / "h14.png", n_pairs=20, max_checkpoints=1)
+    assert last["runs"]["run"] == rows[1:]  # at most one: the last kept checkpoint
+    assert "--max-checkpoints 1" in last["command"]
     for name in ("f13.png", "f13.json", "f14.png", "f14.json"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_evenly_spaced_checkpoints_keep_the_last():
+    from training.figures import spaced
+    assert spaced(27, 10) == [0, 3, 6, 9, 12, 14, 17, 20, 23, 26]
+    assert spaced(27, 1) == [26] and spaced(3, 2) == [0, 2] and spaced(4, None) == [0, 1, 2, 3]
+    assert spaced(2, 5) == [0, 1]
+    with pytest.raises(InputError, match="max_checkpoints must be >= 1, got 0"):
+        spaced(5, 0)
 
 
 def test_a_model_trained_without_norm_generates_without_denorm(data, tmp_path):

@@ -53,3 +53,25 @@ def test_diffusion_sampling_stays_bounded_when_the_noise_prediction_is_wrong():
     for steps in (None, 20):
         x = Schedule(200).sample(Overshooting(), torch.zeros(4, 8), 32, gen, steps)
         assert torch.isfinite(x).all() and float(x.abs().max()) <= 1.5
+
+
+def test_generation_refuses_non_finite_points_rather_than_dropping_them(data, tmp_path):
+    """Points that are NaN fall in no lidar cell: kept silent, they would shrink (or empty) the
+    cloud; generation must stop and name the condition instead."""
+    import numpy as np
+    import torch
+
+    cfg = config_from("tiny", steps=1, seed=1, family="point-gan", checkpoint_every=10**6,
+                      log_every=100, n_points=32)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    model = load_any(export_model(tmp_path / "run", tmp_path / "m"))
+    ds = DepthDataset(data, "test")
+    table = ds.conditions[:2]
+    assert len(model.generate(table).cloud.xyz) > 0  # the healthy network generates
+    with torch.no_grad():
+        for p in model.net.parameters():
+            p.fill_(float("nan"))
+    with pytest.raises(RuntimeError, match="32 non-finite points") as err:
+        model.generate(table)
+    assert str(np.asarray(table[0], float).tolist()) in str(err.value)
+    assert "(sample 0)" in str(err.value)

@@ -204,6 +204,9 @@ def register_figure(sub) -> None:
     p.add_argument("--model", help="model directory (18, 19; default: the default model)")
     p.add_argument("--data", help="dataset directory (figure 14)")
     p.add_argument("--pairs", type=int, default=400, help="test pairs per checkpoint (14)")
+    p.add_argument("--max-checkpoints", type=int, metavar="K",
+                   help="figure 14: score at most K kept checkpoints per run, evenly spaced, "
+                        "the last always (default: all)")
     p.add_argument("-o", "--output", required=True, help="PNG path (the data goes beside it)")
     p.set_defaults(func=_run_figure)
 
@@ -228,7 +231,8 @@ def _run_figure(args) -> int:
                 else (Path(r).name, r) for r in args.run]
         if len({n for n, _ in runs}) < len(runs):
             raise InputError(f"figure 14: run names must differ, got {[n for n, _ in runs]}")
-        fig14(runs, args.data, args.output, n_pairs=args.pairs, tau=args.tau)
+        fig14(runs, args.data, args.output, n_pairs=args.pairs, tau=args.tau,
+              max_checkpoints=args.max_checkpoints)
     else:
         from .baselines.model import load_any
         model = load_any(args.model, runtime="onnx")

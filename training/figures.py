@@ -61,13 +61,15 @@ def fig13(run, out) -> dict:
     return data
 
 
-def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | None = None
-          ) -> dict:
+def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | None = None,
+          max_checkpoints: int | None = None) -> dict:
     """Mean MMD and JSD (all bands) of each kept checkpoint against training time, for one run
     or several ({name: run} or [(name, run)]; any model family), on the same held-out pairs.
 
     ``tau`` is the Im2PC threshold the cGAN checkpoints are exported with (default: the export
-    default); score a shipped model's run at the tau chosen for it."""
+    default); score a shipped model's run at the tau chosen for it. ``max_checkpoints`` scores at
+    most that many per run, evenly spaced and always the last (a slow sampler with many kept
+    checkpoints otherwise takes most of the time)."""
     from apcg_core.depth import TAU_DEFAULT
 
     from .baselines.model import load_any
@@ -84,6 +86,7 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
         snaps = sorted((Path(run) / "checkpoints").glob("step-*.pt"))
         if not snaps:
             raise InputError(f"{run} has no kept checkpoints (train with --keep-every)")
+        snaps = [snaps[i] for i in spaced(len(snaps), max_checkpoints)]
         log = read_log(run)
         rows = table[name] = []
         for snap in snaps:
@@ -96,9 +99,11 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
             rows.append({"step": step, "hours": hours, "mmd": band_mean(bands, "mmd"),
                          "jsd": band_mean(bands, "jsd")})
             print(json.dumps({"run": name, **rows[-1]}), file=sys.stderr, flush=True)
+    limit = "" if max_checkpoints is None else f" --max-checkpoints {max_checkpoints}"
     data = {"runs": table, "pairs": n_pairs, "seed": seed, "tau": tau,
+            "max_checkpoints": max_checkpoints,
             "command": "apcg figure 14 " + " ".join(f"--run {n}={_rel(r)}" for n, r in runs)
-            + f" --data {_rel(data_dir)} --pairs {n_pairs} --tau {tau:g} -o {_rel(out)}"}
+            + f" --data {_rel(data_dir)} --pairs {n_pairs} --tau {tau:g}{limit} -o {_rel(out)}"}
     series = []
     for name, rows in table.items():
         h = [r["hours"] for r in rows]
@@ -110,6 +115,15 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
     _lines(series, "training time (h, this machine)", "",
            f"MMD and JSD against training time, {title} (paper Fig. 14)", out, data)
     return data
+
+
+def spaced(n: int, k: int | None) -> list[int]:
+    """Indices of at most ``k`` of ``n`` items, evenly spaced, the last always among them."""
+    if k is not None and k < 1:
+        raise InputError(f"max_checkpoints must be >= 1, got {k}")
+    if k is None or k >= n:
+        return list(range(n))
+    return sorted({int(i) for i in np.round(np.linspace(n - 1, 0, k))})
 
 
 def _nan(v):
