@@ -133,8 +133,9 @@ def main() -> int:
         methods[f"embree {k}x{k}"] = simulated("embree", ds, idx, supersample=k)
     for m in models:
         net = m.meta["net"]
-        label = (f"APCG {Path(m.directory).name} (width {net['width']})" if "width" in net
-                 else f"{net['family']} {Path(m.directory).name}")
+        name = Path(m.directory).name
+        label = (f"APCG {name} (width {net['width']})" if "width" in net
+                 else net["family"] if name == net["family"] else f"{net['family']} {name}")
         methods[label] = generated(m, ds, idx, args.seed)
     methods["nearest sample"] = nearest_sample(DepthDataset(args.data, "train"), ds, idx)
     report = {"command": "python bench/speed_error.py " + " ".join(sys.argv[1:]),
@@ -168,18 +169,22 @@ def plot(report: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True)
+    colours = plt.get_cmap("tab20").colors  # ten default colours repeat beyond ten methods
+    markers = "DosP^vX*<>h"
     for ax, metric in zip(axes, ("mmd", "jsd"), strict=True):
-        for name, m in report["methods"].items():
+        for i, (name, m) in enumerate(report["methods"].items()):
             vals = [v[metric] for v in m["bands"].values() if v[metric] is not None]
-            ax.scatter([m["ms_per_cloud"]] * len(vals), vals, s=12)
-            ax.scatter([m["ms_per_cloud"]], [np.mean(vals)], marker="D", s=50, label=name)
+            c = colours[2 * i % 20 + (2 * i // 20) % 2]
+            ax.scatter([m["ms_per_cloud"]] * len(vals), vals, s=10, color=c, alpha=0.5)
+            ax.scatter([m["ms_per_cloud"]], [np.mean(vals)], marker=markers[i % len(markers)],
+                       s=55, color=c, edgecolor="black", linewidth=0.5, label=name)
         ax.set_xscale("log")
         ax.set_xlabel("ms per cloud (this machine, one process)")
         ax.set_ylabel(metric.upper() + (f" ({report['jsd_bins']}^3 bins)"
                                         if metric == "jsd" else "") + " to the exact reference")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
-    fig.suptitle("Speed against error, per slant-range band (dots) and mean (diamonds)")
+    fig.suptitle("Speed against error, per slant-range band (dots) and mean (large marks)")
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
