@@ -36,7 +36,55 @@ class GenerationResult:
     table: np.ndarray  # (N, 6) the condition of each image (type column = model type code)
 
 
-class APCGModel:
+class ModelTypes:
+    """The lookups every generative model shares over its ``types`` (from model.json)."""
+
+    types: list[dict]
+
+    def type_code(self, key) -> int:
+        """The model's code of a type given by catalog name or catalog index."""
+        for t in self.types:
+            if (isinstance(key, (int, np.integer)) and t["catalog_index"] == int(key)) or (
+                    isinstance(key, str) and t["name"].lower() == key.lower()):
+                return int(t["code"])
+        raise InputError(f"type {key!r} is not one this model was trained on; it knows: "
+                         f"{', '.join(t['name'] for t in self.types[:12])}"
+                         f"{' ...' if len(self.types) > 12 else ''}")
+
+    def depth_length(self, codes) -> np.ndarray:
+        lengths = np.array([t["depth_length_m"] for t in self.types])
+        return lengths[np.asarray(codes, dtype=np.int64)]
+
+    def condition_row(self, type_key, range_m, elevation, pitch, yaw, roll) -> np.ndarray:
+        cond = Condition(self.type_code(type_key), range_m, elevation, pitch, yaw, roll)
+        return cond.as_array()
+
+
+def load_model(directory=None, runtime: str = "auto"):
+    """The model in ``directory`` (default: the shipped one): the cGAN, or a comparison family
+    (model.json's ``family``) whose loader an installed package registers under the
+    ``apcg.model_families`` entry points (the training package registers the three of its own;
+    this core package never imports it)."""
+    d = Path(directory) if directory else DEFAULT_MODEL_DIR
+    meta = d / "model.json"
+    family = "cgan"
+    if meta.exists():
+        try:
+            family = json.loads(meta.read_text()).get("family", "cgan")
+        except (json.JSONDecodeError, AttributeError) as exc:
+            raise InputError(f"{meta} is not a readable model.json: {exc}") from exc
+    if family == "cgan":
+        return APCGModel(d, runtime=runtime)
+    from importlib.metadata import entry_points
+    loaders = {ep.name: ep for ep in entry_points(group="apcg.model_families")}
+    if family not in loaders:
+        raise InputError(f"{d} is a {family!r} model; loading it needs a package that registers "
+                         f"that family (pip install 'apcg[train]'); registered: "
+                         f"{', '.join(sorted(loaders)) or 'none'}")
+    return loaders[family].load()(d)
+
+
+class APCGModel(ModelTypes):
     def __init__(self, directory=None, runtime: str = "auto") -> None:
         self.directory = Path(directory) if directory else DEFAULT_MODEL_DIR
         meta_path = self.directory / "model.json"
@@ -116,20 +164,6 @@ class APCGModel:
         return np.concatenate(out) if out else np.zeros((0, h, w), np.float32)
 
     # --- conditions ------------------------------------------------------------------------------
-    def type_code(self, key) -> int:
-        """The model's code of a type given by catalog name or catalog index."""
-        for t in self.types:
-            if (isinstance(key, (int, np.integer)) and t["catalog_index"] == int(key)) or (
-                    isinstance(key, str) and t["name"].lower() == key.lower()):
-                return int(t["code"])
-        raise InputError(f"type {key!r} is not one this model was trained on; it knows: "
-                         f"{', '.join(t['name'] for t in self.types[:12])}"
-                         f"{' ...' if len(self.types) > 12 else ''}")
-
-    def depth_length(self, codes) -> np.ndarray:
-        lengths = np.array([t["depth_length_m"] for t in self.types])
-        return lengths[np.asarray(codes, dtype=np.int64)]
-
     def generate(self, table, count: int = 1, seed: int = 0) -> GenerationResult:
         """Point clouds for conditions ``table`` (N, 6) [type code, r0 m, beta0, pitch, yaw,
         roll rad], ``count`` samples each (rows repeated), noise from ``seed``."""
@@ -146,10 +180,6 @@ class APCGModel:
         cloud = im2pc(d, table[:, 1], table[:, 2], self.depth_length(codes), self.lidar,
                       tau=self.tau)
         return GenerationResult(cloud, d, table)
-
-    def condition_row(self, type_key, range_m, elevation, pitch, yaw, roll) -> np.ndarray:
-        cond = Condition(self.type_code(type_key), range_m, elevation, pitch, yaw, roll)
-        return cond.as_array()
 
 
 def onnx_weights(path) -> dict:
@@ -169,7 +199,7 @@ def onnx_weights(path) -> dict:
     return w
 
 
-def conditions_from_csv(path, model: APCGModel) -> np.ndarray:
+def conditions_from_csv(path, model: ModelTypes) -> np.ndarray:
     """Rows ``type,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg`` (header required)."""
     import csv
 
@@ -193,4 +223,5 @@ def conditions_from_csv(path, model: APCGModel) -> np.ndarray:
     return np.array(rows)
 
 
-__all__ = ["APCGModel", "GenerationResult", "conditions_from_csv", "default_model_dir"]
+__all__ = ["APCGModel", "GenerationResult", "ModelTypes", "conditions_from_csv",
+           "default_model_dir", "load_model"]

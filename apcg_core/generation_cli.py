@@ -11,7 +11,9 @@ def register_generate(sub) -> None:
     p = sub.add_parser("generate", help="generate point clouds with a trained APCG model",
                        description="nu + noise -> generator -> DeNorm -> Im2PC. Without --model "
                                    "the default model shipped with the package is used.")
-    p.add_argument("--model", help="model directory (default: the shipped default model)")
+    p.add_argument("--model", help="model directory (default: the shipped default model); a "
+                                    "comparison family's (point-gan, voxel-gan, diffusion) "
+                                    "needs the training extra")
     p.add_argument("--type", help="catalog type name or index (with the pose options)")
     p.add_argument("--conditions", help="CSV with type,range_m,elevation_deg,pitch_deg,"
                                         "yaw_deg,roll_deg (instead of --type and the pose)")
@@ -28,12 +30,15 @@ def register_generate(sub) -> None:
 
 def _run_generate(args) -> int:
     from .errors import InputError
-    from .generation import APCGModel, conditions_from_csv
+    from .generation import APCGModel, conditions_from_csv, load_model
     from .io import write_cloud
     from .lidar import DEG
 
-    model = APCGModel(args.model, runtime=args.runtime)
+    model = load_model(args.model, runtime=args.runtime)
     if args.tau is not None:
+        if not isinstance(model, APCGModel):
+            raise InputError(f"--tau is the cGAN's Im2PC threshold; {args.model} is a "
+                             f"{model.meta.get('family')} model, which has none")
         model.tau = float(args.tau)
     if args.conditions:
         if args.type:

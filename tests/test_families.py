@@ -75,3 +75,71 @@ def test_generation_refuses_non_finite_points_rather_than_dropping_them(data, tm
         model.generate(table)
     assert str(np.asarray(table[0], float).tolist()) in str(err.value)
     assert "(sample 0)" in str(err.value)
+
+
+def test_diffusion_sampling_steps_are_chosen_at_export_and_checked(data, tmp_path):
+    import json
+
+    from apcg_core.errors import InputError
+
+    cfg = config_from("tiny", steps=2, seed=1, family="diffusion", checkpoint_every=10**6,
+                      log_every=100, n_points=32, diffusion_steps=50)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    full = load_any(export_model(tmp_path / "run", tmp_path / "full"))
+    fast = load_any(export_model(tmp_path / "run", tmp_path / "fast", sampling_steps=5))
+    assert json.loads((tmp_path / "full" / "model.json").read_text())["sampling_steps"] == 50
+    assert json.loads((tmp_path / "fast" / "model.json").read_text())["sampling_steps"] == 5
+    assert (full.sampling_steps, fast.sampling_steps) == (50, 5)
+    table = DepthDataset(data, "test").conditions[:3]
+    a, b = fast.generate(table, seed=3).cloud, fast.generate(table, seed=3).cloud
+    assert len(a.xyz) > 0 and (a.xyz == b.xyz).all()  # seeded: the same clouds again
+    # the 5-step sampler is a different sampler: its clouds differ from the 50-step ones
+    c = full.generate(table, seed=3).cloud
+    assert len(a.xyz) != len(c.xyz) or not (a.xyz == c.xyz).all()
+    for bad in (0, 51, 2.5):
+        with pytest.raises(InputError, match=r"sampling_steps must be an integer in 1\.\.50"):
+            export_model(tmp_path / "run", tmp_path / "bad", sampling_steps=bad)
+    pg = config_from("tiny", steps=1, seed=1, family="point-gan", checkpoint_every=10**6,
+                     log_every=100, n_points=32)
+    Trainer(data, tmp_path / "pg", pg, progress=False).fit()
+    with pytest.raises(InputError, match="diffusion family only"):
+        export_model(tmp_path / "pg", tmp_path / "pgm", sampling_steps=5)
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "pgm").exists()
+
+
+def test_apcg_generate_runs_a_comparison_family_model(data, tmp_path, capsys):
+    """`apcg generate` finds a family's loader through the `apcg.model_families` entry points
+    (the core package never imports training), so a family model is used like the cGAN."""
+    import json
+    import math
+
+    from apcg_core.cli import main
+    from apcg_core.errors import InputError
+    from apcg_core.generation import load_model
+    from apcg_core.io import read_cloud
+
+    cfg = config_from("tiny", steps=1, seed=1, family="point-gan", checkpoint_every=10**6,
+                      log_every=100, n_points=32)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    mdir = export_model(tmp_path / "run", tmp_path / "m")
+    assert type(load_model(mdir)).__name__ == "BaselineModel"
+    code, r0, beta0, pitch, yaw, roll = DepthDataset(data, "test").conditions[0]
+    t = next(t for t in load_model(mdir).types if t["code"] == int(code))
+    pose = ["--type", str(t["catalog_index"]), "--range-m", str(r0), "--count", "2"]
+    for name, v in zip(("elevation", "pitch", "yaw", "roll"), (beta0, pitch, yaw, roll),
+                       strict=True):
+        pose += [f"--{name}-deg", str(math.degrees(v))]
+    out = tmp_path / "c.npz"
+    assert main(["generate", "--model", str(mdir), *pose, "-o", str(out)]) == 0
+    cloud, meta = read_cloud(out)
+    assert len(cloud) > 0 and set(cloud.sample.tolist()) == {0, 1}
+    assert meta["runtime"] == "torch" and meta["tau"] is None
+    capsys.readouterr()
+    assert main(["generate", "--model", str(mdir), *pose, "--tau", "-0.5", "-o",
+                 str(tmp_path / "t.npz")]) == 2
+    assert "--tau is the cGAN's Im2PC threshold" in capsys.readouterr().err
+    meta_path = mdir / "model.json"
+    meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "family": "gizmo"}))
+    with pytest.raises(InputError, match="a 'gizmo' model.*registered: diffusion, point-gan, "
+                                         "voxel-gan"):
+        load_model(mdir)

@@ -116,6 +116,9 @@ def register_export(sub) -> None:
     p.add_argument("--checkpoint", help="a kept checkpoint of the run (default: the latest)")
     p.add_argument("--raw", action="store_true",
                    help="export the generator's raw weights, not their moving average")
+    p.add_argument("--sampling-steps", type=int, metavar="N",
+                   help="diffusion only: sample on N evenly spaced steps of the schedule "
+                        "(default: all of them; fewer is faster and coarser)")
     p.set_defaults(func=_run_export)
 
 
@@ -124,7 +127,8 @@ def _run_export(args) -> int:
 
     from .export import export_model
     out = export_model(args.run, args.output, tau=args.tau if args.tau is not None
-                       else TAU_DEFAULT, checkpoint=args.checkpoint, raw=args.raw)
+                       else TAU_DEFAULT, checkpoint=args.checkpoint, raw=args.raw,
+                       sampling_steps=args.sampling_steps)
     print(json.dumps({"model": str(out)}))
     return 0
 

@@ -33,10 +33,11 @@ def export_onnx(g: Generator, path: Path) -> None:
 
 
 def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
-                 checkpoint=None, raw: bool = False) -> Path:
+                 checkpoint=None, raw: bool = False, sampling_steps: int | None = None) -> Path:
     """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest.
     The generator's moving average is exported when the run kept one, the raw weights when
-    ``raw`` or when it did not."""
+    ``raw`` or when it did not. ``sampling_steps`` (diffusion only) records how many of the
+    schedule's steps generation takes by default (fewer: faster, coarser)."""
     run = Path(run_dir)
     ck = Path(checkpoint) if checkpoint else run / "checkpoint.pt"
     if not ck.exists():
@@ -44,9 +45,15 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
     st = torch.load(ck, map_location="cpu", weights_only=False)
     cfg = json.loads((run / "train_config.json").read_text())
     head = read_header(data_dir or cfg["data"])
+    family = st["train"].get("family", "cgan")
+    if sampling_steps is not None:  # checked before anything is written
+        if family != "diffusion":
+            raise InputError(f"sampling_steps applies to the diffusion family only; {ck} is "
+                             f"a {family} run")
+        from .baselines.nets import check_sampling_steps
+        check_sampling_steps(sampling_steps, st["train"]["diffusion_steps"])
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    family = st["train"].get("family", "cgan")
     averaged = st.get("G_ema") is not None and not raw
     if averaged:
         st["G"] = st["G_ema"]
@@ -67,6 +74,8 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
     if family == "cgan":
         (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
     else:  # a comparison family: torch weights and the expected-count table
+        if family == "diffusion":
+            meta["sampling_steps"] = sampling_steps or st["train"]["diffusion_steps"]
         from .baselines.data import CountLookup
         from .baselines.model import export_baseline
         from .data import DepthDataset

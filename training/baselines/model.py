@@ -15,11 +15,12 @@ from apcg_core.cloud import PointCloud
 from apcg_core.condition import ConditionSpace
 from apcg_core.errors import InputError
 from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian
-from apcg_core.generation import NOISE_DIM, APCGModel, GenerationResult
+from apcg_core.generation import NOISE_DIM, APCGModel, GenerationResult, ModelTypes
 from apcg_core.lidar import LidarParams
 
 from .data import CountLookup, from_canonical, voxel_centres
 from .family import FamilyConfig
+from .nets import check_sampling_steps
 
 VOXEL_SURPLUS = 4
 
@@ -54,7 +55,7 @@ def untrained_baseline(model: BaselineModel, out: Path, seed: int = 0) -> Baseli
     return BaselineModel(out, model.sampling_steps)
 
 
-class BaselineModel:
+class BaselineModel(ModelTypes):
     runtime = "torch"
     norm = True
     tau = None
@@ -72,10 +73,11 @@ class BaselineModel:
         self.net.eval()
         with np.load(self.directory / "counts.npz") as z:
             self.counts = CountLookup(z["codes"], z["nu"], z["counts"], int(z["k"]))
+        if sampling_steps is None:  # the export's choice; None: every step of the schedule
+            sampling_steps = self.meta.get("sampling_steps")
+        if sampling_steps is not None:
+            check_sampling_steps(sampling_steps, self.cfg.diffusion_steps)
         self.sampling_steps = sampling_steps
-
-    def depth_length(self, codes) -> np.ndarray:
-        return np.array([t["depth_length_m"] for t in self.types])[np.asarray(codes, int)]
 
     @torch.no_grad()
     def canonical(self, nu: np.ndarray, seed: int, counts) -> list[np.ndarray]:

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
+from apcg_core.errors import InputError
 from apcg_core.nn.models import COND_DIM, NOISE_DIM
 
 
@@ -118,6 +120,15 @@ class Denoiser(nn.Module):
                                    ctx[:, None].expand(b, n, ctx.shape[1])], 2))
 
 
+def check_sampling_steps(steps, schedule_steps: int) -> int:
+    """``steps`` when it is a whole number in 1..``schedule_steps``, else a clear error."""
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) \
+            or not 1 <= steps <= schedule_steps:
+        raise InputError(f"sampling_steps must be an integer in 1..{schedule_steps} (the "
+                         f"model's diffusion steps), got {steps!r}")
+    return int(steps)
+
+
 class Schedule:
     """Linear-beta DDPM schedule over T steps."""
 
@@ -136,7 +147,7 @@ class Schedule:
                sampling_steps: int | None = None):
         """Ancestral sampling, on ``sampling_steps`` evenly spaced steps (DDIM-like striding,
         eta = 1) when fewer than T are asked for."""
-        steps = sampling_steps or self.T
+        steps = self.T if sampling_steps is None else check_sampling_steps(sampling_steps, self.T)
         ts = torch.linspace(self.T - 1, 0, steps).round().long()
         x = torch.randn(len(nu), n_points, 3, generator=generator)
         for i, t in enumerate(ts):
