@@ -15,7 +15,7 @@ from apcg_core.cloud import PointCloud
 from apcg_core.condition import ConditionSpace
 from apcg_core.errors import InputError
 from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian
-from apcg_core.generation import NOISE_DIM, APCGModel, GenerationResult, ModelTypes
+from apcg_core.generation import NOISE_DIM, GenerationResult, ModelTypes, load_model
 from apcg_core.lidar import LidarParams
 
 from .data import CountLookup, from_canonical, voxel_centres
@@ -26,12 +26,10 @@ VOXEL_SURPLUS = 4
 
 
 def load_any(directory=None, runtime: str = "onnx"):
-    """The model in ``directory``: the cGAN (APCGModel) or a comparison family."""
-    if directory is not None:
-        meta = Path(directory) / "model.json"
-        if meta.exists() and json.loads(meta.read_text()).get("family", "cgan") != "cgan":
-            return BaselineModel(directory)
-    return APCGModel(directory, runtime=runtime)
+    """The model in ``directory``: the cGAN (APCGModel) or a comparison family, as
+    ``apcg_core.generation.load_model`` finds it (here the cGAN runs on onnxruntime unless
+    told otherwise)."""
+    return load_model(directory, runtime=runtime)
 
 
 def export_baseline(st: dict, head: dict, counts: CountLookup, out: Path, meta: dict) -> None:
