@@ -570,6 +570,12 @@ def test_compare_lists_every_method_with_budget_memory_speed_and_bands(data, tmp
     assert rep["rows"][0]["bands"].keys() == rep["rows"][1]["bands"].keys()
     md = markdown(rep)
     assert "| cgan | 3 |" in md and "| point-gan | 2 |" in md
+    points = md.split("Points per cloud")[1]  # the counts the metrics do not see, per band
+    for r in rep["rows"]:
+        line = next(ln for ln in points.splitlines() if ln.startswith(f"| {r['method']} |"))
+        assert line.count(" / ") == len(r["bands"])
+        for b in r["bands"].values():
+            assert f"| {b['points_generated']:.0f} / {b['points_standard']:.0f} " in line + " "
     out = write(rep, tmp_path / "report")
     assert (out / "compare.png").stat().st_size > 0
     with pytest.raises(Exception, match="NAME=DIR"):

@@ -143,3 +143,29 @@ def test_apcg_generate_runs_a_comparison_family_model(data, tmp_path, capsys):
     with pytest.raises(InputError, match="a 'gizmo' model.*registered: diffusion, point-gan, "
                                          "voxel-gan"):
         load_model(mdir)
+
+
+def test_apcg_train_sizes_a_family_from_the_command_line(data, tmp_path, capsys):
+    import json
+
+    from apcg_core.cli import main
+
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(data), "-o", str(run), "--preset", "tiny", "--model",
+                 "point-gan", "--n-points", "48", "--steps", "1", "--no-progress"]) == 0
+    train = json.loads((run / "train_config.json").read_text())["train"]
+    assert train["family"] == "point-gan" and train["n_points"] == 48
+    model = load_any(export_model(run, tmp_path / "m"))
+    assert model.cfg.n_points == 48
+    assert model.canonical(model.space.encode(DepthDataset(data, "test").conditions[:2]), 0,
+                           [10, 10])[0].shape == (48, 3)
+    for argv, message in (
+            (["--model", "voxel-gan", "--voxel-res", "24"], "voxel_res must be 4 * 2^k"),
+            (["--model", "diffusion", "--diffusion-steps", "0"], "diffusion_steps must be an "
+                                                                   "integer >= 1, got 0"),
+            (["--n-points", "64"], "--n-points size a comparison family")):
+        capsys.readouterr()
+        assert main(["train", "--data", str(data), "-o", str(tmp_path / "bad"), "--preset",
+                     "tiny", "--steps", "1", "--no-progress", *argv]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "bad").exists()  # refused before anything is written

@@ -32,6 +32,13 @@ def register_train(sub) -> None:
     p.add_argument("--model", dest="family", default="cgan",
                    choices=["cgan", "point-gan", "voxel-gan", "diffusion"],
                    help="what to train: the paper's cGAN (default) or a comparison family")
+    p.add_argument("--n-points", type=int, metavar="N",
+                   help="point-gan / diffusion: points per generated set (default 256; the "
+                        "lidar's nearest clouds have more, see the README)")
+    p.add_argument("--voxel-res", type=int, metavar="R",
+                   help="voxel-gan: occupancy grid resolution, 4 * 2^k (default 32)")
+    p.add_argument("--diffusion-steps", type=int, metavar="T",
+                   help="diffusion: steps of the DDPM schedule (default 200)")
     p.add_argument("--no-norm", action="store_true",
                    help="train on depth images without Norm (the paper's 'APCG w/o Norm.')")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
@@ -57,7 +64,8 @@ def _run_train(args) -> int:
             "n_critic": args.n_critic, "batch_size": args.batch_size,
             "checkpoint_every": args.checkpoint_every, "threads": args.threads,
             "keep_every": args.keep_every, "diverge_gp": args.diverge_gp, "ema": args.ema,
-            "hours": args.hours}
+            "hours": args.hours, "n_points": args.n_points, "voxel_res": args.voxel_res,
+            "diffusion_steps": args.diffusion_steps}
     if args.no_conv:
         over["conv"] = False
     if args.no_attention:
@@ -68,6 +76,12 @@ def _run_train(args) -> int:
         over["norm"] = False
     if args.family != "cgan":
         over["family"] = args.family
+    given = [f"--{k.replace('_', '-')}" for k in ("n_points", "voxel_res", "diffusion_steps")
+             if over[k] is not None]
+    if given and args.family == "cgan":
+        from apcg_core.errors import InputError
+        raise InputError(f"{', '.join(given)} size a comparison family; add --model "
+                         "point-gan, voxel-gan or diffusion")
     if args.resume:
         from pathlib import Path
 

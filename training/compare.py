@@ -147,6 +147,15 @@ def markdown(report: dict) -> str:
             cells.append(f"{_f(v['mmd'])} / {_f(v['jsd'], 2)}" + (
                 f" ({_f(u['mmd'])} / {_f(u['jsd'], 2)})" if u else ""))
         lines.append("| " + " | ".join(cells) + " |")
+    # MMD and JSD compare normalised distributions: a cloud with a tenth of the points the
+    # lidar records can score well. The counts say what the metrics do not.
+    lines += ["", "Points per cloud, generated / standard (means per band; MMD and JSD compare "
+              "distributions and do not see a cloud that is too sparse or too dense):", "",
+              "| " + " | ".join(["method"] + bands) + " |", "|" + "---|" * (1 + len(bands))]
+    for r in report["rows"]:
+        cells = [r["method"]] + [f"{_f(r['bands'][n]['points_generated'], 0)} / "
+                                 f"{_f(r['bands'][n]['points_standard'], 0)}" for n in bands]
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -24,6 +24,13 @@ class FamilyConfig:
         if self.family not in FAMILIES[1:]:
             raise InputError(f"unknown model family {self.family!r}; accepted: "
                              f"{', '.join(FAMILIES)}")
+        for name, low in (("n_points", 1), ("diffusion_steps", 1), ("voxel_res", 8)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise InputError(f"{name} must be an integer >= {low}, got {v!r}")
+        if self.voxel_res & (self.voxel_res - 1):  # 4^3 features doubled k times
+            raise InputError(f"voxel_res must be 4 * 2^k (8, 16, 32, 64 ...), got "
+                             f"{self.voxel_res}")
 
     @cached_property
     def schedule(self) -> Schedule:
