@@ -24,6 +24,18 @@ def check_finite(name: str, value: float) -> float:
     return v
 
 
+def check_int(name: str, value, lo: int, hi: int | None = None, hint: str = "") -> int:
+    """Return ``value`` as an int if it is a whole number (not a bool) in ``lo``..``hi``
+    (no upper bound when ``hi`` is None), else raise naming ``name`` and what is accepted."""
+    from numbers import Integral
+    ok = isinstance(value, Integral) and not isinstance(value, bool) and value >= lo and (
+        hi is None or value <= hi)
+    if not ok:
+        accepted = f">= {lo}" if hi is None else f"in {lo}..{hi}"
+        raise InputError(f"{name} must be an integer {accepted}{hint}, got {value!r}")
+    return int(value)
+
+
 def check_range(name: str, value: float, lo: float, hi: float, unit: str = "",
                 scale: float = 1.0, open_ends: bool = False) -> float:
     """Return ``value`` if ``lo <= value <= hi`` (strict when ``open_ends``), else raise.

@@ -17,7 +17,7 @@ import numpy as np
 from .cloud import PointCloud
 from .condition import Condition, ConditionSpace, scale_ratio
 from .depth import TAU_DEFAULT, denorm, im2pc
-from .errors import InputError
+from .errors import InputError, check_int
 from .lidar import LidarParams
 
 DEFAULT_MODEL_DIR = Path(__file__).with_name("models") / "default"
@@ -40,6 +40,7 @@ class ModelTypes:
     """The lookups every generative model shares over its ``types`` (from model.json)."""
 
     types: list[dict]
+    space: ConditionSpace
 
     def type_code(self, key) -> int:
         """The model's code of a type given by catalog name or catalog index."""
@@ -58,6 +59,11 @@ class ModelTypes:
     def condition_row(self, type_key, range_m, elevation, pitch, yaw, roll) -> np.ndarray:
         cond = Condition(self.type_code(type_key), range_m, elevation, pitch, yaw, roll)
         return cond.as_array()
+
+    def repeated_conditions(self, table, count) -> np.ndarray:
+        """``table`` checked against the model's condition space, each row ``count`` times."""
+        table = self.space.check(table)
+        return np.repeat(table, check_int("count", count, 1), axis=0)
 
 
 def load_model(directory=None, runtime: str = "auto"):
@@ -167,10 +173,7 @@ class APCGModel(ModelTypes):
     def generate(self, table, count: int = 1, seed: int = 0) -> GenerationResult:
         """Point clouds for conditions ``table`` (N, 6) [type code, r0 m, beta0, pitch, yaw,
         roll rad], ``count`` samples each (rows repeated), noise from ``seed``."""
-        table = self.space.check(table)
-        if not isinstance(count, (int, np.integer)) or count < 1:
-            raise InputError(f"count must be an integer >= 1, got {count!r}")
-        table = np.repeat(table, count, axis=0)
+        table = self.repeated_conditions(table, count)
         nu = self.space.encode(table)
         noise = np.random.default_rng(seed).standard_normal((len(table), NOISE_DIM))
         img_n = self.images_from(noise, nu)

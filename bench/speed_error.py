@@ -174,6 +174,7 @@ def plot(report: dict, path: Path) -> None:
     for ax, metric in zip(axes, ("mmd", "jsd"), strict=True):
         for i, (name, m) in enumerate(report["methods"].items()):
             vals = [v[metric] for v in m["bands"].values() if v[metric] is not None]
+            # tab20 pairs a dark and a light shade: the ten dark ones first, then the light
             c = colours[2 * i % 20 + (2 * i // 20) % 2]
             ax.scatter([m["ms_per_cloud"]] * len(vals), vals, s=10, color=c, alpha=0.5)
             ax.scatter([m["ms_per_cloud"]], [np.mean(vals)], marker=markers[i % len(markers)],

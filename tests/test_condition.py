@@ -117,3 +117,25 @@ def test_condition_array_round_trip():
     assert Condition.from_array(c.as_array()) == c
     d = c.to_degrees()
     assert d["yaw_deg"] == pytest.approx(13.2)
+
+
+def test_check_int_accepts_whole_numbers_in_range_only():
+    from apcg_core.errors import check_int
+    assert check_int("n", np.int64(5), 1) == 5 and type(check_int("n", np.int64(5), 1)) is int
+    assert check_int("n", 3, 1, 3) == 3
+    for bad in (0, 4, 2.0, True, "2", None, float("nan")):
+        with pytest.raises(InputError, match=r"n must be an integer in 1\.\.3 \(why\), got "):
+            check_int("n", bad, 1, 3, hint=" (why)")
+    with pytest.raises(InputError, match="count must be an integer >= 1, got -1"):
+        check_int("count", -1, 1)
+
+
+def test_generation_refuses_a_bad_count_for_every_model_kind():
+    from apcg_core.generation import APCGModel
+    model = APCGModel(runtime="onnx")
+    row = model.condition_row("A320neo", 4500.0, math.radians(3.4), math.radians(2.3),
+                              math.radians(13.2), 0.0)[None]
+    assert model.repeated_conditions(row, 3).shape == (3, 6)
+    for bad in (0, 1.5, True):
+        with pytest.raises(InputError, match="count must be an integer >= 1"):
+            model.generate(row, count=bad)

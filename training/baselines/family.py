@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from functools import cached_property
 
-from apcg_core.errors import InputError
+from apcg_core.errors import InputError, check_int
 
 from . import FAMILIES
 from .data import CanonicalClouds  # noqa: F401 - the trainer takes it from here
@@ -25,9 +25,7 @@ class FamilyConfig:
             raise InputError(f"unknown model family {self.family!r}; accepted: "
                              f"{', '.join(FAMILIES)}")
         for name, low in (("n_points", 1), ("diffusion_steps", 1), ("voxel_res", 8)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise InputError(f"{name} must be an integer >= {low}, got {v!r}")
+            check_int(name, getattr(self, name), low)
         if self.voxel_res & (self.voxel_res - 1):  # 4^3 features doubled k times
             raise InputError(f"voxel_res must be 4 * 2^k (8, 16, 32, 64 ...), got "
                              f"{self.voxel_res}")

@@ -13,7 +13,6 @@ import torch
 
 from apcg_core.cloud import PointCloud
 from apcg_core.condition import ConditionSpace
-from apcg_core.errors import InputError
 from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian
 from apcg_core.generation import NOISE_DIM, GenerationResult, ModelTypes, load_model
 from apcg_core.lidar import LidarParams
@@ -97,10 +96,7 @@ class BaselineModel(ModelTypes):
                 for p, n in zip(out.reshape(len(nu), -1), counts, strict=True)]
 
     def generate(self, table, count: int = 1, seed: int = 0) -> GenerationResult:
-        table = self.space.check(table)
-        if not isinstance(count, (int, np.integer)) or count < 1:
-            raise InputError(f"count must be an integer >= 1, got {count!r}")
-        table = np.repeat(table, count, axis=0)
+        table = self.repeated_conditions(table, count)
         nu = self.space.encode(table)
         counts = [self.counts(int(table[i, 0]), nu[i]) for i in range(len(table))]
         # voxels behind one another fall into one cell: offer more than the count asks for

@@ -7,11 +7,10 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 from torch import nn
 
-from apcg_core.errors import InputError
+from apcg_core.errors import check_int
 from apcg_core.nn.models import COND_DIM, NOISE_DIM
 
 
@@ -122,11 +121,8 @@ class Denoiser(nn.Module):
 
 def check_sampling_steps(steps, schedule_steps: int) -> int:
     """``steps`` when it is a whole number in 1..``schedule_steps``, else a clear error."""
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) \
-            or not 1 <= steps <= schedule_steps:
-        raise InputError(f"sampling_steps must be an integer in 1..{schedule_steps} (the "
-                         f"model's diffusion steps), got {steps!r}")
-    return int(steps)
+    return check_int("sampling_steps", steps, 1, schedule_steps,
+                     hint=" (the model's diffusion steps)")
 
 
 class Schedule:
