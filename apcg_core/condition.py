@@ -14,8 +14,11 @@ import numpy as np
 from .errors import InputError, check_finite, check_range
 from .lidar import DEG
 
-# Column order of a condition table and of nu.
+# Column order of a condition table and of nu. The type column holds a code of the type table
+# that travels with the table (apcg_core.typetable.Conditions), never a bare catalog index.
 FIELDS = ("type_index", "range_m", "elevation", "pitch", "yaw", "roll")
+# The generator's input: NOISE_DIM Gaussian noise values + the len(FIELDS) values of nu (SPEC 7).
+NOISE_DIM = 100
 
 FAR_REFERENCE_RANGE_M = 3000.0
 NEAR_REFERENCE_RANGE_M = 100.0

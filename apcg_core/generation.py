@@ -8,20 +8,20 @@ Noise is drawn with numpy from the seed, so the runtime never changes the result
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .cloud import PointCloud
-from .condition import Condition, ConditionSpace, scale_ratio
+from .condition import NOISE_DIM, Condition, ConditionSpace, scale_ratio
 from .depth import TAU_DEFAULT, denorm, im2pc
 from .errors import InputError, check_int
+from .families import family_of, get_family, read_model_meta, register
 from .lidar import LidarParams
+from .typetable import Conditions, TypeTable
 
 DEFAULT_MODEL_DIR = Path(__file__).with_name("models") / "default"
-NOISE_DIM = 100
 RUNTIMES = ("auto", "onnx", "torch")
 
 
@@ -31,78 +31,110 @@ def default_model_dir() -> Path:
 
 @dataclass
 class GenerationResult:
-    cloud: PointCloud  # stacked; cloud.sample indexes rows of ``table`` x count
-    images: np.ndarray  # (N, H, W) denormalised depth images
-    table: np.ndarray  # (N, 6) the condition of each image (type column = model type code)
+    cloud: PointCloud  # stacked; cloud.sample indexes rows of ``conditions``
+    images: np.ndarray  # (N, H, W) denormalised depth images (empty for point-set families)
+    conditions: Conditions  # the condition of each cloud, in the model's type table
+
+    @property
+    def table(self) -> np.ndarray:
+        return self.conditions.table
 
 
 class ModelTypes:
-    """The lookups every generative model shares over its ``types`` (from model.json)."""
+    """What every model knows of its types and conditions (from its model.json): the base of
+    every family's model. ``types`` is the model's :class:`TypeTable`; a condition from
+    elsewhere reaches the model as :class:`Conditions` and is mapped into it by name."""
 
-    types: list[dict]
+    directory: Path
+    meta: dict
+    types: TypeTable
     space: ConditionSpace
+    lidar: LidarParams
 
-    def type_code(self, key) -> int:
-        """The model's code of a type given by catalog name or catalog index."""
-        for t in self.types:
-            if (isinstance(key, (int, np.integer)) and t["catalog_index"] == int(key)) or (
-                    isinstance(key, str) and t["name"].lower() == key.lower()):
-                return int(t["code"])
-        raise InputError(f"type {key!r} is not one this model was trained on; it knows: "
-                         f"{', '.join(t['name'] for t in self.types[:12])}"
-                         f"{' ...' if len(self.types) > 12 else ''}")
+    def _read_model_json(self, directory) -> None:
+        self.directory = Path(directory) if directory else DEFAULT_MODEL_DIR
+        self.meta = read_model_meta(self.directory)
+        try:
+            self.space = ConditionSpace.from_dict(self.meta["condition_space"])
+            self.lidar = LidarParams.from_dict(self.meta["lidar"])
+        except (KeyError, TypeError) as exc:
+            raise InputError(f"{self.directory / 'model.json'} is incomplete ({exc!r})") from exc
+        self.types = TypeTable.from_records(self.meta["types"],
+                                            owner=f"model {self.directory}")
+
+    @property
+    def family(self) -> str:
+        return str(self.meta.get("family", "cgan"))
+
+    def type_name(self, key) -> str:
+        """The catalog name of ``key``: a name this model knows, or a catalog index."""
+        if isinstance(key, str) and key.strip() in self.types:
+            return key.strip()
+        if isinstance(key, (int, np.integer)) or (isinstance(key, str) and key.strip().isdigit()):
+            from .catalog.catalog import default_catalog
+            return default_catalog().get(int(key)).name
+        self.types.code(key)  # refuses, naming what the model knows
+        return key
+
+    def conditions(self, names, pose) -> Conditions:
+        """Conditions for type ``names`` (one per row; names or catalog indices) at ``pose``
+        (N, 5) [r0 m, beta0, pitch, yaw, roll rad], in this model's type table."""
+        names = [names] if isinstance(names, (str, int, np.integer)) else list(names)
+        return Conditions.from_names(self.types, [self.type_name(n) for n in names], pose)
+
+    def condition(self, type_key, range_m, elevation, pitch=0.0, yaw=0.0,
+                  roll=0.0) -> Conditions:
+        """One condition (radians, metres), checked physically."""
+        row = Condition(0, range_m, elevation, pitch, yaw, roll).as_array()[1:]
+        return self.conditions([type_key], row[None])
 
     def depth_length(self, codes) -> np.ndarray:
-        lengths = np.array([t["depth_length_m"] for t in self.types])
-        return lengths[np.asarray(codes, dtype=np.int64)]
+        return self.types.column("depth_length_m").astype(np.float64)[
+            np.asarray(codes, dtype=np.int64)]
 
-    def condition_row(self, type_key, range_m, elevation, pitch, yaw, roll) -> np.ndarray:
-        cond = Condition(self.type_code(type_key), range_m, elevation, pitch, yaw, roll)
-        return cond.as_array()
-
-    def repeated_conditions(self, table, count) -> np.ndarray:
-        """``table`` checked against the model's condition space, each row ``count`` times."""
-        table = self.space.check(table)
+    def repeated_conditions(self, conditions: Conditions, count) -> np.ndarray:
+        """``conditions`` mapped by name into this model's types, checked against its
+        condition space, each row ``count`` times (the table the model generates from)."""
+        if not isinstance(conditions, Conditions):
+            raise InputError("a model generates from Conditions (rows with the type table "
+                             "their codes refer to; see model.conditions(names, pose)), not "
+                             f"a bare {type(conditions).__name__}")
+        table = self.space.check(conditions.recoded(self.types))
         return np.repeat(table, check_int("count", count, 1), axis=0)
+
+    def result(self, cloud: PointCloud, images, table: np.ndarray) -> GenerationResult:
+        return GenerationResult(cloud, images, Conditions(self.types, table))
+
+
+class _CGANFamily:
+    """The paper's cGAN as the core knows it: its loader (training adds the rest)."""
+
+    name = "cgan"
+
+    @staticmethod
+    def load(directory, runtime: str = "auto"):
+        return APCGModel(directory, runtime=runtime)
 
 
 def load_model(directory=None, runtime: str = "auto"):
-    """The model in ``directory`` (default: the shipped one): the cGAN, or a comparison family
-    (model.json's ``family``) whose loader an installed package registers under the
-    ``apcg.model_families`` entry points (the training package registers the three of its own;
-    this core package never imports it)."""
+    """The model in ``directory`` (default: the shipped one), opened by the family that made
+    it (model.json ``family``), whatever that family is."""
     d = Path(directory) if directory else DEFAULT_MODEL_DIR
-    meta = d / "model.json"
-    family = "cgan"
-    if meta.exists():
-        try:
-            family = json.loads(meta.read_text()).get("family", "cgan")
-        except (json.JSONDecodeError, AttributeError) as exc:
-            raise InputError(f"{meta} is not a readable model.json: {exc}") from exc
-    if family == "cgan":
-        return APCGModel(d, runtime=runtime)
-    from importlib.metadata import entry_points
-    loaders = {ep.name: ep for ep in entry_points(group="apcg.model_families")}
-    if family not in loaders:
-        raise InputError(f"{d} is a {family!r} model; loading it needs a package that registers "
-                         f"that family (pip install 'apcg[train]'); registered: "
-                         f"{', '.join(sorted(loaders)) or 'none'}")
-    return loaders[family].load()(d)
+    if runtime not in RUNTIMES:
+        raise InputError(f"runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")
+    return get_family(family_of(d)).load(d, runtime=runtime)
 
 
 class APCGModel(ModelTypes):
+    """The paper's cGAN as exported: model.json + generator.onnx."""
+
     def __init__(self, directory=None, runtime: str = "auto") -> None:
-        self.directory = Path(directory) if directory else DEFAULT_MODEL_DIR
-        meta_path = self.directory / "model.json"
+        self._read_model_json(directory)
         onnx_path = self.directory / "generator.onnx"
-        if not meta_path.exists() or not onnx_path.exists():
-            raise InputError(f"{self.directory} is not an APCG model (needs model.json and "
-                             "generator.onnx; `apcg export` makes one from a training run)")
-        self.meta = json.loads(meta_path.read_text())
+        if not onnx_path.is_file():
+            raise InputError(f"{self.directory} is not a cGAN model (no generator.onnx; "
+                             "`apcg export` makes one from a training run)")
         self.onnx_path = onnx_path
-        self.space = ConditionSpace.from_dict(self.meta["condition_space"])
-        self.lidar = LidarParams.from_dict(self.meta["lidar"])
-        self.types = self.meta["types"]
         self.tau = float(self.meta.get("tau", TAU_DEFAULT))
         self.norm = bool(self.meta.get("norm", True))
         if runtime not in RUNTIMES:
@@ -170,10 +202,11 @@ class APCGModel(ModelTypes):
         return np.concatenate(out) if out else np.zeros((0, h, w), np.float32)
 
     # --- conditions ------------------------------------------------------------------------------
-    def generate(self, table, count: int = 1, seed: int = 0) -> GenerationResult:
-        """Point clouds for conditions ``table`` (N, 6) [type code, r0 m, beta0, pitch, yaw,
-        roll rad], ``count`` samples each (rows repeated), noise from ``seed``."""
-        table = self.repeated_conditions(table, count)
+    def generate(self, conditions: Conditions, count: int = 1,
+                 seed: int = 0) -> GenerationResult:
+        """Point clouds for ``conditions`` (mapped by type name into this model's types),
+        ``count`` samples each (rows repeated), noise from ``seed``."""
+        table = self.repeated_conditions(conditions, count)
         nu = self.space.encode(table)
         noise = np.random.default_rng(seed).standard_normal((len(table), NOISE_DIM))
         img_n = self.images_from(noise, nu)
@@ -182,7 +215,10 @@ class APCGModel(ModelTypes):
         codes = table[:, 0].astype(np.int64)
         cloud = im2pc(d, table[:, 1], table[:, 2], self.depth_length(codes), self.lidar,
                       tau=self.tau)
-        return GenerationResult(cloud, d, table)
+        return self.result(cloud, d, table)
+
+
+register(_CGANFamily())
 
 
 def onnx_weights(path) -> dict:
@@ -202,29 +238,30 @@ def onnx_weights(path) -> dict:
     return w
 
 
-def conditions_from_csv(path, model: ModelTypes) -> np.ndarray:
-    """Rows ``type,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg`` (header required)."""
+def conditions_from_csv(path, model: ModelTypes) -> Conditions:
+    """Rows ``type,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg`` (header required; the
+    type by catalog name, or catalog index), in the model's type table."""
     import csv
 
     from .lidar import DEG
     need = ["type", "range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg"]
+    names, pose = [], []
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
         if reader.fieldnames is None or any(k not in reader.fieldnames for k in need):
             raise InputError(f"{path}: a conditions CSV needs the header {','.join(need)}")
-        rows = []
         for i, r in enumerate(reader):
             try:
-                key = int(r["type"]) if r["type"].strip().isdigit() else r["type"].strip()
-                rows.append([model.type_code(key), float(r["range_m"]),
-                             float(r["elevation_deg"]) * DEG, float(r["pitch_deg"]) * DEG,
-                             float(r["yaw_deg"]) * DEG, float(r["roll_deg"]) * DEG])
+                names.append(model.type_name(r["type"].strip()))
+                row = [float(r["range_m"])] + [float(r[k]) * DEG for k in need[2:]]
+                Condition(0, *row)  # physical checks, named
+                pose.append(row)
             except (ValueError, InputError) as exc:
                 raise InputError(f"{path}, row {i + 1}: {exc}") from exc
-    if not rows:
+    if not names:
         raise InputError(f"{path} has no conditions")
-    return np.array(rows)
+    return model.conditions(names, np.array(pose))
 
 
-__all__ = ["APCGModel", "GenerationResult", "ModelTypes", "conditions_from_csv",
-           "default_model_dir", "load_model"]
+__all__ = ["NOISE_DIM", "APCGModel", "Conditions", "GenerationResult", "ModelTypes",
+           "conditions_from_csv", "default_model_dir", "load_model"]

@@ -11,16 +11,18 @@ def register_generate(sub) -> None:
     p = sub.add_parser("generate", help="generate point clouds with a trained APCG model",
                        description="nu + noise -> generator -> DeNorm -> Im2PC. Without --model "
                                    "the default model shipped with the package is used.")
-    p.add_argument("--model", help="model directory (default: the shipped default model); a "
-                                    "comparison family's (point-gan, voxel-gan, diffusion) "
-                                    "needs the training extra")
+    p.add_argument("--model", metavar="DIR",
+                   help="model directory, any family (default: the shipped default model); "
+                        "families other than the cGAN need the training extra")
     p.add_argument("--type", help="catalog type name or index (with the pose options)")
     p.add_argument("--conditions", help="CSV with type,range_m,elevation_deg,pitch_deg,"
                                         "yaw_deg,roll_deg (instead of --type and the pose)")
     add_pose_arguments(p, required=False)  # not needed with --conditions
     p.add_argument("--count", type=int, default=1, help="clouds per condition (default 1)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="auto")
+    p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="auto",
+                   help="cGAN inference: auto (torch when installed, else onnxruntime), onnx, "
+                        "torch; the same images either way")
     p.add_argument("--tau", type=float, help="Im2PC threshold (default: the model's)")
     p.add_argument("-o", "--output", required=True,
                    help=".ply / .npz / .las; several clouds go in one file, told apart by "
@@ -30,15 +32,15 @@ def register_generate(sub) -> None:
 
 def _run_generate(args) -> int:
     from .errors import InputError
-    from .generation import APCGModel, conditions_from_csv, load_model
+    from .generation import conditions_from_csv, load_model
     from .io import write_cloud
     from .lidar import DEG
 
     model = load_model(args.model, runtime=args.runtime)
     if args.tau is not None:
-        if not isinstance(model, APCGModel):
-            raise InputError(f"--tau is the cGAN's Im2PC threshold; {args.model} is a "
-                             f"{model.meta.get('family')} model, which has none")
+        if getattr(model, "tau", None) is None:
+            raise InputError(f"--tau is an Im2PC threshold; {model.directory} is a "
+                             f"{model.family} model, which has none")
         model.tau = float(args.tau)
     if args.conditions:
         if args.type:
@@ -47,17 +49,19 @@ def _run_generate(args) -> int:
     else:
         if args.type is None or args.range_m is None or args.elevation_deg is None:
             raise InputError("give --type, --range-m and --elevation-deg (or --conditions)")
-        key = int(args.type) if args.type.isdigit() else args.type
-        table = model.condition_row(key, args.range_m, args.elevation_deg * DEG,
-                                    args.pitch_deg * DEG, args.yaw_deg * DEG,
-                                    args.roll_deg * DEG)[None]
+        table = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
+                                args.pitch_deg * DEG, args.yaw_deg * DEG, args.roll_deg * DEG)
     res = model.generate(table, count=args.count, seed=args.seed)
-    meta = {"model": str(model.directory), "runtime": model.runtime, "seed": args.seed,
-            "count": args.count, "tau": model.tau,
-            "conditions": [[float(v) for v in row] for row in res.table[:: args.count]],
-            "condition_fields": ["type_code", "range_m", "elevation_rad", "pitch_rad",
-                                 "yaw_rad", "roll_rad"]}
+    first = res.conditions[:: args.count]
+    meta = {"model": str(model.directory), "family": model.family,
+            "runtime": getattr(model, "runtime", None), "seed": args.seed,
+            "count": args.count, "tau": getattr(model, "tau", None),
+            "conditions": [{"type": name, "range_m": float(r[1]), "elevation_rad": float(r[2]),
+                            "pitch_rad": float(r[3]), "yaw_rad": float(r[4]),
+                            "roll_rad": float(r[5])}
+                           for name, r in zip(first.names, first.table, strict=True)]}
     write_cloud(args.output, res.cloud, meta)
     print(json.dumps({"output": args.output, "clouds": len(res.table),
-                      "points": len(res.cloud), "runtime": model.runtime}))
+                      "points": len(res.cloud), "family": model.family,
+                      "runtime": getattr(model, "runtime", None)}))
     return 0

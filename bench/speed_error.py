@@ -32,12 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from apcg_core.catalog.catalog import default_catalog  # noqa: E402
 from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian  # noqa: E402
-from apcg_core.metrics import jsd, mmd  # noqa: E402
+from training import protocol  # noqa: E402
 from training.data import DepthDataset  # noqa: E402
-from training.evaluate import MIN_POINTS, band_order, stratified_subset  # noqa: E402
-from training.quick_eval import JSD_BINS_EVAL, band_of  # noqa: E402
-
-BINS = JSD_BINS_EVAL  # as in `apcg evaluate` (chosen by measurement; see the README)
 
 
 def simulated(backend: str, ds, idx, supersample: int = 1):
@@ -49,11 +45,11 @@ def simulated(backend: str, ds, idx, supersample: int = 1):
     with Simulator(backend, ds.lidar, supersample=supersample) as sim:
         codes = table[:, 0].astype(int)
         for code in np.unique(codes):  # meshes and casters built before the clock starts
-            sim.simulate_type(cat, ds.types[code]["catalog_index"], table[codes == code][:1])
+            sim.simulate_type(cat, ds.types.name(code), table[codes == code][:1])
         t0 = time.perf_counter()
         for code in np.unique(codes):
             sel = np.flatnonzero(codes == code)
-            res = sim.simulate_type(cat, ds.types[code]["catalog_index"], table[sel])
+            res = sim.simulate_type(cat, ds.types.name(code), table[sel])
             for k, c in zip(sel, res.clouds(), strict=True):
                 out[k] = c.xyz
         dt = time.perf_counter() - t0
@@ -61,10 +57,10 @@ def simulated(backend: str, ds, idx, supersample: int = 1):
 
 
 def generated(model, ds, idx, seed: int = 0):
-    table = ds.conditions[idx]
-    model.generate(table[:8], seed=seed)  # warm the runtime
+    cond = ds.condition_rows(idx)  # mapped into the model's types by name
+    model.generate(cond[:8], seed=seed)  # warm the runtime
     t0 = time.perf_counter()
-    res = model.generate(table, count=1, seed=seed)
+    res = model.generate(cond, count=1, seed=seed)
     dt = time.perf_counter() - t0
     return [c.xyz for c in res.cloud.split(len(idx))], dt / len(idx)
 
@@ -84,26 +80,11 @@ def nearest_sample(ds_train, ds, idx):
 
 
 def score(refs, clouds, bands, seed: int = 0) -> dict:
-    per = {}
+    """Per band, the evaluation protocol's scores (training/protocol.py)."""
+    per: dict = {}
     for k, (ref, c) in enumerate(zip(refs, clouds, strict=True)):
-        per.setdefault(bands[k], []).append((mmd(ref, c, max_points=2048, seed=seed + k),
-                                             jsd(ref, c, bins=BINS, max_points=2048,
-                                                 seed=seed + k), len(ref), len(c)))
-    out = {}
-    for name in sorted(per, key=band_order):
-        rows = per[name]
-        # as in `apcg evaluate`: pairs with fewer than MIN_POINTS points on a side are counted
-        # (low), not averaged; MMD's median-distance sigma makes 2-point clouds swing wildly
-        ok = [r for r in rows if min(r[2], r[3]) >= MIN_POINTS]
-        m = [r[0] for r in ok if r[0] is not None]
-        j = [r[1] for r in ok if r[1] is not None]
-        out[name] = {"pairs": len(rows), "empty": sum(min(r[2], r[3]) == 0 for r in rows),
-                     "low": sum(0 < min(r[2], r[3]) < MIN_POINTS for r in rows),
-                     "mmd": float(np.mean(m)) if m else None,
-                     "jsd": float(np.mean(j)) if j else None,
-                     "points_reference": float(np.mean([r[2] for r in rows])),
-                     "points": float(np.mean([r[3] for r in rows]))}
-    return out
+        per.setdefault(bands[k], []).append(protocol.score_pair(ref, c, seed + k))
+    return {name: protocol.summarise(per[name]) for name in sorted(per, key=protocol.band_order)}
 
 
 def main() -> int:
@@ -118,13 +99,11 @@ def main() -> int:
     ap.add_argument("--json")
     ap.add_argument("--plot")
     args = ap.parse_args()
-    from training.baselines.model import load_any
-    ds = DepthDataset(args.data, "test")
-    models = [load_any(m, runtime="onnx") for m in (args.model or [None])]
-    near = models[0].space.is_drone(ds.conditions[:, 0].astype(int))
+    from apcg_core.generation import load_model
+    models = [load_model(m) for m in (args.model or [None])]
     n_bands = 9
-    idx = stratified_subset(ds, args.per_band * n_bands, args.seed, near)
-    bands = [band_of(ds.conditions[i, 1], bool(near[i])) for i in idx]
+    pairs = protocol.draw_pairs(args.data, args.per_band * n_bands, args.seed, half="test")
+    ds, idx, bands = pairs.ds, pairs.idx, pairs.bands
     refs = [ds.standard_cloud(int(i)) for i in idx]
     methods = {}
     for b in args.backends.split(","):
@@ -132,14 +111,11 @@ def main() -> int:
     for k in (int(x) for x in args.supersample.split(",") if x):
         methods[f"embree {k}x{k}"] = simulated("embree", ds, idx, supersample=k)
     for m in models:
-        net = m.meta["net"]
-        name = Path(m.directory).name
-        label = (f"APCG {name} (width {net['width']})" if "width" in net
-                 else net["family"] if name == net["family"] else f"{net['family']} {name}")
-        methods[label] = generated(m, ds, idx, args.seed)
+        methods[f"{m.family} {Path(m.directory).name}"] = generated(m, ds, idx, args.seed)
     methods["nearest sample"] = nearest_sample(DepthDataset(args.data, "train"), ds, idx)
     report = {"command": "python bench/speed_error.py " + " ".join(sys.argv[1:]),
-              "pairs": len(idx), "jsd_bins": BINS, "methods": {}}
+              **pairs.record(), "protocol": protocol.constants(),
+              "jsd_bins": protocol.JSD_BINS, "methods": {}}
     for name, (clouds, sec) in methods.items():
         report["methods"][name] = {"ms_per_cloud": round(1e3 * sec, 3),
                                    "bands": score(refs, clouds, bands, args.seed)}

@@ -162,29 +162,31 @@ def _unoccluded(lidar, target, xyz_obs: np.ndarray, azimuth: float) -> np.ndarra
 
 
 def load_model(path=None, runtime: str = "auto"):
-    from apcg_core.generation import APCGModel
-    return APCGModel(path, runtime=runtime)
+    """The model in ``path`` (default: the shipped one), whatever its family."""
+    from apcg_core.generation import load_model as load
+    return load(path, runtime=runtime)
 
 
 def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "auto",
              name: str | None = None):
     """APCG point clouds for a target's condition (the default model unless ``model``, a model
-    directory or an APCGModel, is given): one object, ``count`` samples (attribute ``sample``).
+    directory or a loaded model of any family, is given): one object, ``count`` samples
+    (attribute ``sample``). The target's type reaches the model by its catalog name.
     """
-    from apcg_core.generation import APCGModel
+    from apcg_core.generation import ModelTypes
     if not is_target(target):
         raise InputError(f"{getattr(target, 'name', target)!r} is not an APCG target")
-    if not isinstance(model, APCGModel):
-        model = APCGModel(model, runtime=runtime)
+    if not isinstance(model, ModelTypes):
+        model = load_model(model, runtime=runtime)
     pose = pose_of(target)
-    idx = int(target.get(INDEX_KEY, -1))
-    key = idx if idx >= 0 else str(target.get(TYPE_KEY, target.name))
-    row = model.condition_row(key, pose["range_m"], pose["elevation"], pose["pitch"],
-                              pose["yaw"], pose["roll"])
-    res = model.generate(row[None], count=count, seed=seed)
-    meta = {"model": str(model.directory), "runtime": model.runtime, "seed": seed,
-            "count": count, "type": target.get(TYPE_KEY),
-            **_pose_meta(pose), "tau": model.tau,
+    name_of_type = str(target.get(TYPE_KEY, target.name))
+    cond = model.condition(name_of_type, pose["range_m"], pose["elevation"], pose["pitch"],
+                           pose["yaw"], pose["roll"])
+    res = model.generate(cond, count=count, seed=seed)
+    meta = {"model": str(model.directory), "family": model.family,
+            "runtime": getattr(model, "runtime", None), "seed": seed,
+            "count": count, "type": name_of_type,
+            **_pose_meta(pose), "tau": getattr(model, "tau", None),
             "lidar": model.lidar.to_dict()}
     return cloud_object(res.cloud, name or f"{target.name} APCG", lidar=lidar_of(target),
                         source="generated", r0=pose["range_m"], beta0=pose["elevation"],

@@ -35,12 +35,11 @@ def variant_name(v: dict) -> str:
 def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encoder=None,
                  pairs: int = 400, seed: int = 0, progress: bool = True,
                  variants=VARIANTS, encoder_epochs: float = 4.0, no_norm: bool = True) -> dict:
-    from apcg_core.generation import APCGModel
+    from apcg_core.generation import load_model
 
-    from .data import DepthDataset
+    from . import protocol
     from .export import export_model
     from .fd_depth import fd_depth, train_encoder
-    from .quick_eval import JSD_BINS_EVAL, band_mean, evaluate, tau_sweep, untrained_like
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     given_encoder = encoder
@@ -50,7 +49,7 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
             train_encoder(data_dir, encoder, epochs=encoder_epochs, seed=seed,
                           progress=progress)
     enc_meta = json.loads((Path(encoder) / "encoder.json").read_text())
-    test, train = DepthDataset(data_dir, "test"), DepthDataset(data_dir, "train")
+    test_pairs = protocol.draw_pairs(data_dir, pairs, seed, half="test")
     rows = []
     for v in list(variants) + ([NO_NORM] if no_norm else []):
         name = variant_name(v)
@@ -64,25 +63,24 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
         if tr.step < tr.total_steps:
             tr.fit()
         wall = time.perf_counter() - t0
-        # Each variant gets its own Im2PC threshold, chosen on training conditions as the
-        # default model's was: a young generator's speckle makes a fixed tau favour some
-        # variants, and the held-out pairs must not choose it.
-        sweep = tau_sweep(APCGModel(export_model(run, run / "model"), runtime="onnx"), train,
-                          n_pairs=pairs, seed=seed)
-        model = APCGModel(export_model(run, run / "model", tau=sweep["best"]), runtime="onnx")
+        # Each variant gets its own Im2PC threshold, chosen on the validation half (a young
+        # generator's speckle makes a fixed tau favour some variants; the pairs that score it
+        # must not choose it).
+        sweep = protocol.choose_tau(load_model(export_model(run, run / "model")), data_dir,
+                                    n_pairs=pairs, seed=seed)
+        model = load_model(export_model(run, run / "model", tau=sweep["best"]))
         (run / "model" / "tau_sweep.json").write_text(json.dumps(sweep, indent=1) + "\n")
-        bands = evaluate(model, test, n_pairs=pairs, seed=seed)
-        fresh = evaluate(untrained_like(model, run / "untrained", seed=seed), test,
-                         n_pairs=pairs, seed=seed)
+        bands = protocol.score(model, test_pairs, floor=False, pointflow=False)["mean"]
+        fresh = protocol.score(protocol.untrained(model, run / "untrained", seed=seed),
+                               test_pairs, floor=False, pointflow=False)["mean"]
         fd = fd_depth(encoder, model, data_dir, n_pairs=max(pairs, 400), seed=seed)
         log = (run / "log.csv").read_text().splitlines()
         rows.append({"variant": name, "norm": True, **v, "steps": tr.step,
                      "train_seconds": float(log[-1].split(",")[-1]) if len(log) > 1 else wall,
                      "fd_depth": fd["fd_depth"], "fd_depth_real_halves":
                      fd["fd_depth_real_halves"], "tau": sweep["best"],
-                     "mmd": band_mean(bands, "mmd"), "jsd": band_mean(bands, "jsd"),
-                     "mmd_untrained": band_mean(fresh, "mmd"),
-                     "jsd_untrained": band_mean(fresh, "jsd")})
+                     "mmd": bands["mmd"], "jsd": bands["jsd"],
+                     "mmd_untrained": fresh["mmd"], "jsd_untrained": fresh["jsd"]})
         if progress:
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     report = {"budget": {"steps": steps, "width": width, "batch": 32, "n_critic": 5,
@@ -90,7 +88,8 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
               "encoder": {"path": str(encoder),
                           "test_accuracy_type": enc_meta["test_accuracy_type"],
                           "chance": enc_meta["chance"]},
-              "jsd_bins": JSD_BINS_EVAL, "pairs": pairs, "rows": rows,
+              **test_pairs.record(), "protocol": protocol.constants(),
+              "jsd_bins": protocol.JSD_BINS, "rows": rows,
               "command": (f"apcg ablation --data {data_dir} -o {out_dir} --steps {steps} "
                           f"--width {width:g} --pairs {pairs} --seed {seed}"
                           + (f" --encoder {given_encoder}" if given_encoder else "")
@@ -118,8 +117,8 @@ def markdown(report: dict) -> str:
              f"FD-depth floor (two halves of the real test images against each other): "
              f"{_f(floor, 1)}. Train s: logged training time on this machine (the budget is "
              f"the steps; the seconds show what each variant costs).", "",
-             "tau: the Im2PC threshold, chosen per variant on training conditions (lowest "
-             "MMD). In brackets: the same network untrained, at the same tau.", "",
+             "tau: the Im2PC threshold, chosen per variant on the validation half (lowest "
+             "MMD; `apcg choose-tau`). In brackets: the same network untrained, at the same tau.", "",
              "| TConv | self-attention | Wasserstein | Norm | FD-depth | tau | MMD | JSD | "
              "train s |",
              "|---|---|---|---|---|---|---|---|---|"]

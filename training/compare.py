@@ -2,7 +2,7 @@
 command: each model's training budget, its peak memory while training, its generation time per
 cloud and its MMD / JSD per slant-range band, beside its own untrained network.
 
-    apcg compare --data DIR -o REPORT --model cgan=DIR --model point-gan=DIR ... [--pairs N]
+    apcg compare --data DIR -o REPORT --model DIR --model DIR ... [--pairs N]
 
 Writes REPORT/compare.json, REPORT/compare.md and REPORT/compare.png. Memory is measured by
 training a few steps of each model's own configuration in a fresh process (the peak of a process
@@ -21,8 +21,9 @@ import numpy as np
 
 from apcg_core.errors import InputError
 
-from .evaluate import band_order, evaluate
+from . import protocol
 from .figures import read_log
+from .protocol import band_mean, band_order, draw_pairs
 
 MEMORY_CHILD = """
 import json, resource, sys, time, torch
@@ -70,43 +71,40 @@ def budget(model) -> dict:
         hours = float(read_log(model.directory)["hours"][-1])
     train = meta.get("train", {})
     return {"steps": meta.get("trained_steps"), "epochs": meta.get("trained_epochs"),
-            "hours": hours, "batch_size": train.get("batch_size"),
-            "n_critic": train.get("n_critic") if train.get("family", "cgan") != "diffusion"
-            else None}
+            "hours": hours, "batch_size": train.get("batch_size")}
 
 
-def parse_models(specs) -> list[tuple[str, str]]:
-    out = []
-    for s in specs:
-        name, sep, path = s.partition("=")
-        if not sep or not name or not path:
-            raise InputError(f"--model takes NAME=DIR (e.g. cgan=apcg_core/models/default), "
-                             f"got {s!r}")
-        out.append((name, path))
-    if len({n for n, _ in out}) != len(out):
-        raise InputError("--model names must differ")
+def method_names(dirs) -> list[tuple[str, str]]:
+    """(method name, model directory) for each ``--model DIR``: the name is the directory's."""
+    out = [(Path(d).name or str(d), str(d)) for d in dirs]
+    names = [n for n, _ in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"--model directories must have different names (a method is named "
+                         f"after its directory); {dup} appear more than once")
     return out
 
 
-def compare(models, data_dir, n_pairs: int = 1000, seed: int = 0, memory_steps: int = 5,
-            with_untrained: bool = True, progress: bool = False) -> dict:
-    """``models``: (name, loaded model) pairs. Every model is scored on the same pairs."""
-    from .quick_eval import band_mean, untrained_like
+def compare(models, data_dir, n_pairs: int | None = protocol.DEFAULT_PAIRS, seed: int = 0,
+            memory_steps: int = 5, with_untrained: bool = True, progress: bool = False) -> dict:
+    """``models``: (name, loaded model) pairs. Every model is scored on the same pairs, by the
+    evaluation protocol."""
+    pairs = draw_pairs(data_dir, n_pairs, seed, half="test")
+    keep = ("pairs", "scored", "no_score", "mmd", "jsd", "points_standard",
+            "points_generated", "points_ratio_p10_p50_p90")
     rows = []
     for name, model in models:
         if progress:
             print(f"{name}: scoring", file=sys.stderr, flush=True)
-        rep = evaluate(model, data_dir, n_pairs=n_pairs, seed=seed)
-        row = {"method": name, "model": str(model.directory),
-               "family": model.meta.get("family", "cgan"), "budget": budget(model),
+        rep = protocol.score(model, pairs, floor=False, pointflow=False)
+        row = {"method": name, "model": str(model.directory), "family": model.family,
+               "budget": budget(model),
                "ms_per_cloud": round(1e3 * rep["seconds"]["generate"] / rep["pairs"], 3),
-               "bands": {b: {k: v[k] for k in ("pairs", "scored", "no_score", "mmd", "jsd",
-                                               "points_standard", "points_generated")}
-                         for b, v in rep["bands"].items()}}
+               "bands": {b: {k: v[k] for k in keep} for b, v in rep["bands"].items()}}
         if with_untrained:
             with tempfile.TemporaryDirectory() as tmp:
-                fresh = evaluate(untrained_like(model, Path(tmp)), data_dir, n_pairs=n_pairs,
-                                 seed=seed)
+                fresh = protocol.score(protocol.untrained(model, Path(tmp), seed), pairs,
+                                       floor=False, pointflow=False)
             for b, v in row["bands"].items():
                 v["untrained"] = {k: fresh["bands"][b][k] for k in ("mmd", "jsd")}
         row["mean"] = {k: band_mean(row["bands"], k) for k in ("mmd", "jsd")}
@@ -119,7 +117,7 @@ def compare(models, data_dir, n_pairs: int = 1000, seed: int = 0, memory_steps: 
             row["training_memory"] = training_memory(model.meta["train"], data_dir,
                                                      memory_steps)
         rows.append(row)
-    return {"pairs": rep["pairs"], "bins": rep["bins"], "seed": seed, "rows": rows}
+    return {**pairs.record(), "protocol": protocol.constants(), "rows": rows}
 
 
 def _f(v, d=3) -> str:
@@ -130,12 +128,14 @@ def markdown(report: dict) -> str:
     bands = sorted(report["rows"][0]["bands"], key=band_order)
     head = ["method", "steps", "epochs", "train h", "peak MB", "s/step", "ms/cloud",
             "mean over bands"]
-    lines = [f"# Comparison of methods on {report['pairs']} held-out pairs", "",
+    lines = [f"# Comparison of methods on {report['pairs']} held-out pairs ({report['half']} "
+             f"half, seed {report['seed']})", "",
              f"Reproduce: `{report['command']}`", "",
-             f"MMD / JSD ({report['bins']}^3 bins) to the standard cloud, per slant-range band; "
-             "in brackets the same network untrained. The mean over bands weighs every band "
-             "alike and skips bands without a score. Peak MB: the resident memory of a fresh "
-             "process training the model's own configuration (CPU, dataset in memory).", "",
+             f"MMD / JSD ({report['protocol']['jsd_bins']}^3 bins) to the standard cloud, per "
+             "slant-range band; in brackets the same network untrained. The mean over bands "
+             "weighs every band alike and skips bands without a score. Peak MB: the resident "
+             "memory of a fresh process training the model's own configuration (CPU, "
+             "dataset in memory).", "",
              "| " + " | ".join(head + bands) + " |", "|" + "---|" * (len(head) + len(bands))]
     for r in report["rows"]:
         b, mem = r["budget"], r.get("training_memory", {})
@@ -176,8 +176,9 @@ def plot(report: dict, path: Path) -> None:
                             for n in names], "o-",
                         label=r["method"])
             ax.set_xticks(x, [n.split(" ", 1)[1] for n in names], rotation=20)
+            bins = report["protocol"]["jsd_bins"]
             ax.set_title(f"{kind}: {metric.upper()}"
-                         + (f" ({report['bins']}^3 bins)" if metric == "jsd" else ""))
+                         + (f" ({bins}^3 bins)" if metric == "jsd" else ""))
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
     fig.suptitle("Every method against the simulator per slant-range band (paper Fig. 17)")

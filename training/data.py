@@ -7,7 +7,6 @@ function of (seed, batch counter), so a resumed run sees exactly the batches it 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ from apcg_core.errors import InputError
 from apcg_core.frames import spherical_to_cartesian
 from apcg_core.io.dataset import Shard, read_header
 from apcg_core.lidar import LidarParams
+from apcg_core.typetable import Conditions, TypeTable
 
 
 class DepthDataset:
@@ -46,13 +46,21 @@ class DepthDataset:
         self.delta_range_m = np.concatenate([s.delta_range_m for s in shards])
         self.q = scale_ratio(self.conditions[:, 1])
         self.lidar = LidarParams.from_dict(self.header["lidar"])
+        self.types = TypeTable.from_records(self.header["types"], owner=f"dataset {directory}")
 
     def __len__(self) -> int:
         return len(self.sample_id)
 
-    @property
-    def types(self) -> list[dict]:
-        return self.header["types"]
+    def condition_rows(self, idx=None) -> Conditions:
+        """The conditions of samples ``idx`` (all by default) with the dataset's type table:
+        what crosses to a model, which maps them into its own types by name."""
+        table = self.conditions if idx is None else self.conditions[np.asarray(idx)]
+        return Conditions(self.types, table)
+
+    def is_near(self, idx=None) -> np.ndarray:
+        """Whether each sample's type uses the near (drone) range band."""
+        codes = self.conditions[:, 0] if idx is None else self.conditions[np.asarray(idx), 0]
+        return self.types.is_near(codes.astype(np.int64))
 
     def images(self, idx: np.ndarray, normalized: bool = True) -> np.ndarray:
         """(B, H, W) float32 depth images of samples ``idx`` (Norm applied if ``normalized``)."""
@@ -97,9 +105,3 @@ class DepthDataset:
         perm = np.random.default_rng([seed, epoch]).permutation(len(self))
         start = (i * world + rank) * batch_size
         return perm[start:start + batch_size]
-
-
-def dataset_summary(directory) -> dict:
-    head = json.loads((Path(directory) / "dataset.json").read_text())
-    return {"name": head.get("name"), "n_train": head["n_train"], "n_test": head["n_test"],
-            "n_types": len(head["types"])}

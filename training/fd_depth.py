@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from apcg_core.condition import NOISE_DIM
 from apcg_core.errors import InputError
 
 from .data import DepthDataset
@@ -135,15 +136,18 @@ def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def fd_depth(encoder, model, data_dir, n_pairs: int = 2000, seed: int = 0) -> dict:
-    """FD-depth of ``model`` (an APCGModel) on the test split, beside the distance between two
-    halves of the real images (what a perfect generator would score at this sample size)."""
+    """FD-depth of ``model`` (a cGAN model) on the protocol's test pairs, beside the distance
+    between two halves of the real images (what a perfect generator would score at this sample
+    size). The conditions reach the model by type name, encoded in its own condition space."""
+    from .protocol import draw_pairs
     enc = encoder if isinstance(encoder, DepthEncoder) else load_encoder(encoder)
-    ds = DepthDataset(data_dir, "test")
+    pairs = draw_pairs(data_dir, n_pairs, seed, half="test")
+    ds, idx = pairs.ds, pairs.idx
     rng = np.random.default_rng(seed)
-    idx = np.sort(rng.choice(len(ds), min(n_pairs, len(ds)), replace=False))
     real = ds.images(idx)
-    noise = rng.standard_normal((len(idx), 100)).astype(np.float32)
-    fake = model.images_from(noise, ds.nu[idx])
+    noise = rng.standard_normal((len(idx), NOISE_DIM)).astype(np.float32)
+    nu = model.space.encode(model.repeated_conditions(ds.condition_rows(idx), 1))
+    fake = model.images_from(noise, nu)
     if not model.norm:  # a model trained without Norm: compare in the encoder's (Norm) space
         from apcg_core.depth import norm
         fake = norm(fake, ds.q[idx])

@@ -71,16 +71,15 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
     most that many per run, evenly spaced and always the last (a slow sampler with many kept
     checkpoints otherwise takes most of the time)."""
     from apcg_core.depth import TAU_DEFAULT
+    from apcg_core.generation import load_model
 
-    from .baselines.model import load_any
-    from .data import DepthDataset
+    from . import protocol
     from .export import export_model
-    from .quick_eval import band_mean, evaluate
     if isinstance(runs, (str, Path)):
         runs = [(Path(runs).name, runs)]
     runs = list(runs.items()) if isinstance(runs, dict) else list(runs)
     tau = TAU_DEFAULT if tau is None else float(tau)
-    ds = DepthDataset(data_dir, "test")
+    pairs = protocol.draw_pairs(data_dir, n_pairs, seed, half="test")
     table = {}
     for name, run in runs:
         snaps = sorted((Path(run) / "checkpoints").glob("step-*.pt"))
@@ -92,15 +91,14 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
         for snap in snaps:
             step = int(snap.stem.split("-")[1])
             with tempfile.TemporaryDirectory() as tmp:
-                model = load_any(export_model(run, tmp, tau=tau, checkpoint=snap))
-                bands = evaluate(model, ds, n_pairs, seed)
+                model = load_model(export_model(run, tmp, tau=tau, checkpoint=snap))
+                mean = protocol.score(model, pairs, floor=False, pointflow=False)["mean"]
             at = np.searchsorted(log["step"], step)
             hours = float(log["hours"][min(at, len(log["hours"]) - 1)])
-            rows.append({"step": step, "hours": hours, "mmd": band_mean(bands, "mmd"),
-                         "jsd": band_mean(bands, "jsd")})
+            rows.append({"step": step, "hours": hours, "mmd": mean["mmd"], "jsd": mean["jsd"]})
             print(json.dumps({"run": name, **rows[-1]}), file=sys.stderr, flush=True)
     limit = "" if max_checkpoints is None else f" --max-checkpoints {max_checkpoints}"
-    data = {"runs": table, "pairs": n_pairs, "seed": seed, "tau": tau,
+    data = {"runs": table, **pairs.record(), "protocol": protocol.constants(), "tau": tau,
             "max_checkpoints": max_checkpoints,
             "command": "apcg figure 14 " + " ".join(f"--run {n}={_rel(r)}" for n, r in runs)
             + f" --data {_rel(data_dir)} --pairs {n_pairs} --tau {tau:g}{limit} -o {_rel(out)}"}
@@ -159,34 +157,31 @@ def fig18(model, out, counts=(100, 300, 1000, 3000), seed: int = 0) -> dict:
     return data
 
 
-def _random_table(model, n: int, n_types: int, rng) -> np.ndarray:
+def _random_table(model, n: int, n_types: int, rng):
     """n random conditions over the model's condition space, types drawn from n_types."""
+    from apcg_core.typetable import Conditions
     codes = rng.choice(len(model.types), n_types, replace=False)
     table = model.space.decode(rng.uniform(-1, 1, (n, 6)))
     table[:, 0] = rng.choice(codes, n)
     lo, hi = model.space.range_bounds(table[:, 0].astype(int))  # the type's own range band
     table[:, 1] = lo + rng.random(n) * (hi - lo)
-    return table
+    return Conditions(model.types, table)
 
 
 def fig19(model, data_dir, out, n_pairs: int = 600, seed: int = 0, n_bins: int = 10) -> dict:
     """MMD and JSD of generated clouds, scored against the standard clouds ("standard") and
     against their cell-jittered copies ("noised"), per slant-range bin (the paper's Fig. 19)."""
-    from apcg_core.metrics import jsd, mmd
+    from apcg_core.postprocess import cell_jitter
 
-    from .data import DepthDataset
-    from .evaluate import _jittered
-    from .quick_eval import JSD_BINS_EVAL
-    ds = DepthDataset(data_dir, "test")
-    rng = np.random.default_rng(seed)
-    idx = np.sort(rng.choice(len(ds), min(n_pairs, len(ds)), replace=False))
+    from . import protocol
+    pairs = protocol.draw_pairs(data_dir, n_pairs, seed, half="test")
+    ds, idx = pairs.ds, pairs.idx
     table = ds.conditions[idx]
-    res = model.generate(table, count=1, seed=seed)
-    gen = [c.xyz for c in res.cloud.split(len(idx))]
-    near = model.space.is_drone(table[:, 0].astype(int))
+    gen, _ = protocol.generate(model, pairs)
+    near = ds.is_near(idx)
     data = {"command": f"apcg figure 19 --model {_rel(model.directory)} --data {_rel(data_dir)} "
-                       f"--pairs {n_pairs} -o {_rel(out)}",
-            "jsd_bins": JSD_BINS_EVAL, "pairs": len(idx)}
+                       f"--pairs {n_pairs} --seed {seed} -o {_rel(out)}",
+            **pairs.record(), "protocol": protocol.constants()}
     for kind in ("aircraft", "drone"):
         sel = np.flatnonzero(near == (kind == "drone"))
         if len(sel) == 0:
@@ -199,12 +194,13 @@ def fig19(model, data_dir, out, n_pairs: int = 600, seed: int = 0, n_bins: int =
                 continue
             vals = {"standard": [], "noised": []}
             for k in ks:
-                std = ds.standard_cloud(int(idx[k]))
-                for name, ref in (("standard", std),
-                                  ("noised", _jittered(ds, int(idx[k]), seed + int(k)))):
-                    vals[name].append((mmd(ref, gen[k], max_points=2048, seed=seed),
-                                       jsd(ref, gen[k], bins=JSD_BINS_EVAL, max_points=2048,
-                                           seed=seed)))
+                i = int(idx[k])
+                std = ds.standard_cloud(i)
+                jit = cell_jitter(ds.sample_cloud(i), ds.conditions[i, 2], ds.lidar,
+                                  seed + int(k)).xyz
+                for name, ref in (("standard", std), ("noised", jit)):
+                    sc = protocol.score_pair(ref, gen[k], seed)
+                    vals[name].append((sc["mmd"], sc["jsd"]))
             row = {"range_m": float((lo + hi) / 2), "pairs": len(ks)}
             for name, v in vals.items():
                 for j, metric in enumerate(("mmd", "jsd")):

@@ -8,8 +8,9 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-NOISE_DIM = 100
-COND_DIM = 6
+from ..condition import FIELDS, NOISE_DIM
+
+COND_DIM = len(FIELDS)
 
 
 @dataclass(frozen=True)

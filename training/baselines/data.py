@@ -24,7 +24,7 @@ class CanonicalClouds:
 
     def __init__(self, ds: DepthDataset) -> None:
         self.ds = ds
-        lengths = np.array([t["depth_length_m"] for t in ds.types])
+        lengths = ds.types.column("depth_length_m").astype(np.float64)
         self.length = lengths[ds.conditions[:, 0].astype(int)]
         self.counts = np.diff(ds.offsets)
         self.clouds = [to_canonical(ds.standard_cloud(i), ds.conditions[i, 1],

@@ -1,0 +1,100 @@
+"""Model families: one registry that every command, the trainer and the add-on talk to.
+
+A family is an object with a ``name`` and the parts it provides:
+
+* ``load(directory, runtime)`` -> a model (:class:`apcg_core.generation.ModelTypes`) whose
+  ``generate(conditions, count, seed)`` turns :class:`~apcg_core.typetable.Conditions` into
+  clouds. Every family has it.
+* training parts (``networks``, ``train_step``, ``export``, ``untrained`` ...), provided by the
+  package that trains the family (``training``); see ``training/families.py``.
+
+Families register under the ``apcg.model_families`` entry points (value: the family object).
+The core registers the paper's cGAN's loader itself, so a model directory opens in a Python
+that has no entry-point metadata (Blender's legacy add-on folder) and the core keeps importing
+numpy alone. Nothing outside a family's own module branches on its name: it asks the registry.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .errors import InputError
+
+ENTRY_POINTS = "apcg.model_families"
+_BUILTIN: dict = {}
+_FROM_ENTRY_POINTS: dict | None = None
+
+
+def register(family):
+    """Register a family object built into the core (the entry points take precedence)."""
+    _BUILTIN[family.name] = family
+    return family
+
+
+def _entry_point_families() -> dict:
+    global _FROM_ENTRY_POINTS
+    if _FROM_ENTRY_POINTS is None:
+        try:
+            from importlib.metadata import entry_points
+            _FROM_ENTRY_POINTS = {ep.name: ep for ep in entry_points(group=ENTRY_POINTS)}
+        except Exception:  # noqa: BLE001 - no metadata (e.g. a bare sys.path folder in Blender)
+            _FROM_ENTRY_POINTS = {}
+    return _FROM_ENTRY_POINTS
+
+
+def family_names() -> list[str]:
+    return sorted(set(_BUILTIN) | set(_entry_point_families()))
+
+
+def get_family(name: str, need: str = "load"):
+    """The family called ``name``, with the part ``need`` (a method name); refuses a family
+    that is unknown or lacks the part, naming what is installed."""
+    eps = _entry_point_families()
+    fam = None
+    if name in eps:
+        try:
+            fam = eps[name].load()
+        except ImportError as exc:  # its package is installed without its extra (torch)
+            if name not in _BUILTIN:
+                raise InputError(f"model family {name!r} needs a package that is not "
+                                 f"installed ({exc}); pip install 'apcg[train]'") from exc
+    if fam is None:
+        fam = _BUILTIN.get(name)
+    if fam is None:
+        raise InputError(f"unknown model family {name!r}; installed: "
+                         f"{', '.join(family_names()) or 'none'}")
+    if not callable(getattr(fam, need, None)):
+        raise InputError(f"model family {name!r} as installed cannot {need.replace('_', ' ')} "
+                         "(training a family needs pip install 'apcg[train]')")
+    return fam
+
+
+def read_model_meta(directory) -> dict:
+    """A model directory's ``model.json``, checked to be one."""
+    d = Path(directory)
+    meta = d / "model.json"
+    if not d.is_dir():
+        raise InputError(f"model directory {d} does not exist (a model is a directory made "
+                         "by `apcg export`)")
+    if not meta.is_file():
+        raise InputError(f"{d} is not an APCG model directory (no model.json; `apcg export "
+                         "--run RUN -o DIR` makes one from a training run)")
+    try:
+        out = json.loads(meta.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{meta} is not a readable model.json: {exc}") from exc
+    if not isinstance(out, dict) or "types" not in out or "condition_space" not in out:
+        raise InputError(f"{meta} is not an APCG model.json (needs 'types' and "
+                         "'condition_space')")
+    return out
+
+
+def family_of(directory) -> str:
+    """The family that made the model in ``directory`` (model.json ``family``; the cGAN's
+    model.json from before families were recorded has none)."""
+    return str(read_model_meta(directory).get("family", "cgan"))
+
+
+__all__ = ["ENTRY_POINTS", "family_names", "family_of", "get_family", "read_model_meta",
+           "register"]

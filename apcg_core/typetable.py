@@ -1,0 +1,191 @@
+"""A type is its catalog name (SPEC section 3).
+
+A dataset and a model each hold a table of the types they know, in their own code order; the
+integer in column 0 of a condition row is a code of one such table and means nothing without
+it. :class:`TypeTable` is that table, and :class:`Conditions` carries condition rows together
+with the table their codes refer to, so every crossing (dataset -> model, model -> report,
+add-on -> model) maps by name and a type the other side does not know is refused by name.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+# What a table records of each type (dataset.json and model.json "types" entries).
+RECORD_KEYS = ("name", "catalog_index", "kind", "range_band", "depth_length_m")
+
+
+def _listing(names, limit: int = 12) -> str:
+    shown = ", ".join(names[:limit])
+    return shown + (f" ... ({len(names)} in all)" if len(names) > limit else "")
+
+
+@dataclass(frozen=True)
+class TypeTable:
+    """The types of one dataset or model; code i is ``records[i]``. ``owner`` names the holder
+    in messages ("model models/x", "dataset data/demo")."""
+
+    records: tuple
+    owner: str = "this table"
+
+    def __post_init__(self) -> None:
+        recs = tuple(dict(r) for r in self.records)
+        if not recs:
+            raise InputError(f"{self.owner} holds no types")
+        for r in recs:
+            missing = [k for k in ("name", "depth_length_m") if k not in r]
+            if missing:
+                raise InputError(f"{self.owner}: a type entry lacks {missing}: {r}")
+        seen: dict = {}
+        for r in recs:
+            key = str(r["name"]).lower()
+            if key in seen:
+                raise InputError(f"{self.owner} lists type {r['name']!r} twice")
+            seen[key] = len(seen)
+        object.__setattr__(self, "records", recs)
+        object.__setattr__(self, "_code", seen)
+
+    @classmethod
+    def from_records(cls, records, owner: str = "this table") -> TypeTable:
+        """From dataset.json / model.json ``types`` entries; entries with a ``code`` are put
+        in code order and the codes must be 0 .. n-1."""
+        recs = list(records)
+        if recs and all("code" in r for r in recs):
+            codes = sorted(int(r["code"]) for r in recs)
+            if codes != list(range(len(recs))):
+                raise InputError(f"{owner}: type codes must be 0 .. {len(recs) - 1}, got {codes}")
+            recs.sort(key=lambda r: int(r["code"]))
+        return cls(tuple({k: r[k] for k in RECORD_KEYS if k in r} for r in recs), owner)
+
+    @classmethod
+    def from_catalog_types(cls, types, owner: str = "this table") -> TypeTable:
+        """From catalog ``AircraftType`` objects (their order is the code order)."""
+        from .catalog import default_catalog
+        cat = default_catalog()
+        return cls(tuple({"name": t.name, "catalog_index": t.index, "kind": t.kind,
+                          "range_band": t.range_band,
+                          "depth_length_m": float(cat.depth_length_m(t.index))}
+                         for t in types), owner)
+
+    def to_records(self) -> list[dict]:
+        return [{"code": i, **r} for i, r in enumerate(self.records)]
+
+    # --- lookups ---------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.records)
+
+    @property
+    def names(self) -> list[str]:
+        return [r["name"] for r in self.records]
+
+    def __contains__(self, name) -> bool:
+        return isinstance(name, str) and name.lower() in self._code
+
+    def code(self, name: str) -> int:
+        """The code of type ``name`` (case-insensitive); refuses a type this table lacks."""
+        if not isinstance(name, str):
+            raise InputError(f"a type is given by its catalog name, got {name!r}; "
+                             f"{self.owner} knows: {_listing(self.names)}")
+        code = self._code.get(name.lower())
+        if code is None:
+            raise InputError(f"type {name!r} is not one {self.owner} knows; it knows: "
+                             f"{_listing(self.names)}")
+        return code
+
+    def codes(self, names) -> np.ndarray:
+        return np.array([self.code(n) for n in names], dtype=np.int64)
+
+    def name(self, code) -> str:
+        c = int(code)
+        if not 0 <= c < len(self.records):
+            raise InputError(f"type code {code!r} is not one of {self.owner}'s 0 .. "
+                             f"{len(self.records) - 1}")
+        return self.records[c]["name"]
+
+    def column(self, key: str) -> np.ndarray:
+        """One recorded value per code (e.g. ``depth_length_m``), as an array."""
+        return np.array([r[key] for r in self.records])
+
+    def is_near(self, codes) -> np.ndarray:
+        """Whether each code's type uses the near (drone) range band."""
+        near = np.array([r.get("range_band") == "near" for r in self.records])
+        return near[np.asarray(codes, dtype=np.int64)]
+
+    def translation(self, to: TypeTable) -> np.ndarray:
+        """code in self -> code in ``to``, by name; -1 where ``to`` lacks the type."""
+        return np.array([to._code.get(n.lower(), -1) for n in self.names], dtype=np.int64)
+
+    def recode(self, codes, to: TypeTable) -> np.ndarray:
+        """Codes of this table as codes of ``to`` (by name); refuses types ``to`` lacks,
+        naming them."""
+        codes = np.asarray(codes)
+        if codes.size and (np.any(codes != np.round(codes)) or codes.min() < 0
+                           or codes.max() >= len(self)):
+            raise InputError(f"type codes {np.unique(codes)[:8].tolist()} are not all codes "
+                             f"of {self.owner} (0 .. {len(self) - 1})")
+        codes = codes.astype(np.int64)
+        m = self.translation(to)
+        out = m[codes]
+        if (out < 0).any():
+            lacking = sorted({self.names[c] for c in codes[out < 0]})
+            raise InputError(f"{to.owner} was not trained on (or does not hold) type"
+                             f"{'s' if len(lacking) > 1 else ''} {_listing(lacking, 6)}; "
+                             f"it knows: {_listing(to.names)}")
+        return out
+
+
+@dataclass(frozen=True)
+class Conditions:
+    """Condition rows ``table`` (N, 6) [type code, r0 m, beta0, pitch, yaw, roll rad] whose
+    type codes are codes of ``types``."""
+
+    types: TypeTable
+    table: np.ndarray
+
+    def __post_init__(self) -> None:
+        t = np.atleast_2d(np.asarray(self.table, dtype=np.float64))
+        if t.ndim != 2 or t.shape[1] != 6:
+            raise InputError(f"a condition table has shape (N, 6), got {np.shape(self.table)}")
+        object.__setattr__(self, "table", t)
+
+    @classmethod
+    def from_names(cls, types: TypeTable, names, pose) -> Conditions:
+        """Rows for type ``names`` (one per row) and ``pose`` (N, 5) [r0 m, beta0, pitch,
+        yaw, roll rad], coded in ``types``."""
+        pose = np.atleast_2d(np.asarray(pose, dtype=np.float64))
+        names = [names] if isinstance(names, str) else list(names)
+        if pose.shape != (len(names), 5):
+            raise InputError(f"{len(names)} type names need a pose table of shape "
+                             f"({len(names)}, 5), got {pose.shape}")
+        return cls(types, np.column_stack([types.codes(names), pose]))
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+    def __getitem__(self, idx) -> Conditions:
+        return Conditions(self.types, self.table[idx])
+
+    @property
+    def codes(self) -> np.ndarray:
+        return self.table[:, 0].astype(np.int64)
+
+    @property
+    def names(self) -> list[str]:
+        names = self.types.names
+        return [names[c] for c in self.codes]
+
+    def recoded(self, to: TypeTable) -> np.ndarray:
+        """The table with its type codes mapped (by name) into ``to``."""
+        out = self.table.copy()
+        out[:, 0] = self.types.recode(self.table[:, 0], to)
+        return out
+
+    def to(self, to: TypeTable) -> Conditions:
+        return Conditions(to, self.recoded(to))
+
+
+__all__ = ["Conditions", "RECORD_KEYS", "TypeTable"]

@@ -1,0 +1,283 @@
+"""The evaluation protocol: the one way every command, figure and bench scores a model.
+
+* **Pairs.** The dataset's held-out (test) split is cut once, by sample id, into two halves
+  that never change: ``validation`` (where choices such as the Im2PC threshold tau are made)
+  and ``test`` (where scores are reported). Pairs are drawn from one half, stratified by
+  slant-range band (each band in proportion to its share, at least one), seeded; their number,
+  per band, is reported.
+* **Generation.** One generated cloud per pair, at the pair's condition (mapped into the
+  model's types by name), noise seeded by ``seed`` per chunk of :data:`CHUNK` pairs.
+* **Metrics** (SPEC section 9): MMD, JSD over :data:`JSD_BINS`^3 bins and Chamfer, each cloud
+  subsampled (seeded) to at most :data:`MAX_POINTS`; a pair with fewer than :data:`MIN_POINTS`
+  points on a side is counted (``low_points``; ``no_score`` when a side is empty) and not
+  averaged. Point counts: the generated / standard ratio per pair (median, 10th, 90th
+  percentile per band).
+* **Floor.** Per band, up to :data:`FLOOR_PER_BAND` standard clouds against their own copy
+  jittered inside each resolution cell: the best a generator can score.
+
+A report records the dataset, model, half, pairs per band, seed and every constant above, so
+that the same call reproduces it to the digit.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from apcg_core.errors import InputError, check_int
+from apcg_core.metrics import jsd, mmd
+from apcg_core.pointflow import chamfer_distance, pointflow_scores
+from apcg_core.postprocess import cell_jitter
+
+from .data import DepthDataset
+
+# JSD bins per axis, chosen by measurement (`evaluate.jsd_bins_study`: c = 6 separates a cloud's
+# cell-jittered copy from the same copy 5 m off best in every band; at the literature's 28 even
+# the jittered copy scores 0.42-0.98).
+JSD_BINS = 6
+MAX_POINTS = 2048
+MIN_POINTS = 8
+FLOOR_PER_BAND = 200
+POINTFLOW_PER_BAND = 64
+DEFAULT_PAIRS = 2000
+CHUNK = 512  # pairs generated at a time (bounds memory)
+HALVES = ("validation", "test")
+_HALF_SEED = 20251118  # fixes which held-out samples are validation; never change it
+TAUS = (-0.99, -0.98, -0.95, -0.9, -0.8, -0.6, -0.3, 0.0)
+BANDS_M = {"aircraft": (3000, 6000, 9000, 12000, 15000, 18000.001),
+           "drone": (100, 225, 350, 475, 600.001)}
+
+
+def band_of(range_m: float, near: bool) -> str:
+    """The slant-range band of a condition ("aircraft 3-6 km", "drone 100-225 m")."""
+    edges = BANDS_M["drone" if near else "aircraft"]
+    i = int(np.searchsorted(edges, range_m, side="right")) - 1
+    i = min(max(i, 0), len(edges) - 2)
+    unit, scale = ("m", 1) if near else ("km", 1e-3)
+    lo, hi = edges[i] * scale, round(edges[i + 1] * scale)
+    return f"{'drone' if near else 'aircraft'} {lo:g}-{hi:g} {unit}"
+
+
+def band_order(name: str) -> tuple:
+    kind, span, _unit = name.split(" ")
+    return (kind != "aircraft", float(span.split("-")[0]))
+
+
+def band_mean(bands: dict, key: str) -> float | None:
+    """Mean of one score over the bands that have it (None where no band does)."""
+    vals = [b[key] for b in bands.values() if b.get(key) is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def half_mask(ds: DepthDataset, half: str) -> np.ndarray:
+    """Which held-out samples belong to ``half`` ('validation' or 'test'): a fixed function of
+    the sample id, so both halves are the same for every model, seed and command."""
+    if half not in HALVES:
+        raise InputError(f"half must be one of {', '.join(HALVES)}, got {half!r}")
+    draw = np.random.default_rng(_HALF_SEED).random(int(ds.sample_id.max()) + 1)
+    in_validation = draw[ds.sample_id] < 0.5
+    return in_validation if half == "validation" else ~in_validation
+
+
+@dataclass
+class Pairs:
+    """Held-out samples drawn for scoring: dataset indices, their bands, how they were drawn."""
+
+    ds: DepthDataset
+    idx: np.ndarray
+    bands: list
+    half: str
+    seed: int
+    asked: int | None
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def record(self) -> dict:
+        names, counts = np.unique(self.bands, return_counts=True)
+        return {"dataset": str(self.ds.directory), "half": self.half, "seed": self.seed,
+                "pairs_asked": self.asked, "pairs": len(self.idx),
+                "pairs_per_band": {str(n): int(c) for n, c in zip(names, counts, strict=True)}}
+
+
+def draw_pairs(data, n_pairs: int | None = DEFAULT_PAIRS, seed: int = 0,
+               half: str = "test") -> Pairs:
+    """A seeded subset of one half of the held-out split, stratified by band (all of the half
+    when ``n_pairs`` is None or larger)."""
+    ds = data if isinstance(data, DepthDataset) else DepthDataset(data, "test")
+    if n_pairs is not None:
+        check_int("pairs", n_pairs, 1)
+    check_int("seed", seed, 0)
+    pool = np.flatnonzero(half_mask(ds, half))
+    if len(pool) == 0:
+        raise InputError(f"dataset {ds.directory} has no held-out samples in its {half} half")
+    near = ds.is_near(pool)
+    bands = np.array([band_of(r, bool(n)) for r, n in zip(ds.conditions[pool, 1], near,
+                                                           strict=True)])
+    if n_pairs is None or n_pairs >= len(pool):
+        picked = pool
+    else:
+        rng = np.random.default_rng(seed)
+        names, counts = np.unique(bands, return_counts=True)
+        share = np.maximum(1, np.round(counts / counts.sum() * n_pairs).astype(int))
+        picked = np.concatenate([rng.choice(pool[bands == b], min(k, c), replace=False)
+                                 for b, k, c in zip(names, share, counts, strict=True)])
+    picked = np.sort(picked)
+    near = ds.is_near(picked)
+    return Pairs(ds, picked, [band_of(r, bool(n)) for r, n in
+                              zip(ds.conditions[picked, 1], near, strict=True)],
+                 half, seed, n_pairs)
+
+
+def generate(model, pairs: Pairs) -> tuple[list[np.ndarray], float]:
+    """One generated cloud (n, 3) per pair, and the seconds generation took."""
+    t0 = time.perf_counter()
+    out: list[np.ndarray] = []
+    for s in range(0, len(pairs), CHUNK):
+        cond = pairs.ds.condition_rows(pairs.idx[s:s + CHUNK])
+        res = model.generate(cond, count=1, seed=pairs.seed + s)
+        out += [c.xyz for c in res.cloud.split(len(cond))]
+    return out, time.perf_counter() - t0
+
+
+def score_pair(std: np.ndarray, gen: np.ndarray, seed: int) -> dict:
+    return {"mmd": mmd(std, gen, max_points=MAX_POINTS, seed=seed),
+            "jsd": jsd(std, gen, bins=JSD_BINS, max_points=MAX_POINTS, seed=seed),
+            "chamfer_m2": chamfer_distance(std, gen, max_points=MAX_POINTS, seed=seed),
+            "n_standard": len(std), "n_generated": len(gen)}
+
+
+def _mean(vals) -> float | None:
+    vals = [v for v in vals if v is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def summarise(rows: list[dict]) -> dict:
+    """A band's scores from its pairs' rows (low-point pairs counted, not averaged)."""
+    ok = [r for r in rows if min(r["n_standard"], r["n_generated"]) >= MIN_POINTS]
+    ratio = [r["n_generated"] / r["n_standard"] for r in rows if r["n_standard"] > 0]
+    pct = (np.percentile(ratio, [10, 50, 90]).round(4).tolist() if ratio
+           else [None, None, None])
+    return {"pairs": len(rows), "scored": len(ok),
+            "no_score": sum(r["n_generated"] == 0 or r["n_standard"] == 0 for r in rows),
+            "low_points": sum(0 < min(r["n_standard"], r["n_generated"]) < MIN_POINTS
+                              for r in rows),
+            "mmd": _mean(r["mmd"] for r in ok), "jsd": _mean(r["jsd"] for r in ok),
+            "chamfer_m2": _mean(r["chamfer_m2"] for r in ok),
+            "points_standard": float(np.mean([r["n_standard"] for r in rows])),
+            "points_generated": float(np.mean([r["n_generated"] for r in rows])),
+            "points_ratio_p10_p50_p90": pct}
+
+
+def constants() -> dict:
+    return {"jsd_bins": JSD_BINS, "max_points": MAX_POINTS, "min_points": MIN_POINTS,
+            "floor_per_band": FLOOR_PER_BAND, "pointflow_per_band": POINTFLOW_PER_BAND,
+            "chunk": CHUNK}
+
+
+def score(model, pairs: Pairs, floor: bool = True, pointflow: bool = True,
+          progress: bool = False) -> dict:
+    """Scores of ``model`` on ``pairs``: per band, with the floor and the PointFlow set metrics
+    when asked, and a row per pair."""
+    t0 = time.perf_counter()
+    gen, t_gen = generate(model, pairs)
+    ds = pairs.ds
+    rows, stds, floor_rows = [], [], []
+    floor_count: dict = {}
+    for j, i in enumerate(pairs.idx):
+        std = ds.standard_cloud(int(i))
+        stds.append(std)
+        rows.append(score_pair(std, gen[j], pairs.seed + j))
+        band = pairs.bands[j]
+        if floor and floor_count.get(band, 0) < FLOOR_PER_BAND:
+            floor_count[band] = floor_count.get(band, 0) + 1
+            jit = cell_jitter(ds.sample_cloud(int(i)), ds.conditions[i, 2], ds.lidar,
+                              pairs.seed + j).xyz
+            floor_rows.append((band, score_pair(std, jit, pairs.seed + j)))
+        if progress and (j + 1) % 500 == 0:
+            print(f"scored {j + 1}/{len(pairs)} pairs", file=sys.stderr, flush=True)
+    bands = np.array(pairs.bands)
+    out_bands = {}
+    for name in sorted(set(pairs.bands), key=band_order):
+        sel = np.flatnonzero(bands == name)
+        entry = summarise([rows[k] for k in sel])
+        if floor:
+            entry["floor"] = summarise([r for b, r in floor_rows if b == name])
+        if pointflow:
+            pf = sel[:POINTFLOW_PER_BAND]
+            try:
+                entry["pointflow"] = pointflow_scores([gen[k] for k in pf],
+                                                      [stds[k] for k in pf], max_points=512,
+                                                      seed=pairs.seed).to_dict()
+            except InputError as exc:  # e.g. every generated cloud of the band empty
+                entry["pointflow"] = {"error": str(exc)}
+        out_bands[name] = entry
+    names = ds.types.names
+    return {"protocol": constants(), **pairs.record(), "model": str(model.directory),
+            "family": model.family, "tau": getattr(model, "tau", None), "bands": out_bands,
+            "mean": {k: band_mean(out_bands, k) for k in ("mmd", "jsd")},
+            "per_pair": [{"sample_id": int(ds.sample_id[i]), "type": names[int(
+                ds.conditions[i, 0])], "band": pairs.bands[j],
+                "range_m": float(ds.conditions[i, 1]), **rows[j]}
+                for j, i in enumerate(pairs.idx)],
+            "seconds": {"generate": round(t_gen, 2),
+                        "total": round(time.perf_counter() - t0, 2)}}
+
+
+def per_type(report: dict) -> dict:
+    """Mean MMD / JSD and pair counts per type name, from a report's pairs."""
+    out: dict = {}
+    for r in report["per_pair"]:
+        out.setdefault(r["type"], []).append(r)
+    return {name: {k: v for k, v in summarise(rows).items()
+                   if k in ("pairs", "scored", "mmd", "jsd", "points_standard",
+                            "points_generated")}
+            for name, rows in sorted(out.items())}
+
+
+def untrained(model, out_dir, seed: int = 0):
+    """The same network as ``model``, freshly initialised, from its family."""
+    from apcg_core.families import get_family
+    return get_family(model.family, need="untrained").untrained(model, out_dir, seed)
+
+
+def choose_tau(model, data, taus=TAUS, n_pairs: int = 400, seed: int = 0) -> dict:
+    """The Im2PC threshold with the lowest mean (over bands) MMD among those that leave at most
+    1% of the clouds empty, on the **validation** half only (same pairs and noise for every
+    threshold)."""
+    if getattr(model, "tau", None) is None:
+        raise InputError(f"{model.directory} is a {model.family} model, which has no Im2PC "
+                         "threshold to choose")
+    pairs = draw_pairs(data, n_pairs, seed, half="validation")
+    kept = model.tau
+    rows = {}
+    try:
+        for tau in taus:
+            if not (np.isfinite(tau) and -1.0 <= tau < 1.0):
+                raise InputError(f"tau = {tau!r} is out of range; accepted: -1 <= tau < 1")
+            model.tau = float(tau)
+            rep = score(model, pairs, floor=False, pointflow=False)
+            no_score = sum(b["no_score"] for b in rep["bands"].values())
+            ratios = [b["points_ratio_p10_p50_p90"][1] for b in rep["bands"].values()
+                      if b["points_ratio_p10_p50_p90"][1] is not None]
+            rows[f"{tau:g}"] = {"mmd": rep["mean"]["mmd"], "jsd": rep["mean"]["jsd"],
+                                "median_points_ratio": float(np.mean(ratios)) if ratios
+                                else None, "no_score": no_score}
+    finally:
+        model.tau = kept
+    allowed = [k for k, r in rows.items() if r["no_score"] <= 0.01 * len(pairs)
+               and r["mmd"] is not None]
+    if not allowed:
+        raise InputError(f"every threshold of {list(rows)} leaves more than 1% of the "
+                         "validation clouds empty; the model generates (almost) nothing")
+    best = min(allowed, key=lambda k: rows[k]["mmd"])
+    return {**pairs.record(), "protocol": constants(), "model": str(model.directory),
+            "taus": rows, "best": float(best)}
+
+
+__all__ = ["BANDS_M", "DEFAULT_PAIRS", "JSD_BINS", "MAX_POINTS", "MIN_POINTS", "Pairs",
+           "band_mean", "band_of", "band_order", "choose_tau", "draw_pairs", "generate",
+           "half_mask", "per_type", "score", "score_pair", "summarise", "untrained"]
