@@ -71,39 +71,42 @@ def add_pose_arguments(p: argparse.ArgumentParser, required: bool = True) -> Non
 
 def register_condition(sub) -> None:
     p = sub.add_parser("condition", help="show a condition's vector nu, q and frames",
-                       description="Encode one condition as the cGAN's vector nu and show the "
-                                   "reference range, q and the target centre in each frame.")
-    which = p.add_mutually_exclusive_group(required=True)
-    which.add_argument("--type", help="catalog type name or index: nu codes it among all "
-                                      "catalog types, with the type's own range band")
-    which.add_argument("--type-index", type=int, help="a type code among --n-types types")
-    p.add_argument("--n-types", type=int, default=80, help="with --type-index: number of types")
-    p.add_argument("--drone", action="store_true",
-                   help="with --type-index: the type is a drone (range 100-600 m)")
+                       description="Encode one condition as a model's vector nu (its type "
+                                   "code is the type's place in that model's own type table) "
+                                   "and show the reference range, q and the target centre in "
+                                   "each frame.")
+    p.add_argument("--type", required=True,
+                   help="catalog type name (or catalog index) the model knows")
+    p.add_argument("--model", metavar="DIR",
+                   help="model directory whose types and ranges code nu (default: the "
+                        "shipped default model)")
     add_pose_arguments(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=_run_condition)
 
 
 def _run_condition(args) -> int:
-    from .condition import Condition, ConditionSpace
+    from .condition import Condition
+    from .families import read_model_meta
     from .frames import observation_to_blender, target_centre
+    from .generation import ModelTypes, default_model_dir
+    from .lidar import DEG
 
-    if args.type is not None:
-        from .catalog.catalog import default_catalog
-        cat = default_catalog()
-        t = cat.get(int(args.type) if args.type.isdigit() else args.type)
-        space = cat.condition_space()
-        code = [u.index for u in cat.types].index(t.index)
-    else:
-        code = args.type_index
-        space = ConditionSpace(n_types=args.n_types,
-                               drone_types=(code,) if args.drone else ())
-    cond = Condition.from_degrees(code, args.range_m, args.elevation_deg,
-                                  args.pitch_deg, args.yaw_deg, args.roll_deg)
-    centre = target_centre(cond.range_m, cond.elevation)
-    out = {"condition": cond.to_degrees(), "nu": space.encode(cond).round(6).tolist(),
-           "reference_range_m": cond.reference_range_m, "q": cond.q,
+    class _Types(ModelTypes):  # a model's type table and ranges, without loading its network
+        def __init__(self, directory) -> None:
+            self._read_model_json(directory)
+
+    read_model_meta(args.model or default_model_dir())
+    model = _Types(args.model)
+    cond = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
+                           args.pitch_deg * DEG, args.yaw_deg * DEG, args.roll_deg * DEG)
+    one = Condition.from_array(cond.table[0])
+    centre = target_centre(one.range_m, one.elevation)
+    out = {"type": cond.names[0], "model": str(model.directory),
+           "type_code": f"{int(cond.table[0, 0])} of {len(model.types)}",
+           "condition": {k: v for k, v in one.to_degrees().items() if k != "type_index"},
+           "nu": model.space.encode(cond.table).round(6)[0].tolist(),
+           "reference_range_m": one.reference_range_m, "q": one.q,
            "centre_observation_m": centre.round(6).tolist(),
            "centre_blender_lidar_local_m": observation_to_blender(centre).round(6).tolist()}
     print_mapping(out, args.json, key_width=30)

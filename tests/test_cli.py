@@ -23,14 +23,16 @@ def test_version_and_help():
     assert h.returncode == 0 and "condition" in h.stdout
 
 
-def test_condition_json():
-    out = run("condition", "--type-index", "79", "--drone", "--range-m", "600",
+def test_condition_json_codes_the_type_in_the_model_table():
+    from apcg_core.generation import load_model
+    last = load_model(runtime="onnx").types.names[-1]  # the default model's last type
+    out = run("condition", "--type", last, "--range-m", "18000",
               "--elevation-deg", "4", "--pitch-deg", "5", "--yaw-deg", "60", "--roll-deg", "5",
               "--json")
     assert out.returncode == 0, out.stderr
     d = json.loads(out.stdout)
-    assert d["nu"] == [1, 1, 1, 1, 1, 1]
-    assert d["reference_range_m"] == 100.0 and d["q"] == pytest.approx(6.0)
+    assert d["nu"] == [1, 1, 1, 1, 1, 1] and d["type"] == last
+    assert d["reference_range_m"] == 3000.0 and d["q"] == pytest.approx(6.0)
     y, z = d["centre_observation_m"][1:]
     assert d["centre_blender_lidar_local_m"] == [0.0, z, y]
 
@@ -41,7 +43,7 @@ def test_condition_json():
     (["--elevation-deg", "3.5", "--pitch-deg", "2", "--yaw-deg", "70"], "yaw = 70 deg is outside"),
 ])
 def test_condition_errors_are_clear(args, needle):
-    out = run("condition", "--type-index", "0", "--range-m", "5000", *args)
+    out = run("condition", "--type", "A320neo", "--range-m", "5000", *args)
     assert out.returncode == 2
     assert needle in out.stderr and "Traceback" not in out.stderr
 

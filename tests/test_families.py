@@ -3,12 +3,13 @@ beats its own untrained network on MMD and JSD against the held-out standard clo
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from training.baselines.model import load_any
+from apcg_core.generation import load_model as load_any
+from training import protocol
 from training.data import DepthDataset
 from training.export import export_model
-from training.quick_eval import band_mean, evaluate, untrained_like
 from training.trainer import Trainer, config_from
 
 
@@ -17,8 +18,11 @@ def data(tiny_training_data) -> Path:
     return tiny_training_data
 
 
-def _means(report: dict) -> tuple[float, float]:
-    return band_mean(report, "mmd"), band_mean(report, "jsd")
+def _means(model, data) -> tuple[float, float]:
+    """Mean MMD and JSD over both halves of the tiny held-out split (the protocol's scores)."""
+    means = [protocol.score(model, protocol.draw_pairs(data, None, 0, half), floor=False,
+                            pointflow=False)["mean"] for half in protocol.HALVES]
+    return tuple(float(np.mean([m[k] for m in means])) for k in ("mmd", "jsd"))
 
 
 @pytest.mark.parametrize("family,steps,extra", [
@@ -31,9 +35,8 @@ def test_family_beats_its_untrained_network(data, tmp_path, family, steps, extra
                       log_every=100, **extra)
     Trainer(data, tmp_path / "run", cfg, progress=False).fit()
     model = load_any(export_model(tmp_path / "run", tmp_path / "m"))
-    fresh = untrained_like(model, tmp_path / "u")
-    ds = DepthDataset(data, "test")
-    trained, untrained = _means(evaluate(model, ds, 200)), _means(evaluate(fresh, ds, 200))
+    fresh = protocol.untrained(model, tmp_path / "u")
+    trained, untrained = _means(model, data), _means(fresh, data)
     assert trained[0] < untrained[0], (family, "MMD", trained, untrained)
     assert trained[1] < untrained[1], (family, "JSD", trained, untrained)
 
@@ -58,7 +61,6 @@ def test_diffusion_sampling_stays_bounded_when_the_noise_prediction_is_wrong():
 def test_generation_refuses_non_finite_points_rather_than_dropping_them(data, tmp_path):
     """Points that are NaN fall in no lidar cell: kept silent, they would shrink (or empty) the
     cloud; generation must stop and name the condition instead."""
-    import numpy as np
     import torch
 
     cfg = config_from("tiny", steps=1, seed=1, family="point-gan", checkpoint_every=10**6,
@@ -66,14 +68,14 @@ def test_generation_refuses_non_finite_points_rather_than_dropping_them(data, tm
     Trainer(data, tmp_path / "run", cfg, progress=False).fit()
     model = load_any(export_model(tmp_path / "run", tmp_path / "m"))
     ds = DepthDataset(data, "test")
-    table = ds.conditions[:2]
+    table = ds.condition_rows(np.arange(2))
     assert len(model.generate(table).cloud.xyz) > 0  # the healthy network generates
     with torch.no_grad():
         for p in model.net.parameters():
             p.fill_(float("nan"))
     with pytest.raises(RuntimeError, match="32 non-finite points") as err:
         model.generate(table)
-    assert str(np.asarray(table[0], float).tolist()) in str(err.value)
+    assert str(np.asarray(table.table[0], float).tolist()) in str(err.value)
     assert "(sample 0)" in str(err.value)
 
 
@@ -90,7 +92,7 @@ def test_diffusion_sampling_steps_are_chosen_at_export_and_checked(data, tmp_pat
     assert json.loads((tmp_path / "full" / "model.json").read_text())["sampling_steps"] == 50
     assert json.loads((tmp_path / "fast" / "model.json").read_text())["sampling_steps"] == 5
     assert (full.sampling_steps, fast.sampling_steps) == (50, 5)
-    table = DepthDataset(data, "test").conditions[:3]
+    table = DepthDataset(data, "test").condition_rows(np.arange(3))
     a, b = fast.generate(table, seed=3).cloud, fast.generate(table, seed=3).cloud
     assert len(a.xyz) > 0 and (a.xyz == b.xyz).all()  # seeded: the same clouds again
     # the 5-step sampler is a different sampler: its clouds differ from the 50-step ones
@@ -102,7 +104,8 @@ def test_diffusion_sampling_steps_are_chosen_at_export_and_checked(data, tmp_pat
     pg = config_from("tiny", steps=1, seed=1, family="point-gan", checkpoint_every=10**6,
                      log_every=100, n_points=32)
     Trainer(data, tmp_path / "pg", pg, progress=False).fit()
-    with pytest.raises(InputError, match="diffusion family only"):
+    with pytest.raises(InputError, match="the point-gan family does not sample on a "
+                                         "schedule"):
         export_model(tmp_path / "pg", tmp_path / "pgm", sampling_steps=5)
     assert not (tmp_path / "bad").exists() and not (tmp_path / "pgm").exists()
 
@@ -123,9 +126,9 @@ def test_apcg_generate_runs_a_comparison_family_model(data, tmp_path, capsys):
     Trainer(data, tmp_path / "run", cfg, progress=False).fit()
     mdir = export_model(tmp_path / "run", tmp_path / "m")
     assert type(load_model(mdir)).__name__ == "BaselineModel"
-    code, r0, beta0, pitch, yaw, roll = DepthDataset(data, "test").conditions[0]
-    t = next(t for t in load_model(mdir).types if t["code"] == int(code))
-    pose = ["--type", str(t["catalog_index"]), "--range-m", str(r0), "--count", "2"]
+    ds = DepthDataset(data, "test")
+    code, r0, beta0, pitch, yaw, roll = ds.conditions[0]
+    pose = ["--type", ds.types.name(code), "--range-m", str(r0), "--count", "2"]
     for name, v in zip(("elevation", "pitch", "yaw", "roll"), (beta0, pitch, yaw, roll),
                        strict=True):
         pose += [f"--{name}-deg", str(math.degrees(v))]
@@ -137,11 +140,11 @@ def test_apcg_generate_runs_a_comparison_family_model(data, tmp_path, capsys):
     capsys.readouterr()
     assert main(["generate", "--model", str(mdir), *pose, "--tau", "-0.5", "-o",
                  str(tmp_path / "t.npz")]) == 2
-    assert "--tau is the cGAN's Im2PC threshold" in capsys.readouterr().err
+    assert "--tau is an Im2PC threshold" in capsys.readouterr().err
     meta_path = mdir / "model.json"
     meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "family": "gizmo"}))
-    with pytest.raises(InputError, match="a 'gizmo' model.*registered: diffusion, point-gan, "
-                                         "voxel-gan"):
+    with pytest.raises(InputError, match="unknown model family 'gizmo'; installed: cgan, "
+                                         "diffusion, point-gan, voxel-gan"):
         load_model(mdir)
 
 
@@ -151,7 +154,7 @@ def test_apcg_train_sizes_a_family_from_the_command_line(data, tmp_path, capsys)
     from apcg_core.cli import main
 
     run = tmp_path / "run"
-    assert main(["train", "--data", str(data), "-o", str(run), "--preset", "tiny", "--model",
+    assert main(["train", "--data", str(data), "-o", str(run), "--preset", "tiny", "--family",
                  "point-gan", "--n-points", "48", "--steps", "1", "--no-progress"]) == 0
     train = json.loads((run / "train_config.json").read_text())["train"]
     assert train["family"] == "point-gan" and train["n_points"] == 48
@@ -160,12 +163,20 @@ def test_apcg_train_sizes_a_family_from_the_command_line(data, tmp_path, capsys)
     assert model.canonical(model.space.encode(DepthDataset(data, "test").conditions[:2]), 0,
                            [10, 10])[0].shape == (48, 3)
     for argv, message in (
-            (["--model", "voxel-gan", "--voxel-res", "24"], "voxel_res must be 4 * 2^k"),
-            (["--model", "diffusion", "--diffusion-steps", "0"], "diffusion_steps must be an "
-                                                                   "integer >= 1, got 0"),
-            (["--n-points", "64"], "--n-points size a comparison family")):
+            (["--family", "voxel-gan", "--voxel-res", "24"], "voxel_res must be 4 * 2^k"),
+            (["--family", "diffusion", "--diffusion-steps", "0"], "diffusion_steps must be an "
+                                                                    "integer >= 1, got 0"),
+            (["--n-points", "64"], "--n-points does not apply to the cgan family; it sizes "
+                                   "diffusion, point-gan (--family)"),
+            (["--family", "point-gan", "--voxel-res", "16"], "--voxel-res does not apply to "
+                                                             "the point-gan family; it sizes "
+                                                             "voxel-gan")):
         capsys.readouterr()
         assert main(["train", "--data", str(data), "-o", str(tmp_path / "bad"), "--preset",
                      "tiny", "--steps", "1", "--no-progress", *argv]) == 2
         assert message in capsys.readouterr().err
         assert not (tmp_path / "bad").exists()  # refused before anything is written
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:  # --model means a model directory, never a family
+        main(["train", "--data", str(data), "-o", str(tmp_path / "bad"), "--model", "point-gan"])
+    assert exit_.value.code == 2 and "unrecognized arguments: --model" in capsys.readouterr().err

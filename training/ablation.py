@@ -118,7 +118,8 @@ def markdown(report: dict) -> str:
              f"{_f(floor, 1)}. Train s: logged training time on this machine (the budget is "
              f"the steps; the seconds show what each variant costs).", "",
              "tau: the Im2PC threshold, chosen per variant on the validation half (lowest "
-             "MMD; `apcg choose-tau`). In brackets: the same network untrained, at the same tau.", "",
+             "MMD; `apcg choose-tau`). In brackets: the same network untrained, at the same "
+             "tau.", "",
              "| TConv | self-attention | Wasserstein | Norm | FD-depth | tau | MMD | JSD | "
              "train s |",
              "|---|---|---|---|---|---|---|---|---|"]

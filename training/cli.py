@@ -8,12 +8,13 @@ import sys
 
 
 def register_train(sub) -> None:
-    p = sub.add_parser("train", help="train the cGAN (WGAN-GP) on a dataset",
-                       description="Train the improved cGAN on a dataset built by `apcg dataset "
-                                   "build`. Checkpoints to RUN/checkpoint.pt; --resume continues "
-                                   "exactly. Logs: RUN/log.csv and RUN/tensorboard. For several "
-                                   "processes: torchrun --nproc_per_node N -m apcg_core.cli "
-                                   "train ...")
+    from apcg_core.families import family_names
+    p = sub.add_parser("train", help="train a model family (default: the cGAN) on a dataset",
+                       description="Train a model family (--family; default the improved cGAN) "
+                                   "on a dataset built by `apcg dataset build`. Checkpoints to "
+                                   "RUN/checkpoint.pt; --resume continues exactly. Logs: "
+                                   "RUN/log.csv and RUN/tensorboard. For several processes: "
+                                   "torchrun --nproc_per_node N -m apcg_core.cli train ...")
     p.add_argument("--data", required=True, help="dataset directory")
     p.add_argument("-o", "--output", required=True, help="run directory")
     p.add_argument("--preset", default="cpu", choices=["paper", "cpu", "tiny"],
@@ -29,16 +30,17 @@ def register_train(sub) -> None:
     p.add_argument("--no-conv", action="store_true", help="ablation: fully connected layers")
     p.add_argument("--no-attention", action="store_true", help="ablation: no self-attention")
     p.add_argument("--bce", action="store_true", help="ablation: BCE loss, no Wasserstein/GP")
-    p.add_argument("--model", dest="family", default="cgan",
-                   choices=["cgan", "point-gan", "voxel-gan", "diffusion"],
-                   help="what to train: the paper's cGAN (default) or a comparison family")
+    p.add_argument("--family", choices=family_names(), default=None,
+                   help="the model family to train: the paper's cgan (default) or a "
+                        "comparison family (a resumed run keeps its own)")
+    # Sizes some families take (a family's train_options() says which; others refuse them):
     p.add_argument("--n-points", type=int, metavar="N",
-                   help="point-gan / diffusion: points per generated set (default 256; the "
-                        "lidar's nearest clouds have more, see the README)")
+                   help="points per generated set (default 256; the lidar's nearest clouds "
+                        "have more, see the README)")
     p.add_argument("--voxel-res", type=int, metavar="R",
-                   help="voxel-gan: occupancy grid resolution, 4 * 2^k (default 32)")
+                   help="occupancy grid resolution, 4 * 2^k (default 32)")
     p.add_argument("--diffusion-steps", type=int, metavar="T",
-                   help="diffusion: steps of the DDPM schedule (default 200)")
+                   help="steps of the DDPM schedule (default 200)")
     p.add_argument("--no-norm", action="store_true",
                    help="train on depth images without Norm (the paper's 'APCG w/o Norm.')")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
@@ -74,14 +76,8 @@ def _run_train(args) -> int:
         over["loss"] = "bce"
     if args.no_norm:
         over["norm"] = False
-    if args.family != "cgan":
-        over["family"] = args.family
-    given = [f"--{k.replace('_', '-')}" for k in ("n_points", "voxel_res", "diffusion_steps")
-             if over[k] is not None]
-    if given and args.family == "cgan":
-        from apcg_core.errors import InputError
-        raise InputError(f"{', '.join(given)} size a comparison family; add --model "
-                         "point-gan, voxel-gan or diffusion")
+    over["family"] = args.family
+    saved = None
     if args.resume:
         from pathlib import Path
 
@@ -89,14 +85,15 @@ def _run_train(args) -> int:
         ck = Path(args.output) / "checkpoint.pt"
         if ck.exists():  # a resumed run keeps its own configuration
             saved = torch.load(ck, map_location="cpu", weights_only=False)["train"]
-            saved.update({k: v for k, v in over.items() if v is not None and k in
-                          ("steps", "epochs", "checkpoint_every", "threads", "keep_every",
-                           "diverge_gp", "ema", "hours")})
-            from .trainer import TrainConfig
-            saved["betas"] = tuple(saved["betas"])
-            cfg = TrainConfig(**saved)
-        else:
-            cfg = config_from(args.preset, **over)
+    family = (saved.get("family", "cgan") if saved is not None  # the run's own, on resume
+              else args.family or "cgan")
+    _check_family_options(family, args.family, over)
+    if saved is not None:
+        saved.update({k: v for k, v in over.items() if v is not None and k in
+                      ("steps", "epochs", "checkpoint_every", "threads", "keep_every",
+                       "diverge_gp", "ema", "hours")})
+        from .trainer import TrainConfig
+        cfg = TrainConfig.from_dict(saved)
     else:
         cfg = config_from(args.preset, **over)
     trainer = Trainer(args.data, args.output, cfg, resume=args.resume,
@@ -120,10 +117,36 @@ def _run_train(args) -> int:
     return 0
 
 
+def _check_family_options(family: str, asked: str | None, over: dict) -> None:
+    """Refuse a family-specific size the family does not take (naming those that do), and a
+    --family that is not the resumed run's."""
+    from apcg_core.errors import InputError
+    from apcg_core.families import family_names, get_family
+
+    from .trainer import size_defaults
+    if asked is not None and asked != family:
+        raise InputError(f"--family {asked}: the run being resumed is a {family} run")
+    takes = get_family(family, need="train_options").train_options()
+    for name in size_defaults():
+        if over.get(name) is None or name in takes:
+            continue
+        others = []
+        for other in family_names():
+            try:
+                if name in get_family(other, need="train_options").train_options():
+                    others.append(other)
+            except InputError:  # a family that cannot train here takes nothing here
+                pass
+        raise InputError(f"--{name.replace('_', '-')} does not apply to the {family} family; "
+                         f"it sizes {', '.join(others) or 'no installed family'} (--family)")
+
+
 def register_export(sub) -> None:
-    p = sub.add_parser("export", help="export a training run as a model (ONNX + model.json)",
-                       description="Writes model.json and generator.onnx (with the run's "
-                                   "config and log beside them) for `apcg generate --model`.")
+    p = sub.add_parser("export", help="export a training run as a model directory",
+                       description="Writes a model directory for `apcg generate --model`: "
+                                   "model.json and what the run's family stores (the cGAN: "
+                                   "generator.onnx), with the run's config and log beside "
+                                   "them.")
     p.add_argument("--run", required=True, help="training run directory")
     p.add_argument("-o", "--output", required=True, help="model directory")
     p.add_argument("--tau", type=float, default=None, help="Im2PC threshold to record")
@@ -131,8 +154,9 @@ def register_export(sub) -> None:
     p.add_argument("--raw", action="store_true",
                    help="export the generator's raw weights, not their moving average")
     p.add_argument("--sampling-steps", type=int, metavar="N",
-                   help="diffusion only: sample on N evenly spaced steps of the schedule "
-                        "(default: all of them; fewer is faster and coarser)")
+                   help="families that sample on a schedule (diffusion): sample on N evenly "
+                        "spaced steps of it (default: all of them; fewer is faster and "
+                        "coarser); the others refuse it")
     p.set_defaults(func=_run_export)
 
 
@@ -147,25 +171,48 @@ def _run_export(args) -> int:
     return 0
 
 
+def add_model_argument(p, many: bool = False) -> None:
+    """``--model DIR``: a model directory, whatever its family (model.json says which)."""
+    if many:
+        p.add_argument("--model", action="append", required=True, metavar="DIR",
+                       help="a model directory (repeatable); the method's name is the "
+                            "directory's name")
+    else:
+        p.add_argument("--model", metavar="DIR",
+                       help="model directory, any family (default: the shipped default model)")
+
+
+def add_protocol_arguments(p, pairs: bool = True) -> None:
+    """The evaluation protocol's choices a user may make (training/protocol.py fixes the rest)."""
+    from .protocol import DEFAULT_PAIRS
+    if pairs:
+        p.add_argument("--pairs", type=int, default=DEFAULT_PAIRS,
+                       help="held-out pairs, stratified by band (0: the whole half); default "
+                            f"{DEFAULT_PAIRS}")
+    p.add_argument("--seed", type=int, default=0, help="pair draw and noise seed (default 0)")
+
+
+def add_runtime_argument(p) -> None:
+    from apcg_core.generation import RUNTIMES
+    p.add_argument("--runtime", choices=RUNTIMES, default="auto",
+                   help="cGAN inference: auto (torch when installed, else onnxruntime), "
+                        "onnx, torch; the same images either way")
+
+
 def register_evaluate(sub) -> None:
     p = sub.add_parser("evaluate", help="score a model against the simulator per range band",
-                       description="Held-out test conditions: APCG clouds against the "
+                       description="Held-out test conditions: a model's clouds against the "
                                    "standard clouds, MMD / JSD / Chamfer per slant-range band "
-                                   "beside the cell-jitter floor; writes metrics.json, "
-                                   "report.md and fig17.png.")
-    p.add_argument("--model", help="model directory (default: the shipped default model)")
+                                   "and per type beside the cell-jitter floor, by the one "
+                                   "evaluation protocol (training/protocol.py); writes "
+                                   "metrics.json, report.md and fig17.png.")
+    add_model_argument(p)
     p.add_argument("--data", required=True, help="dataset directory (its test split is used)")
     p.add_argument("-o", "--output", required=True, help="report directory")
-    p.add_argument("--pairs", type=int, default=2000,
-                   help="stratified subset of the test split (0: all); default 2000")
-    p.add_argument("--bins", type=int, default=6,
-                   help="JSD bins per axis (default 6, chosen by --jsd-bins-study)")
+    add_protocol_arguments(p)
+    add_runtime_argument(p)
     p.add_argument("--jsd-bins-study", action="store_true",
                    help="instead: measure which bin count separates good from wrong clouds")
-    p.add_argument("--min-points", type=int, default=8,
-                   help="flag, not average, pairs with fewer points (default 8)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="onnx")
     p.add_argument("--with-untrained", action="store_true",
                    help="also score a freshly initialised copy of the network")
     p.set_defaults(func=_run_evaluate)
@@ -174,36 +221,77 @@ def register_evaluate(sub) -> None:
 def _run_evaluate(args) -> int:
     from pathlib import Path
 
-    from .baselines.model import load_any
+    from apcg_core.generation import load_model
+
     from .evaluate import evaluate, jsd_bins_study, markdown, write_report
-    model = load_any(args.model, runtime=args.runtime)
+    model = load_model(args.model, runtime=args.runtime)
+    command = "apcg evaluate " + " ".join(sys.argv[2:])
     if args.jsd_bins_study:
         study = jsd_bins_study(model, args.data, seed=args.seed)
-        study["command"] = "apcg evaluate " + " ".join(sys.argv[2:])
+        study["command"] = command
         out = Path(args.output)
         out.mkdir(parents=True, exist_ok=True)
         (out / "jsd_bins.json").write_text(json.dumps(study, indent=1) + "\n")
         print(json.dumps({"best": study["best"], "min_gap": study["min_gap"]}))
         return 0
     report = evaluate(model, args.data, n_pairs=args.pairs or None, seed=args.seed,
-                      bins=args.bins, min_points=args.min_points, progress=True)
-    if args.with_untrained:
-        import tempfile
-
-        from .quick_eval import untrained_like
-        with tempfile.TemporaryDirectory() as tmp:
-            fresh = evaluate(untrained_like(model, Path(tmp)), args.data,
-                             n_pairs=args.pairs or None, seed=args.seed, bins=args.bins,
-                             min_points=args.min_points)
-        for name, b in report["bands"].items():
-            u = fresh["bands"][name]
-            b["untrained"] = {k: u[k] for k in ("mmd", "jsd", "chamfer_m2", "points_generated",
-                                                "no_score")}
-    report["model"] = str(model.directory)
-    report["command"] = "apcg evaluate " + " ".join(sys.argv[2:])
+                      with_untrained=args.with_untrained, progress=True)
+    report["command"] = command
     out = write_report(report, args.output)
     print(markdown(report))
     print(f"wrote {out}/metrics.json, report.md, fig17.png")
+    return 0
+
+
+def register_choose_tau(sub) -> None:
+    p = sub.add_parser("choose-tau", help="choose a cGAN model's Im2PC threshold on the "
+                                          "validation half",
+                       description="Scores the model at several Im2PC thresholds tau on the "
+                                   "validation half of the dataset's held-out split (never "
+                                   "the half that `apcg evaluate` reports on) and picks the "
+                                   "lowest mean MMD that leaves at most 1% of clouds empty. "
+                                   "--apply writes it into the model's model.json.")
+    add_model_argument(p)
+    p.add_argument("--data", required=True, help="dataset directory")
+    p.add_argument("--taus", help="comma-separated thresholds (default: "
+                                  "-0.99,-0.98,-0.95,-0.9,-0.8,-0.6,-0.3,0)")
+    add_protocol_arguments(p, pairs=False)
+    p.add_argument("--pairs", type=int, default=400, help="validation pairs (default 400)")
+    add_runtime_argument(p)
+    p.add_argument("--apply", action="store_true",
+                   help="write the chosen tau into the model's model.json")
+    p.add_argument("-o", "--output", help="also write the sweep as JSON here")
+    p.set_defaults(func=_run_choose_tau)
+
+
+def _run_choose_tau(args) -> int:
+    from pathlib import Path
+
+    from apcg_core.errors import InputError
+    from apcg_core.generation import default_model_dir, load_model
+    from apcg_core.io.dataset import json_bytes, write_atomic
+
+    from .protocol import TAUS, choose_tau
+    taus = TAUS
+    if args.taus:
+        try:
+            taus = tuple(float(t) for t in args.taus.split(","))
+        except ValueError as exc:
+            raise InputError(f"--taus takes comma-separated numbers, got {args.taus!r}") from exc
+    model = load_model(args.model, runtime=args.runtime)
+    rep = choose_tau(model, args.data, taus=taus, n_pairs=args.pairs, seed=args.seed)
+    rep["command"] = "apcg choose-tau " + " ".join(sys.argv[2:])
+    text = json.dumps(rep, indent=1)
+    print(text)
+    if args.output:
+        write_atomic(Path(args.output), (text + "\n").encode())
+    if args.apply:
+        if Path(model.directory).resolve() == default_model_dir().resolve():
+            raise InputError("--apply would change the shipped default model; export a copy "
+                             "(or copy its directory) and apply it there")
+        meta = dict(model.meta, tau=rep["best"], tau_choice=rep)
+        write_atomic(Path(model.directory) / "model.json", json_bytes(meta))
+        print(f"wrote tau {rep['best']:g} into {model.directory}/model.json", file=sys.stderr)
     return 0
 
 
@@ -252,8 +340,8 @@ def _run_figure(args) -> int:
         fig14(runs, args.data, args.output, n_pairs=args.pairs, tau=args.tau,
               max_checkpoints=args.max_checkpoints)
     else:
-        from .baselines.model import load_any
-        model = load_any(args.model, runtime="onnx")
+        from apcg_core.generation import load_model
+        model = load_model(args.model)
         if args.number == 18:
             fig18(model, args.output)
         else:
@@ -293,10 +381,10 @@ def _run_fd_train(args) -> int:
 
 
 def _run_fd_score(args) -> int:
-    from apcg_core.generation import APCGModel
+    from apcg_core.generation import load_model
 
     from .fd_depth import fd_depth
-    print(json.dumps(fd_depth(args.encoder, APCGModel(args.model, runtime="onnx"), args.data,
+    print(json.dumps(fd_depth(args.encoder, load_model(args.model), args.data,
                               n_pairs=args.pairs, seed=args.seed)))
     return 0
 
@@ -333,28 +421,30 @@ def _run_ablation(args) -> int:
 def register_compare(sub) -> None:
     p = sub.add_parser("compare", help="every method side by side: budget, memory, speed, "
                                        "MMD / JSD per band",
-                       description="Scores each model on the same held-out pairs beside its "
-                                   "untrained network, measures its training memory in a fresh "
-                                   "process and its generation time; writes compare.json, "
-                                   "compare.md and compare.png.")
+                       description="Scores each model on the same held-out pairs (the one "
+                                   "evaluation protocol) beside its untrained network, "
+                                   "measures its training memory in a fresh process and its "
+                                   "generation time; writes compare.json, compare.md and "
+                                   "compare.png.")
     p.add_argument("--data", required=True, help="dataset directory (its test split is used)")
     p.add_argument("-o", "--output", required=True, help="report directory")
-    p.add_argument("--model", action="append", required=True, metavar="NAME=DIR",
-                   help="a method to compare (repeatable), e.g. cgan=apcg_core/models/default")
-    p.add_argument("--pairs", type=int, default=1000, help="held-out pairs (default 1000)")
+    add_model_argument(p, many=True)
+    add_protocol_arguments(p)
+    add_runtime_argument(p)
     p.add_argument("--memory-steps", type=int, default=5,
                    help="training steps timed for the memory peak (0: skip)")
     p.add_argument("--no-untrained", action="store_true",
                    help="skip the untrained networks")
-    p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_run_compare)
 
 
 def _run_compare(args) -> int:
-    from .baselines.model import load_any
-    from .compare import compare, markdown, parse_models, write
-    models = [(name, load_any(path)) for name, path in parse_models(args.model)]
-    report = compare(models, args.data, n_pairs=args.pairs, seed=args.seed,
+    from apcg_core.generation import load_model
+
+    from .compare import compare, markdown, method_names, write
+    models = [(name, load_model(path, runtime=args.runtime))
+              for name, path in method_names(args.model)]
+    report = compare(models, args.data, n_pairs=args.pairs or None, seed=args.seed,
                      memory_steps=args.memory_steps, with_untrained=not args.no_untrained,
                      progress=True)
     report["command"] = "apcg compare " + " ".join(sys.argv[2:])

@@ -29,9 +29,9 @@ MEMORY_CHILD = """
 import json, resource, sys, time, torch
 from training.trainer import Trainer, TrainConfig
 spec = json.loads(sys.argv[1])
-spec["betas"] = tuple(spec["betas"])
 n = int(sys.argv[4])
-cfg = TrainConfig(**{**spec, "steps": n + 1, "checkpoint_every": 10**9, "keep_every": 0})
+cfg = TrainConfig.from_dict({**spec, "steps": n + 1, "checkpoint_every": 10**9,
+                             "keep_every": 0})
 tr = Trainer(sys.argv[2], sys.argv[3], cfg, progress=False)
 tr.train_step()  # warm-up
 t0 = time.perf_counter()

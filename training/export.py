@@ -1,4 +1,5 @@
-"""A training run's checkpoint -> a model directory (model.json + generator.onnx)."""
+"""A training run's checkpoint -> a model directory (model.json + what its family stores:
+generator.onnx for the cGAN, weights.pt + counts.npz for the comparison families)."""
 
 from __future__ import annotations
 
@@ -8,19 +9,22 @@ import shutil
 import warnings
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from apcg_core.depth import TAU_DEFAULT
 from apcg_core.errors import InputError
+from apcg_core.families import get_family
 from apcg_core.io.dataset import read_header
-from apcg_core.nn import Generator, NetConfig
+from apcg_core.nn import Generator
+from apcg_core.nn.models import COND_DIM, NOISE_DIM
+
+from .data import DepthDataset
 
 
 def export_onnx(g: Generator, path: Path) -> None:
     g = g.eval()
-    z = torch.zeros(2, 100)
-    nu = torch.zeros(2, 6)
+    z = torch.zeros(2, NOISE_DIM)
+    nu = torch.zeros(2, COND_DIM)
     tmp = path.with_name(path.name + ".part")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -36,52 +40,33 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
                  checkpoint=None, raw: bool = False, sampling_steps: int | None = None) -> Path:
     """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest.
     The generator's moving average is exported when the run kept one, the raw weights when
-    ``raw`` or when it did not. ``sampling_steps`` (diffusion only) records how many of the
-    schedule's steps generation takes by default (fewer: faster, coarser)."""
+    ``raw`` or when it did not. ``sampling_steps`` (families that sample on a schedule) records
+    how many of the schedule's steps generation takes by default (fewer: faster, coarser); a
+    family without a schedule refuses it. What the model directory holds is the run's family's
+    (``training/families.py``); nothing is written when the family refuses."""
     run = Path(run_dir)
     ck = Path(checkpoint) if checkpoint else run / "checkpoint.pt"
     if not ck.exists():
         raise InputError(f"{ck} does not exist: nothing to export")
     st = torch.load(ck, map_location="cpu", weights_only=False)
-    cfg = json.loads((run / "train_config.json").read_text())
-    head = read_header(data_dir or cfg["data"])
-    family = st["train"].get("family", "cgan")
-    if sampling_steps is not None:  # checked before anything is written
-        if family != "diffusion":
-            raise InputError(f"sampling_steps applies to the diffusion family only; {ck} is "
-                             f"a {family} run")
-        from .baselines.nets import check_sampling_steps
-        check_sampling_steps(sampling_steps, st["train"]["diffusion_steps"])
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    record = json.loads((run / "train_config.json").read_text())
+    data = data_dir or record["data"]
+    head = read_header(data)
+    family = get_family(st["train"].get("family", "cgan"), need="export")
     averaged = st.get("G_ema") is not None and not raw
     if averaged:
         st["G"] = st["G_ema"]
-    if family == "cgan":
-        g = Generator(NetConfig(**st["net"]))
-        g.load_state_dict(st["G"])
-        export_onnx(g, out / "generator.onnx")
     meta = {"format": "apcg-model", "format_version": 1, "net": st["net"],
             "condition_space": head["condition_space"], "lidar": head["lidar"],
             "types": [{k: t[k] for k in ("code", "name", "catalog_index", "kind", "range_band",
                                           "depth_length_m")} for t in head["types"]],
             "tau": tau, "trained_steps": st["step"],
-            "trained_epochs": round(st["batch_counter"] / max(1, _bpe(head, st)), 3),
+            "trained_epochs": trained_epochs(st, data, record.get("world", 1)),
             "dataset": head.get("name"), "train": st["train"],
             "norm": bool(st["train"].get("norm", True)),
             "generator_weights": (f"moving average (decay {st['train']['ema']:g}) since step "
                                   f"{st.get('ema_since', 0)}" if averaged else "raw")}
-    if family == "cgan":
-        (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
-    else:  # a comparison family: torch weights and the expected-count table
-        if family == "diffusion":
-            meta["sampling_steps"] = sampling_steps or st["train"]["diffusion_steps"]
-        from .baselines.data import CountLookup
-        from .baselines.model import export_baseline
-        from .data import DepthDataset
-        train = DepthDataset(data_dir or cfg["data"], "train")
-        counts = CountLookup(train.conditions[:, 0], train.nu, np.diff(train.offsets))
-        export_baseline(st, head, counts, out, meta)
+    out = family.export(st, head, Path(out_dir), meta, data, sampling_steps=sampling_steps)
     if (run / "train_config.json").exists():
         shutil.copy(run / "train_config.json", out / "train_config.json")
     if (run / "log.csv").exists():  # the log up to the exported step
@@ -91,5 +76,10 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
     return out
 
 
-def _bpe(head, st) -> int:
-    return head["n_train"] // st["train"]["batch_size"]
+def trained_epochs(state: dict, data_dir, world: int = 1) -> float:
+    """Epochs over the training split that the checkpoint's batches made: with ``world``
+    processes (torchrun) each count of the batch counter is ``world`` batches, one per rank
+    (the trainer's own ``batches_per_epoch``)."""
+    bpe = DepthDataset(data_dir, "train").batches_per_epoch(state["train"]["batch_size"],
+                                                            int(world))
+    return round(state["batch_counter"] / bpe, 3)

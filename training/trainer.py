@@ -1,4 +1,7 @@
-"""WGAN-GP training of the improved cGAN (SPEC section 7), with exact resume and data parallelism.
+"""Training of every model family (the improved cGAN of SPEC section 7 and the comparison
+families), with exact resume and data parallelism. What a step computes belongs to the family
+(``training/families.py``, found through ``apcg_core.families``); the trainer keeps the loop,
+the optimisers, the checkpoints, the logs and the clock, and never asks which family it runs.
 
 Exactness: the batch order is a pure function of (seed, batch counter) and every random draw of a
 step (noise, gradient-penalty mixing) comes from a generator seeded by (seed, step, rank), so a
@@ -19,16 +22,14 @@ import os
 import shutil
 import sys
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from apcg_core.errors import APCGError, InputError
-from apcg_core.nn import Discriminator, Generator, NetConfig
-from apcg_core.nn.models import NOISE_DIM
+from apcg_core.families import get_family
 
 from .data import DepthDataset
 
@@ -50,13 +51,13 @@ class TrainConfig:
     steps: int | None = None  # overrides epochs when given
     seed: int = 0
     bf16: bool = False
-    channels_last: bool = False
     checkpoint_every: int = 500
     norm: bool = True  # train on Norm(depth) (eq. 17); False: "APCG w/o Norm." (paper Fig. 17)
-    family: str = "cgan"  # or a comparison family: point-gan, voxel-gan, diffusion (issue 8)
-    n_points: int = 256  # point-gan / diffusion: points per generated set
-    voxel_res: int = 32  # voxel-gan: occupancy grid resolution
-    diffusion_steps: int = 200  # diffusion: T of the DDPM schedule
+    family: str = "cgan"  # a registered model family (apcg_core.families.family_names())
+    # Sizes of some families (each family's train_options() names those it takes):
+    n_points: int = 256  # points per generated set
+    voxel_res: int = 32  # occupancy grid resolution
+    diffusion_steps: int = 200  # T of the DDPM schedule
     keep_every: int = 0  # also keep checkpoints/step-NNNNNN.pt every this many steps (0: never)
     diverge_gp: float = 50.0  # stop when the gradient penalty's mean over 50 steps exceeds it
     ema: float = 0.0  # decay of an exponential moving average of the generator (0: none)
@@ -64,12 +65,21 @@ class TrainConfig:
     # reaches it (equal-hours comparisons of model families; steps / epochs still cap the run)
     log_every: int = 10
     threads: int | None = None
-    extra: dict = field(default_factory=dict)
 
-    def net(self, height: int = 64, width_px: int = 256) -> NetConfig:
-        """The networks for images of ``height`` x ``width_px`` (the dataset's lidar window)."""
-        return NetConfig(width=self.width, conv=self.conv, attention=self.attention,
-                         loss=self.loss, height=height, width_px=width_px)
+    @classmethod
+    def from_dict(cls, saved: dict) -> TrainConfig:
+        """A configuration as saved with a run (checkpoint or train_config.json ``train``)."""
+        # Runs saved before these were removed carry them: "extra" (never read) and
+        # "channels_last" (never set by any command). They are dropped, so old runs resume.
+        removed = ("extra", "channels_last")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(k for k in saved if k not in known and k not in removed)
+        if unknown:
+            raise InputError(f"a saved training configuration has unknown settings {unknown}")
+        out = {k: v for k, v in saved.items() if k in known}
+        if "betas" in out:
+            out["betas"] = tuple(out["betas"])
+        return cls(**out)
 
 
 PRESETS = {
@@ -86,6 +96,12 @@ PRESETS = {
     "tiny": TrainConfig(width=0.0625, n_critic=1, epochs=1.0, checkpoint_every=20,
                         log_every=1),
 }
+
+
+def size_defaults() -> dict:
+    """The family-specific sizes (name -> default) a family's ``train_options`` draws from."""
+    return {f.name: f.default for f in fields(TrainConfig)
+            if f.name in ("n_points", "voxel_res", "diffusion_steps")}
 
 
 def gradient_penalty(d, real, fake, nu, eps) -> torch.Tensor:
@@ -111,7 +127,7 @@ def ema_update(avg: torch.nn.Module, model: torch.nn.Module, decay: float) -> No
         a.copy_(b)
 
 
-def _step_generator(seed: int, step: int, phase: int, rank: int) -> torch.Generator:
+def step_generator(seed: int, step: int, phase: int, rank: int) -> torch.Generator:
     g = torch.Generator()
     g.manual_seed(int(np.random.SeedSequence([seed, step, phase, rank]).generate_state(1)[0]))
     return g
@@ -128,18 +144,11 @@ class Trainer:
             torch.set_num_threads(cfg.threads)
         self.data = DepthDataset(data_dir, "train")
         self.data_dir = str(data_dir)
+        self.family = get_family(cfg.family, need="train_step")
         torch.manual_seed(cfg.seed)  # initial weights
-        if cfg.family == "cgan":
-            net = self.net_config = cfg.net(self.data.height, self.data.width)
-            self.G, self.D = Generator(net), Discriminator(net)
-        else:
-            from .baselines.family import CanonicalClouds, build_family
-            net = self.net_config = build_family(cfg)
-            self.G, self.D = net.networks()
-            self.clouds = CanonicalClouds(self.data)
-        if cfg.channels_last and cfg.family == "cgan":
-            self.G = self.G.to(memory_format=torch.channels_last)
-            self.D = self.D.to(memory_format=torch.channels_last)
+        net = self.net_config = self.family.net_config(cfg, self.data)
+        self.G, self.D = self.family.networks(net)  # (generator or denoiser, critic or None)
+        self.family.prepare(self.data)
         if not 0.0 <= cfg.ema < 1.0:
             raise InputError(f"ema (the generator average's decay) must be in [0, 1), got "
                              f"{cfg.ema}")
@@ -154,9 +163,8 @@ class Trainer:
         self.batch_counter = 0
         self.seconds_before = 0.0  # training time of earlier runs (from the log, on resume)
         self.bpe = self.data.batches_per_epoch(cfg.batch_size, self.world)
-        batches_per_step = 1 if cfg.family == "diffusion" else cfg.n_critic
         self.total_steps = cfg.steps if cfg.steps is not None else int(
-            math.ceil(cfg.epochs * self.bpe / batches_per_step))
+            math.ceil(cfg.epochs * self.bpe / self.family.batches_per_step(cfg)))
         ckpt = self.run / "checkpoint.pt"
         existed = (self.run / "train_config.json").exists()
         if self.world > 1:  # every rank looks before rank 0 writes the run's files
@@ -276,50 +284,18 @@ class Trainer:
             for k in ("loss_d", "loss_g", "gp", "wasserstein"):
                 self._tb.add_scalar(k, row[k], row["step"])
 
-    # --- one step ------------------------------------------------------------------------------
-    def _batch(self):
+    # --- one step (the family computes it with these) -----------------------------------------
+    def next_batch(self):
+        """(the family's real batch of this rank, nu): the batch counter's next batch."""
         idx = self.data.batch_indices(self.cfg.seed, self.batch_counter, self.cfg.batch_size,
                                       self.rank, self.world)
         self.batch_counter += 1
-        if self.cfg.family != "cgan":
-            return self._family_batch(idx), torch.from_numpy(self.data.nu[idx])
-        real = torch.from_numpy(self.data.images(idx, normalized=self.cfg.norm))[:, None]
-        nu = torch.from_numpy(self.data.nu[idx])
-        if self.cfg.channels_last:
-            real = real.contiguous(memory_format=torch.channels_last)
-        return real, nu
+        return self.family.batch(self, idx), torch.from_numpy(self.data.nu[idx])
 
-    def _autocast(self):
+    def autocast(self):
         return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.cfg.bf16)
 
-    def _family_batch(self, idx) -> torch.Tensor:
-        cfg = self.cfg
-        if cfg.family == "voxel-gan":
-            return torch.from_numpy(self.clouds.voxels(idx, cfg.voxel_res))
-        return torch.from_numpy(self.clouds.points(idx, cfg.n_points,
-                                                   seed=[cfg.seed, self.batch_counter]))
-
-    def _diffusion_step(self) -> dict:
-        """One DDPM step: predict the noise added to a batch of canonical point sets."""
-        x0, nu = self._batch()
-        gen = _step_generator(self.cfg.seed, self.step, 0, self.rank)
-        t = torch.randint(0, self.net_config.schedule.T, (len(x0),), generator=gen)
-        eps = torch.randn(x0.shape, generator=gen)
-        self.G.train()
-        with self._autocast():
-            pred = self.G(self.net_config.schedule.noisy(x0, t, eps), t, nu).float()
-        loss = F.mse_loss(pred, eps)
-        self.opt_g.zero_grad(set_to_none=True)
-        loss.backward()
-        _allreduce_grads(self.G, self.world)
-        self.opt_g.step()
-        self._update_average()
-        self.step += 1
-        zero = 0.0
-        return {"step": self.step, "epoch": round(self.batch_counter / self.bpe, 4),
-                "loss_d": zero, "loss_g": _g7(loss), "gp": zero, "wasserstein": zero}
-
-    def _update_average(self) -> None:
+    def update_average(self) -> None:
         if self.G_ema is None:
             return
         # warm-up: early weights are forgotten quickly (decay (1 + n) / (10 + n) until it
@@ -327,52 +303,24 @@ class Trainer:
         n = self.step - self.ema_since
         ema_update(self.G_ema, self.G, min(self.cfg.ema, (1.0 + n) / (10.0 + n)))
 
-    def train_step(self) -> dict:
-        cfg = self.cfg
-        if cfg.family == "diffusion":
-            return self._diffusion_step()
-        wgan = cfg.loss == "wgan-gp"
-        b = cfg.batch_size
-        self.G.train()
-        self.D.train()
-        for j in range(cfg.n_critic):
-            real, nu = self._batch()
-            gen = _step_generator(cfg.seed, self.step, j, self.rank)
-            z = torch.randn(b, NOISE_DIM, generator=gen)
-            with self._autocast():
-                with torch.no_grad():
-                    fake = self.G(z, nu)
-                d_real = self.D(real, nu).float()
-                d_fake = self.D(fake, nu).float()
-            if wgan:
-                eps = torch.rand(b, generator=gen)
-                gp = gradient_penalty(self.D, real, fake.float(), nu, eps)
-                loss_d = d_fake.mean() - d_real.mean() + cfg.gp_lambda * gp
-            else:
-                gp = torch.zeros(())
-                loss_d = (F.binary_cross_entropy_with_logits(d_real, torch.ones_like(d_real))
-                          + F.binary_cross_entropy_with_logits(d_fake, torch.zeros_like(d_fake)))
-            self.opt_d.zero_grad(set_to_none=True)
-            loss_d.backward()
-            _allreduce_grads(self.D, self.world)
-            self.opt_d.step()
-        gen = _step_generator(cfg.seed, self.step, cfg.n_critic, self.rank)
-        z = torch.randn(b, NOISE_DIM, generator=gen)
-        with self._autocast():
-            score = self.D(self.G(z, nu), nu).float()
-        loss_g = (-score.mean() if wgan else
-                  F.binary_cross_entropy_with_logits(score, torch.ones_like(score)))
-        self.opt_g.zero_grad(set_to_none=True)
-        loss_g.backward()
-        _allreduce_grads(self.G, self.world)
-        self.opt_g.step()
-        if self.world > 1:
-            _broadcast(self.G, buffers_only=True)
-        self._update_average()
+    def finish_step(self, loss_d, loss_g, gp, wasserstein) -> dict:
+        """After the optimiser steps: the generator's average, the step count, the log row."""
+        self.update_average()
         self.step += 1
         return {"step": self.step, "epoch": round(self.batch_counter / self.bpe, 4),
                 "loss_d": _g7(loss_d), "loss_g": _g7(loss_g), "gp": _g7(gp),
-                "wasserstein": _g7(d_real.mean() - d_fake.mean())}
+                "wasserstein": _g7(wasserstein)}
+
+    def allreduce_grads(self, model) -> None:
+        _allreduce_grads(model, self.world)
+
+    def sync_buffers(self, model) -> None:
+        """Data parallel: BatchNorm buffers follow rank 0."""
+        if self.world > 1:
+            _broadcast(model, buffers_only=True)
+
+    def train_step(self) -> dict:
+        return self.family.train_step(self)
 
     def _any_rank(self, flag: bool) -> bool:
         """True on every rank when it is true on one: clocks differ between processes, and a
@@ -451,7 +399,7 @@ def budget_seconds(hours: float) -> float:
 
 def _g7(t) -> float:
     """A logged loss: 7 significant digits keep the log small (it ships with the model)."""
-    return float(f"{float(t.detach()):.7g}")
+    return float(f"{float(t.detach() if isinstance(t, torch.Tensor) else t):.7g}")
 
 
 class TrainingDiverged(APCGError):
