@@ -87,17 +87,11 @@ def register_condition(sub) -> None:
 
 def _run_condition(args) -> int:
     from .condition import Condition
-    from .families import read_model_meta
     from .frames import observation_to_blender, target_centre
-    from .generation import ModelTypes, default_model_dir
+    from .generation import ModelTypes
     from .lidar import DEG
 
-    class _Types(ModelTypes):  # a model's type table and ranges, without loading its network
-        def __init__(self, directory) -> None:
-            self._read_model_json(directory)
-
-    read_model_meta(args.model or default_model_dir())
-    model = _Types(args.model)
+    model = ModelTypes(args.model)  # its type table and ranges; its network is not needed
     cond = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
                            args.pitch_deg * DEG, args.yaw_deg * DEG, args.roll_deg * DEG)
     one = Condition.from_array(cond.table[0])

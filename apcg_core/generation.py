@@ -51,6 +51,10 @@ class ModelTypes:
     space: ConditionSpace
     lidar: LidarParams
 
+    def __init__(self, directory=None) -> None:
+        """A model's type table and condition space alone (no network loaded)."""
+        self._read_model_json(directory)
+
     def _read_model_json(self, directory) -> None:
         self.directory = Path(directory) if directory else DEFAULT_MODEL_DIR
         self.meta = read_model_meta(self.directory)

@@ -61,16 +61,6 @@ class TypeTable:
             recs.sort(key=lambda r: int(r["code"]))
         return cls(tuple({k: r[k] for k in RECORD_KEYS if k in r} for r in recs), owner)
 
-    @classmethod
-    def from_catalog_types(cls, types, owner: str = "this table") -> TypeTable:
-        """From catalog ``AircraftType`` objects (their order is the code order)."""
-        from .catalog import default_catalog
-        cat = default_catalog()
-        return cls(tuple({"name": t.name, "catalog_index": t.index, "kind": t.kind,
-                          "range_band": t.range_band,
-                          "depth_length_m": float(cat.depth_length_m(t.index))}
-                         for t in types), owner)
-
     def to_records(self) -> list[dict]:
         return [{"code": i, **r} for i, r in enumerate(self.records)]
 
@@ -115,10 +105,6 @@ class TypeTable:
         near = np.array([r.get("range_band") == "near" for r in self.records])
         return near[np.asarray(codes, dtype=np.int64)]
 
-    def translation(self, to: TypeTable) -> np.ndarray:
-        """code in self -> code in ``to``, by name; -1 where ``to`` lacks the type."""
-        return np.array([to._code.get(n.lower(), -1) for n in self.names], dtype=np.int64)
-
     def recode(self, codes, to: TypeTable) -> np.ndarray:
         """Codes of this table as codes of ``to`` (by name); refuses types ``to`` lacks,
         naming them."""
@@ -128,8 +114,8 @@ class TypeTable:
             raise InputError(f"type codes {np.unique(codes)[:8].tolist()} are not all codes "
                              f"of {self.owner} (0 .. {len(self) - 1})")
         codes = codes.astype(np.int64)
-        m = self.translation(to)
-        out = m[codes]
+        to_code = np.array([to._code.get(n.lower(), -1) for n in self.names], dtype=np.int64)
+        out = to_code[codes]
         if (out < 0).any():
             lacking = sorted({self.names[c] for c in codes[out < 0]})
             raise InputError(f"{to.owner} was not trained on (or does not hold) type"
@@ -183,9 +169,6 @@ class Conditions:
         out = self.table.copy()
         out[:, 0] = self.types.recode(self.table[:, 0], to)
         return out
-
-    def to(self, to: TypeTable) -> Conditions:
-        return Conditions(to, self.recoded(to))
 
 
 __all__ = ["Conditions", "RECORD_KEYS", "TypeTable"]

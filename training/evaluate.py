@@ -132,14 +132,13 @@ def jsd_bins_study(model, data_dir, bins=(4, 6, 8, 12, 16, 20, 28), per_band: in
     For each held-out standard cloud: its cell-jittered copy (the floor: as good as a generator
     can be), the same copy moved ``shift_m`` metres down-range (wrong by a few cells), and the
     model's cloud. ``best`` maximises the smallest per-band gap between wrong and floor."""
-    from apcg_core.postprocess import cell_jitter
     pairs = draw_pairs(data_dir, per_band * 9, seed, half="validation")
     ds = pairs.ds
     gen, _ = protocol.generate(model, pairs)
     rows: dict = {}
     for j, i in enumerate(pairs.idx):
         std = ds.standard_cloud(int(i))
-        jit = cell_jitter(ds.sample_cloud(int(i)), ds.conditions[i, 2], ds.lidar, seed + j).xyz
+        jit = protocol.jittered(ds, int(i), seed + j)
         los = std.mean(axis=0) / np.linalg.norm(std.mean(axis=0)) if len(std) else 0.0
         wrong = jit + shift_m * los
         for c in bins:

@@ -17,6 +17,7 @@ from apcg_core.families import get_family
 from apcg_core.io.dataset import read_header
 from apcg_core.nn import Generator
 from apcg_core.nn.models import COND_DIM, NOISE_DIM
+from apcg_core.typetable import TypeTable
 
 from .data import DepthDataset
 
@@ -58,8 +59,7 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
         st["G"] = st["G_ema"]
     meta = {"format": "apcg-model", "format_version": 1, "net": st["net"],
             "condition_space": head["condition_space"], "lidar": head["lidar"],
-            "types": [{k: t[k] for k in ("code", "name", "catalog_index", "kind", "range_band",
-                                          "depth_length_m")} for t in head["types"]],
+            "types": TypeTable.from_records(head["types"]).to_records(),
             "tau": tau, "trained_steps": st["step"],
             "trained_epochs": trained_epochs(st, data, record.get("world", 1)),
             "dataset": head.get("name"), "train": st["train"],

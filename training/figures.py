@@ -171,8 +171,6 @@ def _random_table(model, n: int, n_types: int, rng):
 def fig19(model, data_dir, out, n_pairs: int = 600, seed: int = 0, n_bins: int = 10) -> dict:
     """MMD and JSD of generated clouds, scored against the standard clouds ("standard") and
     against their cell-jittered copies ("noised"), per slant-range bin (the paper's Fig. 19)."""
-    from apcg_core.postprocess import cell_jitter
-
     from . import protocol
     pairs = protocol.draw_pairs(data_dir, n_pairs, seed, half="test")
     ds, idx = pairs.ds, pairs.idx
@@ -196,8 +194,7 @@ def fig19(model, data_dir, out, n_pairs: int = 600, seed: int = 0, n_bins: int =
             for k in ks:
                 i = int(idx[k])
                 std = ds.standard_cloud(i)
-                jit = cell_jitter(ds.sample_cloud(i), ds.conditions[i, 2], ds.lidar,
-                                  seed + int(k)).xyz
+                jit = protocol.jittered(ds, i, seed + int(k))
                 for name, ref in (("standard", std), ("noised", jit)):
                     sc = protocol.score_pair(ref, gen[k], seed)
                     vals[name].append((sc["mmd"], sc["jsd"]))

@@ -143,6 +143,12 @@ def generate(model, pairs: Pairs) -> tuple[list[np.ndarray], float]:
     return out, time.perf_counter() - t0
 
 
+def jittered(ds: DepthDataset, i: int, seed: int) -> np.ndarray:
+    """Sample ``i``'s standard cloud moved uniformly inside each of its cells (seeded): the floor's
+    reference, as good as a generator can be."""
+    return cell_jitter(ds.sample_cloud(i), ds.conditions[i, 2], ds.lidar, seed).xyz
+
+
 def score_pair(std: np.ndarray, gen: np.ndarray, seed: int) -> dict:
     return {"mmd": mmd(std, gen, max_points=MAX_POINTS, seed=seed),
             "jsd": jsd(std, gen, bins=JSD_BINS, max_points=MAX_POINTS, seed=seed),
@@ -194,8 +200,7 @@ def score(model, pairs: Pairs, floor: bool = True, pointflow: bool = True,
         band = pairs.bands[j]
         if floor and floor_count.get(band, 0) < FLOOR_PER_BAND:
             floor_count[band] = floor_count.get(band, 0) + 1
-            jit = cell_jitter(ds.sample_cloud(int(i)), ds.conditions[i, 2], ds.lidar,
-                              pairs.seed + j).xyz
+            jit = jittered(ds, int(i), pairs.seed + j)
             floor_rows.append((band, score_pair(std, jit, pairs.seed + j)))
         if progress and (j + 1) % 500 == 0:
             print(f"scored {j + 1}/{len(pairs)} pairs", file=sys.stderr, flush=True)
@@ -263,9 +268,9 @@ def choose_tau(model, data, taus=TAUS, n_pairs: int = 400, seed: int = 0) -> dic
             no_score = sum(b["no_score"] for b in rep["bands"].values())
             ratios = [b["points_ratio_p10_p50_p90"][1] for b in rep["bands"].values()
                       if b["points_ratio_p10_p50_p90"][1] is not None]
-            rows[f"{tau:g}"] = {"mmd": rep["mean"]["mmd"], "jsd": rep["mean"]["jsd"],
-                                "median_points_ratio": float(np.mean(ratios)) if ratios
-                                else None, "no_score": no_score}
+            rows[f"{tau:g}"] = {
+                "mmd": rep["mean"]["mmd"], "jsd": rep["mean"]["jsd"], "no_score": no_score,
+                "points_ratio_median_mean_over_bands": float(np.mean(ratios)) if ratios else None}
     finally:
         model.tau = kept
     allowed = [k for k, r in rows.items() if r["no_score"] <= 0.01 * len(pairs)
