@@ -12,11 +12,12 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .errors import InputError, check_finite, check_range
+from .frames import ATTITUDE
 from .lidar import DEG
 
 # Column order of a condition table and of nu. The type column holds a code of the type table
 # that travels with the table (apcg_core.typetable.Conditions), never a bare catalog index.
-FIELDS = ("type_index", "range_m", "elevation", "pitch", "yaw", "roll")
+FIELDS = ("type_index", "range_m", "elevation", *ATTITUDE)
 # The generator's input: NOISE_DIM Gaussian noise values + the len(FIELDS) values of nu (SPEC 7).
 NOISE_DIM = 100
 
@@ -109,8 +110,8 @@ class Condition:
 
     @property
     def pose(self) -> tuple[float, float, float, float, float]:
-        """(range_m, elevation, yaw, pitch, roll): the arguments of the frames functions."""
-        return (self.range_m, self.elevation, self.yaw, self.pitch, self.roll)
+        """(range_m, elevation, pitch, yaw, roll): the arguments of the frames functions."""
+        return (self.range_m, self.elevation, self.pitch, self.yaw, self.roll)
 
 
 def _deg_pair(lo: float, hi: float) -> tuple[float, float]:

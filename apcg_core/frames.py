@@ -7,6 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
+# The one angle order (SPEC section 3): every attitude triple, positional or in a file, comes
+# as (pitch, yaw, roll), the order of nu. A target's pose adds its range and elevation in front
+# and, in Blender only, the azimuth about the lidar's vertical behind.
+ATTITUDE = ("pitch", "yaw", "roll")
+POSE_NAMES = ("range_m", "elevation", *ATTITUDE, "azimuth")
+
 # Body (x nose, y left wing, z up) -> observation (X right, Y up, Z away from the lidar) at
 # zero attitude: nose -> -Z, left wing -> +X, up -> +Y. det = -1: the one place where the
 # handedness changes.
@@ -49,8 +55,11 @@ def _rot_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def attitude_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
+def attitude_matrix(pitch: float, yaw: float, roll: float) -> np.ndarray:
     """Body-frame attitude R(phi, theta, gamma): intrinsic yaw-pitch-roll (roll applied first).
+
+    Arguments come in ATTITUDE order (pitch, yaw, roll), the order of nu, like every angle
+    triple in the project; the order in which the rotations are applied is another matter.
 
     Signs by effect: +pitch raises the nose (a rotation about the body's right axis, i.e. -y),
     +yaw turns the nose toward the left wing (+z axis), +roll lowers the right wing (+x axis).
@@ -58,9 +67,9 @@ def attitude_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
     return _rot_z(yaw) @ _rot_y(-pitch) @ _rot_x(roll)
 
 
-def body_to_observation_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
+def body_to_observation_matrix(pitch: float, yaw: float, roll: float) -> np.ndarray:
     """The linear part M0 @ R of the body -> observation map."""
-    return M0 @ attitude_matrix(yaw, pitch, roll)
+    return M0 @ attitude_matrix(pitch, yaw, roll)
 
 
 def target_centre(range_m: float, elevation: float) -> np.ndarray:
@@ -69,22 +78,22 @@ def target_centre(range_m: float, elevation: float) -> np.ndarray:
 
 
 def body_to_observation(points, range_m: float, elevation: float,
-                        yaw: float, pitch: float, roll: float) -> np.ndarray:
+                        pitch: float, yaw: float, roll: float) -> np.ndarray:
     """Body-frame points -> observation frame: C + M0 @ R @ p (SPEC section 2)."""
-    m = body_to_observation_matrix(yaw, pitch, roll)
+    m = body_to_observation_matrix(pitch, yaw, roll)
     return _f64(points) @ m.T + target_centre(range_m, elevation)
 
 
 def observation_to_body(points, range_m: float, elevation: float,
-                        yaw: float, pitch: float, roll: float) -> np.ndarray:
+                        pitch: float, yaw: float, roll: float) -> np.ndarray:
     """Inverse of :func:`body_to_observation` (M0 @ R is orthogonal: inverse = transpose)."""
-    m = body_to_observation_matrix(yaw, pitch, roll)
+    m = body_to_observation_matrix(pitch, yaw, roll)
     return (_f64(points) - target_centre(range_m, elevation)) @ m
 
 
-def directions_to_body(dirs, yaw: float, pitch: float, roll: float) -> np.ndarray:
+def directions_to_body(dirs, pitch: float, yaw: float, roll: float) -> np.ndarray:
     """Observation-frame direction vectors -> body-frame directions (no translation)."""
-    return _f64(dirs) @ body_to_observation_matrix(yaw, pitch, roll)
+    return _f64(dirs) @ body_to_observation_matrix(pitch, yaw, roll)
 
 
 # Blender lidar-local: x = obs X, y = obs Z (the lidar looks along local +Y), z = obs Y (up).
@@ -101,9 +110,9 @@ def blender_to_observation(points) -> np.ndarray:
     return _f64(points)[..., _SWAP_YZ]
 
 
-def body_to_observation_matrices(yaw, pitch, roll) -> np.ndarray:
+def body_to_observation_matrices(pitch, yaw, roll) -> np.ndarray:
     """Batched :func:`body_to_observation_matrix`: arrays of N angles -> (N, 3, 3)."""
-    yaw, pitch, roll = (np.atleast_1d(_f64(a)) for a in (yaw, pitch, roll))
+    pitch, yaw, roll = (np.atleast_1d(_f64(a)) for a in (pitch, yaw, roll))
     n = len(yaw)
 
     def stack(rows):
@@ -126,15 +135,15 @@ def target_centres(range_m, elevation) -> np.ndarray:
 
 
 def attitude_angles(r) -> tuple[float, float, float]:
-    """Inverse of :func:`attitude_matrix`: (yaw, pitch, roll) of a rotation matrix.
+    """Inverse of :func:`attitude_matrix`: (pitch, yaw, roll) of a rotation matrix.
 
     Pitch is in [-90, 90] deg; at exactly +-90 deg yaw and roll are not separable and roll is
     returned as 0."""
     r = _f64(r)
     pitch = float(np.arcsin(np.clip(r[2, 0], -1.0, 1.0)))
     if abs(r[2, 0]) > 1.0 - 1e-12:
-        return float(np.arctan2(-r[0, 1], r[1, 1])), pitch, 0.0
-    return float(np.arctan2(r[1, 0], r[0, 0])), pitch, float(np.arctan2(r[2, 1], r[2, 2]))
+        return pitch, float(np.arctan2(-r[0, 1], r[1, 1])), 0.0
+    return pitch, float(np.arctan2(r[1, 0], r[0, 0])), float(np.arctan2(r[2, 1], r[2, 2]))
 
 
 def _azimuth_matrix(azimuth: float) -> np.ndarray:
@@ -145,7 +154,7 @@ def _azimuth_matrix(azimuth: float) -> np.ndarray:
 _SWAP = np.eye(3)[_SWAP_YZ]  # the observation <-> Blender lidar-local permutation
 
 
-def target_matrix_lidar_local(range_m: float, elevation: float, yaw: float, pitch: float,
+def target_matrix_lidar_local(range_m: float, elevation: float, pitch: float, yaw: float,
                               roll: float, azimuth: float = 0.0) -> np.ndarray:
     """4 x 4 map from the body frame to the lidar object's local frame in Blender.
 
@@ -154,14 +163,14 @@ def target_matrix_lidar_local(range_m: float, elevation: float, yaw: float, pitc
     """
     out = np.eye(4)
     turn = _azimuth_matrix(azimuth)
-    out[:3, :3] = _SWAP @ turn @ body_to_observation_matrix(yaw, pitch, roll)
+    out[:3, :3] = _SWAP @ turn @ body_to_observation_matrix(pitch, yaw, roll)
     out[:3, 3] = _SWAP @ turn @ target_centre(range_m, elevation)
     return out
 
 
 def pose_from_lidar_local(matrix) -> dict:
-    """Inverse of :func:`target_matrix_lidar_local`: range, elevation, azimuth, yaw, pitch, roll
-    (metres, radians) of a body-to-lidar-local matrix (scale is removed)."""
+    """Inverse of :func:`target_matrix_lidar_local`: a dict of POSE_NAMES (metres, radians)
+    of a body-to-lidar-local matrix (scale is removed)."""
     m = _f64(matrix)
     obs = _SWAP @ m[:3, 3]
     azimuth, elevation, range_m = (float(v) for v in cartesian_to_spherical(obs))
@@ -170,9 +179,9 @@ def pose_from_lidar_local(matrix) -> dict:
     lin = _SWAP @ m[:3, :3]
     lin = lin / np.linalg.norm(lin, axis=0, keepdims=True)
     att = np.linalg.inv(M0) @ _azimuth_matrix(azimuth).T @ lin
-    yaw, pitch, roll = attitude_angles(att)
-    return {"range_m": range_m, "elevation": elevation, "azimuth": azimuth, "yaw": yaw,
-            "pitch": pitch, "roll": roll}
+    pitch, yaw, roll = attitude_angles(att)
+    return {"range_m": range_m, "elevation": elevation, "pitch": pitch, "yaw": yaw,
+            "roll": roll, "azimuth": azimuth}
 
 
 def observation_to_lidar_local(points, azimuth: float = 0.0) -> np.ndarray:

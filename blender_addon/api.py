@@ -30,13 +30,11 @@ from .clouds import (
     set_point_radius,
 )
 from .objects import (
-    INDEX_KEY,
     LENGTH_KEY,
     TYPE_KEY,
     add_aircraft,
     add_lidar,
     body_mesh,
-    condition_row,
     is_lidar,
     is_target,
     lidar_of,
@@ -44,6 +42,7 @@ from .objects import (
     make_target,
     pose_of,
     set_pose,
+    simulator_row,
     targets_of,
 )
 
@@ -84,7 +83,7 @@ def scan_target(target, backend: str = "blender", quantize: bool = True, supersa
     from dataset_builder.simulate import Simulator
     lidar = lidar_of(target)
     params = lidar_params(lidar)
-    table = condition_row(target)
+    table = simulator_row(target)
     pose = pose_of(target)
     own = simulator is None
     sim = simulator or Simulator(backend, params, quantize=quantize, supersample=supersample)
@@ -99,7 +98,7 @@ def scan_target(target, backend: str = "blender", quantize: bool = True, supersa
         keep = _unoccluded(lidar, target, cloud.xyz, pose["azimuth"])
         hidden = int((~keep).sum())
         cloud = cloud.select(keep)
-    meta = {"type": target.get(TYPE_KEY), "catalog_index": int(target.get(INDEX_KEY, -1)),
+    meta = {"type": target.get(TYPE_KEY),
             **_pose_meta(pose), "backend": sim.backend,
             "quantized": sim.quantize, "supersample": sim.supersample,
             "lidar": params.to_dict(), "depth_length_m": float(target.get(LENGTH_KEY, 0.0)),

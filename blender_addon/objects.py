@@ -18,15 +18,16 @@ from mathutils import Matrix
 
 from apcg_core.catalog import default_catalog
 from apcg_core.errors import InputError
-from apcg_core.frames import pose_from_lidar_local, target_matrix_lidar_local
+from apcg_core.frames import POSE_NAMES, pose_from_lidar_local, target_matrix_lidar_local
 from apcg_core.lidar import LidarParams
 
 LIDAR_KEY = "apcg_lidar_params"  # marks a lidar (the PropertyGroup holds the values)
-POSE_KEY = "apcg_pose"  # [range_m, elevation, azimuth, yaw, pitch, roll] (m, rad), doubles
-TYPE_KEY = "apcg_type"  # catalog name, or the name of an imported model
-INDEX_KEY = "apcg_type_index"  # catalog index (-1: not a catalog type)
+# The pose as named doubles {range_m, elevation, pitch, yaw, roll, azimuth} (m, rad): names, not
+# positions. Files of add-on 0.x stored a list in the order below; they are read by it once.
+POSE_KEY = "apcg_pose"
+_LEGACY_POSE_ORDER = ("range_m", "elevation", "azimuth", "yaw", "pitch", "roll")
+TYPE_KEY = "apcg_type"  # the type's catalog name (or the name of your own model): its identity
 LENGTH_KEY = "apcg_depth_length_m"
-POSE_NAMES = ("range_m", "elevation", "azimuth", "yaw", "pitch", "roll")
 # The object matrix is float32: it agrees with the doubles to ~1e-7 relative. A larger
 # difference means the user moved the object.
 _MOVED_TOL_M = 1e-3
@@ -121,8 +122,8 @@ def body_mesh(obj, depsgraph=None) -> _Mesh:
     return _Mesh(v, f)
 
 
-def _check_pose(range_m, elevation, azimuth, yaw, pitch, roll) -> list[float]:
-    vals = [float(v) for v in (range_m, elevation, azimuth, yaw, pitch, roll)]
+def _check_pose(range_m, elevation, pitch, yaw, roll, azimuth) -> list[float]:
+    vals = [float(v) for v in (range_m, elevation, pitch, yaw, roll, azimuth)]
     for name, v in zip(POSE_NAMES, vals, strict=True):
         if not math.isfinite(v):
             raise InputError(f"{name} must be finite, got {v!r}")
@@ -133,11 +134,12 @@ def _check_pose(range_m, elevation, azimuth, yaw, pitch, roll) -> list[float]:
     return vals
 
 
-def set_pose(obj, range_m, elevation, azimuth, yaw, pitch, roll) -> None:
-    """Place a target relative to its lidar (metres, radians); keeps the exact doubles."""
-    vals = _check_pose(range_m, elevation, azimuth, yaw, pitch, roll)
-    m = target_matrix_lidar_local(vals[0], vals[1], vals[3], vals[4], vals[5], vals[2])
-    obj[POSE_KEY] = vals
+def set_pose(obj, range_m, elevation, pitch=0.0, yaw=0.0, roll=0.0, azimuth=0.0) -> None:
+    """Place a target relative to its lidar (metres, radians; the angles in the project's one
+    order, POSE_NAMES); keeps the exact doubles."""
+    vals = _check_pose(range_m, elevation, pitch, yaw, roll, azimuth)
+    m = target_matrix_lidar_local(*vals)
+    obj[POSE_KEY] = dict(zip(POSE_NAMES, vals, strict=True))
     obj.matrix_parent_inverse.identity()
     obj.matrix_basis = Matrix([list(row) for row in m])  # rows (a bare list means columns)
 
@@ -146,10 +148,18 @@ def _matrix_of(obj) -> np.ndarray:
     return np.array([list(row) for row in obj.matrix_basis], dtype=np.float64)
 
 
+def _stored_pose(obj) -> dict:
+    stored = obj[POSE_KEY]
+    if hasattr(stored, "to_dict"):
+        return {k: float(stored[k]) for k in POSE_NAMES}
+    return {k: float(v) for k, v in zip(_LEGACY_POSE_ORDER, stored, strict=True)}
+
+
 def pose_moved(obj) -> bool:
     """True when the object's matrix no longer agrees with its stored pose."""
-    p = list(obj[POSE_KEY])
-    m = target_matrix_lidar_local(p[0], p[1], p[3], p[4], p[5], p[2])
+    pose = _stored_pose(obj)
+    p = [pose[k] for k in POSE_NAMES]
+    m = target_matrix_lidar_local(*p)
     got = _matrix_of(obj)
     tol = _MOVED_TOL_M + _MOVED_TOL_REL * p[0]
     return bool(np.abs(got[:3, 3] - m[:3, 3]).max() > tol
@@ -157,29 +167,28 @@ def pose_moved(obj) -> bool:
 
 
 def pose_of(obj) -> dict:
-    """The target's pose (range_m, elevation, azimuth, yaw, pitch, roll; m and rad)."""
+    """The target's pose: a dict of POSE_NAMES (m and rad)."""
     if not is_target(obj):
         raise InputError(f"{obj.name!r} is not an APCG target (add one with apcg.add_aircraft)")
     if not pose_moved(obj):
-        return dict(zip(POSE_NAMES, (float(v) for v in obj[POSE_KEY]), strict=True))
+        return _stored_pose(obj)
     return pose_from_lidar_local(_matrix_of(obj))
 
 
 def sync_pose(obj) -> bool:
     """Store the pose of a moved target as its doubles; True if it had moved."""
     if is_target(obj) and pose_moved(obj):
-        p = pose_from_lidar_local(_matrix_of(obj))
-        obj[POSE_KEY] = [p[k] for k in POSE_NAMES]
+        obj[POSE_KEY] = pose_from_lidar_local(_matrix_of(obj))
         return True
     return False
 
 
-def condition_row(obj) -> np.ndarray:
-    """The target's condition [type index, r0, beta0, pitch, yaw, roll] (m, rad); a model of
-    your own (no catalog index) carries 0, which the simulator does not use."""
+def simulator_row(obj) -> np.ndarray:
+    """The target's pose as the simulator's one-row table [0, r0, beta0, pitch, yaw, roll]
+    (m, rad). The simulator is handed the target's own mesh, so the type column is unused and
+    left 0; a type crosses to a model by its name (TYPE_KEY), never by a code."""
     p = pose_of(obj)
-    return np.array([[float(max(int(obj.get(INDEX_KEY, -1)), 0)), p["range_m"], p["elevation"],
-                      p["pitch"], p["yaw"], p["roll"]]])
+    return np.array([[0.0, p["range_m"], p["elevation"], p["pitch"], p["yaw"], p["roll"]]])
 
 
 def add_aircraft(lidar, type_name: str, range_m: float, elevation_deg: float,
@@ -195,12 +204,11 @@ def add_aircraft(lidar, type_name: str, range_m: float, elevation_deg: float,
     me = mesh_from_arrays(t.name, mesh.vertices, mesh.faces)
     obj = bpy.data.objects.new(name or t.name, me)
     obj[TYPE_KEY] = t.name
-    obj[INDEX_KEY] = int(t.index)
     obj[LENGTH_KEY] = float(catalog.depth_length_m(t))
     _link_like(obj, lidar)
     obj.parent = lidar
-    set_pose(obj, range_m, *(math.radians(v) for v in (elevation_deg, azimuth_deg, yaw_deg,
-                                                        pitch_deg, roll_deg)))
+    set_pose(obj, range_m, *(math.radians(v) for v in (elevation_deg, pitch_deg, yaw_deg,
+                                                        roll_deg, azimuth_deg)))
     return obj
 
 
@@ -213,11 +221,10 @@ def make_target(lidar, obj, range_m: float, elevation_deg: float, pitch_deg: flo
         raise InputError(f"{obj.name!r} is a {obj.type}, not a mesh")
     v, _ = triangles_of(obj)
     obj[TYPE_KEY] = obj.get(TYPE_KEY, obj.name)
-    obj[INDEX_KEY] = int(obj.get(INDEX_KEY, -1))
     obj[LENGTH_KEY] = float(depth_length_m or (v[:, 0].max() - v[:, 0].min()))
     obj.parent = lidar
-    set_pose(obj, range_m, *(math.radians(v) for v in (elevation_deg, azimuth_deg, yaw_deg,
-                                                        pitch_deg, roll_deg)))
+    set_pose(obj, range_m, *(math.radians(v) for v in (elevation_deg, pitch_deg, yaw_deg,
+                                                        roll_deg, azimuth_deg)))
     return obj
 
 

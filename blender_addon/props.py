@@ -9,7 +9,7 @@ import math
 import bpy
 from bpy.props import FloatProperty, IntProperty, PointerProperty
 
-from .objects import POSE_KEY, POSE_NAMES, is_target, pose_of, set_pose
+from .objects import POSE_KEY, is_target, pose_of, set_pose
 
 
 class APCG_PG_lidar(bpy.types.PropertyGroup):
@@ -27,8 +27,6 @@ class APCG_PG_lidar(bpy.types.PropertyGroup):
 
 
 def _pose_prop(key: str, label: str, degrees: bool, lo: float, hi: float, descr: str):
-    i = POSE_NAMES.index(key)
-
     def get(self):
         obj = self.id_data
         if not is_target(obj):
@@ -41,9 +39,8 @@ def _pose_prop(key: str, label: str, degrees: bool, lo: float, hi: float, descr:
         if not is_target(obj):
             return
         p = pose_of(obj)
-        vals = [p[k] for k in POSE_NAMES]
-        vals[i] = math.radians(value) if degrees else float(value)
-        set_pose(obj, *vals)
+        p[key] = math.radians(value) if degrees else float(value)
+        set_pose(obj, **p)
 
     return FloatProperty(name=label, description=descr, get=get, set=set_, soft_min=lo,
                          soft_max=hi, precision=3 if degrees else 2,

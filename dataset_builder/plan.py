@@ -18,7 +18,9 @@ from apcg_core.errors import InputError
 from apcg_core.lidar import DEG, LidarParams
 
 CONFIG_DIR = Path(__file__).with_name("configs")
-GRID_FIELDS = ("elevation", "range_m", "yaw", "pitch", "roll")  # product order of a grid
+# The nesting order of a grid's product: it decides which sample gets which id, so it stays as
+# it is. It is not an angle order (that is ATTITUDE, SPEC section 3).
+GRID_FIELDS = ("elevation", "range_m", "yaw", "pitch", "roll")
 _DEFAULT_COUNTS = {"elevation": 5, "range_m": 10, "yaw": 10, "pitch": 5, "roll": 5}
 _KNOWN_TOP = {"name", "description", "seed", "backend", "shard_size", "test_fraction",
               "quantize", "supersample", "sampling", "samples_per_type", "types", "lidar",

@@ -84,7 +84,7 @@ class AngularBoxes:
 
 def sample_frames(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-sample body->observation matrices M (N, 3, 3) and centres C (N, 3)."""
-    return (body_to_observation_matrices(table[:, 4], table[:, 3], table[:, 5]),
+    return (body_to_observation_matrices(table[:, 3], table[:, 4], table[:, 5]),
             target_centres(table[:, 1], table[:, 2]))
 
 

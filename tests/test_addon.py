@@ -213,7 +213,35 @@ def test_pose_is_editable_both_ways(scene):
     assert p["range_m"] == pytest.approx(9000.0 / math.cos(math.radians(4.0)), rel=1e-6)
     assert math.degrees(p["elevation"]) == pytest.approx(4.0, abs=1e-5)
     assert jet.apcg_target.range_m == pytest.approx(p["range_m"], rel=1e-6)
-    assert list(jet["apcg_pose"])[0] == pytest.approx(p["range_m"])  # stored by the handler
+    assert jet["apcg_pose"]["range_m"] == pytest.approx(p["range_m"])  # stored by the handler
+
+
+def test_pose_is_stored_by_name_in_the_one_angle_order(scene):
+    from apcg_core.frames import POSE_NAMES
+    lidar = api.add_lidar()
+    jet = api.add_aircraft(lidar, "A320neo", range_m=5000.0, elevation_deg=3.0, pitch_deg=2.0,
+                           yaw_deg=-30.0, roll_deg=4.0, azimuth_deg=7.0)
+    stored = jet["apcg_pose"].to_dict()
+    assert tuple(stored) == POSE_NAMES
+    got = {k: math.degrees(v) for k, v in stored.items() if k != "range_m"}
+    assert got == pytest.approx({"elevation": 3.0, "pitch": 2.0, "yaw": -30.0, "roll": 4.0,
+                                 "azimuth": 7.0})
+    # positional angles of set_pose come in the same order as nu: pitch, yaw, roll
+    api.set_pose(jet, 5000.0, math.radians(3.0), math.radians(1.0), math.radians(20.0), 0.0)
+    p = api.pose_of(jet)
+    assert math.degrees(p["pitch"]) == pytest.approx(1.0)
+    assert math.degrees(p["yaw"]) == pytest.approx(20.0)
+    assert "apcg_type_index" not in jet  # the type is its name
+    assert jet["apcg_type"] == "A320neo"
+    # a file from add-on 0.x kept the pose as a list (range, elevation, azimuth, yaw, pitch,
+    # roll): it is read in that order, not misread in the new one
+    jet["apcg_pose"] = [5000.0, math.radians(3.0), 0.0, math.radians(20.0), math.radians(1.0),
+                        0.0]
+    from blender_addon.objects import _stored_pose, pose_moved
+    legacy = _stored_pose(jet)
+    assert math.degrees(legacy["yaw"]) == pytest.approx(20.0)
+    assert math.degrees(legacy["pitch"]) == pytest.approx(1.0)
+    assert not pose_moved(jet)
 
 
 def test_own_model_as_target(scene):

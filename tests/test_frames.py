@@ -6,6 +6,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from apcg_core.frames import (
+    ATTITUDE,
+    POSE_NAMES,
     M0,
     attitude_angles,
     attitude_matrix,
@@ -45,30 +47,30 @@ def test_zero_attitude_points_the_nose_at_the_lidar():
 
 def test_handedness_changes_only_in_m0():
     assert np.linalg.det(M0) == pytest.approx(-1.0)
-    r = attitude_matrix(0.3, -0.2, 1.1)
+    r = attitude_matrix(pitch=-0.2, yaw=0.3, roll=1.1)
     assert np.linalg.det(r) == pytest.approx(1.0)
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-14)
 
 
 @pytest.mark.parametrize("pitch_deg", [1.0, 5.0, 30.0])
 def test_positive_pitch_raises_the_nose(pitch_deg):
-    nose = body_to_observation_matrix(0, pitch_deg * DEG, 0) @ NOSE
+    nose = body_to_observation_matrix(pitch=pitch_deg * DEG, yaw=0, roll=0) @ NOSE
     assert nose[1] > 0
     assert elev(nose) == pytest.approx(pitch_deg)
-    assert body_to_observation_matrix(0, -pitch_deg * DEG, 0)[1] @ NOSE < 0
+    assert body_to_observation_matrix(pitch=-pitch_deg * DEG, yaw=0, roll=0)[1] @ NOSE < 0
 
 
 @pytest.mark.parametrize("yaw_deg", [1.0, 13.2, 60.0])
 def test_positive_yaw_swings_the_nose_toward_plus_x(yaw_deg):
-    nose = body_to_observation_matrix(yaw_deg * DEG, 0, 0) @ NOSE
+    nose = body_to_observation_matrix(pitch=0, yaw=yaw_deg * DEG, roll=0) @ NOSE
     assert nose[0] > 0
     assert math.degrees(math.atan2(nose[0], -nose[2])) == pytest.approx(yaw_deg)
-    assert (body_to_observation_matrix(-yaw_deg * DEG, 0, 0) @ NOSE)[0] < 0
+    assert (body_to_observation_matrix(pitch=0, yaw=-yaw_deg * DEG, roll=0) @ NOSE)[0] < 0
 
 
 @pytest.mark.parametrize("roll_deg", [0.13, 5.0, 40.0])
 def test_positive_roll_lowers_the_right_wing(roll_deg):
-    m = body_to_observation_matrix(0, 0, roll_deg * DEG)
+    m = body_to_observation_matrix(pitch=0, yaw=0, roll=roll_deg * DEG)
     assert (m @ RIGHT)[1] < 0 and (m @ LEFT)[1] > 0
     assert elev(m @ RIGHT) == pytest.approx(-roll_deg)
     np.testing.assert_allclose(m @ NOSE, [0, 0, -1], atol=1e-15)  # roll leaves the nose alone
@@ -78,7 +80,7 @@ def test_positive_roll_lowers_the_right_wing(roll_deg):
 def test_intrinsic_order_nose_elevation_is_the_pitch(yaw, pitch, roll):
     # Yaw is applied last about the vertical, roll first about the nose: neither changes how
     # far the nose is raised, and the nose's heading is the yaw.
-    nose = body_to_observation_matrix(yaw, pitch, roll) @ NOSE
+    nose = body_to_observation_matrix(pitch=pitch, yaw=yaw, roll=roll) @ NOSE
     assert elev(nose) == pytest.approx(math.degrees(pitch), abs=1e-9)
     if abs(pitch) < 89 * DEG:
         assert math.atan2(nose[0], -nose[2]) == pytest.approx(yaw, abs=1e-9)
@@ -87,14 +89,14 @@ def test_intrinsic_order_nose_elevation_is_the_pitch(yaw, pitch, roll):
 def test_roll_then_pitch_then_yaw():
     # With 90 deg yaw and 90 deg roll the wing that roll lowered stays low after the yaw:
     # roll happens about the body axis, before yaw (intrinsic yaw-pitch-roll).
-    m = body_to_observation_matrix(90 * DEG, 0, 90 * DEG)
+    m = body_to_observation_matrix(pitch=0, yaw=90 * DEG, roll=90 * DEG)
     np.testing.assert_allclose(m @ RIGHT, [0, -1, 0], atol=1e-15)
     np.testing.assert_allclose(m @ NOSE, [1, 0, 0], atol=1e-15)
 
 
 @given(r0=st.floats(50, 20000), b0=st.floats(-89 * DEG, 89 * DEG))
 def test_centre_lands_where_spec_says(r0, b0):
-    c = body_to_observation(np.zeros(3), r0, b0, 0.4, 0.05, -0.1)
+    c = body_to_observation(np.zeros(3), r0, b0, pitch=0.05, yaw=0.4, roll=-0.1)
     np.testing.assert_allclose(c, [0, r0 * math.sin(b0), r0 * math.cos(b0)], rtol=1e-15,
                                atol=1e-9)
     np.testing.assert_allclose(c, target_centre(r0, b0))
@@ -122,13 +124,13 @@ def test_spherical_axes():
        r0=st.floats(50, 18000), b0=st.floats(-1.5, 1.5), yaw=angle, pitch=small, roll=angle)
 def test_body_observation_round_trip(p, r0, b0, yaw, pitch, roll):
     p = np.array(p)
-    obs = body_to_observation(p, r0, b0, yaw, pitch, roll)
-    back = observation_to_body(obs, r0, b0, yaw, pitch, roll)
+    obs = body_to_observation(p, r0, b0, pitch=pitch, yaw=yaw, roll=roll)
+    back = observation_to_body(obs, r0, b0, pitch=pitch, yaw=yaw, roll=roll)
     np.testing.assert_allclose(back, p, atol=1e-8)
     # distances are preserved (a rigid motion)
     np.testing.assert_allclose(np.linalg.norm(obs - target_centre(r0, b0), axis=1),
                                np.linalg.norm(p, axis=1), rtol=1e-12, atol=1e-9)
-    d = directions_to_body(obs - target_centre(r0, b0), yaw, pitch, roll)
+    d = directions_to_body(obs - target_centre(r0, b0), pitch=pitch, yaw=yaw, roll=roll)
     np.testing.assert_allclose(d, p, atol=1e-8)
 
 
@@ -154,16 +156,19 @@ turn = st.floats(-3.1, 3.1)
 @given(st.floats(100.0, 18000.0), st.floats(-1.5, 1.5), turn, st.floats(-1.55, 1.55), turn,
        turn)
 def test_target_matrix_and_pose_round_trip(r0, b0, yaw, pitch, roll, az):
-    m = target_matrix_lidar_local(r0, b0, yaw, pitch, roll, az)
+    m = target_matrix_lidar_local(r0, b0, pitch=pitch, yaw=yaw, roll=roll, azimuth=az)
     assert np.linalg.det(m[:3, :3]) == pytest.approx(1.0, abs=1e-9)  # a proper rotation
     p = pose_from_lidar_local(m)
+    assert tuple(p) == POSE_NAMES
     got = [p[k] for k in ("range_m", "elevation", "azimuth", "yaw", "pitch", "roll")]
     assert np.allclose(got, [r0, b0, az, yaw, pitch, roll], rtol=0, atol=1e-8)
     body = np.array([[10.0, 2.0, -1.0], [-3.0, 5.0, 0.5]])
-    local = observation_to_lidar_local(body_to_observation(body, r0, b0, yaw, pitch, roll), az)
+    local = observation_to_lidar_local(
+        body_to_observation(body, r0, b0, pitch=pitch, yaw=yaw, roll=roll), az)
     assert np.allclose(local, body @ m[:3, :3].T + m[:3, 3], atol=1e-7)
     assert np.allclose(lidar_local_to_observation(local, az),
-                       body_to_observation(body, r0, b0, yaw, pitch, roll), atol=1e-7)
+                       body_to_observation(body, r0, b0, pitch=pitch, yaw=yaw, roll=roll),
+                       atol=1e-7)
 
 
 def test_target_matrix_axes():
@@ -173,7 +178,10 @@ def test_target_matrix_axes():
     assert np.allclose(m[:3, 0], [0, -1, 0]) and np.allclose(m[:3, 2], [0, 0, 1])
     assert np.allclose(m[:3, 3], [0, 1000 * math.cos(0.1), 1000 * math.sin(0.1)])
     # +azimuth swings the target toward the lidar's right (+x)
-    assert target_matrix_lidar_local(1000.0, 0.0, 0.0, 0.0, 0.0, 0.2)[0, 3] > 0
-    assert attitude_angles(attitude_matrix(0.3, -0.2, 0.1)) == pytest.approx((0.3, -0.2, 0.1))
+    assert target_matrix_lidar_local(1000.0, 0.0, 0.0, 0.0, 0.0, azimuth=0.2)[0, 3] > 0
+    # angles come back in the one order, ATTITUDE (pitch, yaw, roll)
+    assert ATTITUDE == ("pitch", "yaw", "roll")
+    assert attitude_angles(attitude_matrix(pitch=-0.2, yaw=0.3, roll=0.1)) == pytest.approx(
+        (-0.2, 0.3, 0.1))
     with pytest.raises(ValueError, match="sits on the lidar"):
         pose_from_lidar_local(np.eye(4))
