@@ -123,6 +123,7 @@ class _CGANFamily:
 def load_model(directory=None, runtime: str = "auto"):
     """The model in ``directory`` (default: the shipped one), opened by the family that made
     it (model.json ``family``), whatever that family is."""
+    from . import plus  # noqa: F401 - registers the APCG+ loader (the core's second family)
     d = Path(directory) if directory else DEFAULT_MODEL_DIR
     if runtime not in RUNTIMES:
         raise InputError(f"runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")

@@ -16,7 +16,8 @@ import numpy as np
 from .errors import InputError
 
 # What a table records of each type (dataset.json and model.json "types" entries).
-RECORD_KEYS = ("name", "catalog_index", "kind", "range_band", "depth_length_m")
+RECORD_KEYS = ("name", "catalog_index", "kind", "category", "range_band", "depth_length_m",
+               "bounding_radius_m")
 
 
 def _listing(names, limit: int = 12) -> str:

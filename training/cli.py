@@ -41,6 +41,8 @@ def register_train(sub) -> None:
                    help="occupancy grid resolution, 4 * 2^k (default 32)")
     p.add_argument("--diffusion-steps", type=int, metavar="T",
                    help="steps of the DDPM schedule (default 200)")
+    p.add_argument("--sheet", type=int, metavar="S",
+                   help="apcg-plus: side of the sheet the network draws (4 x 2^k; default 64)")
     p.add_argument("--no-norm", action="store_true",
                    help="train on depth images without Norm (the paper's 'APCG w/o Norm.')")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
@@ -67,7 +69,7 @@ def _run_train(args) -> int:
             "checkpoint_every": args.checkpoint_every, "threads": args.threads,
             "keep_every": args.keep_every, "diverge_gp": args.diverge_gp, "ema": args.ema,
             "hours": args.hours, "n_points": args.n_points, "voxel_res": args.voxel_res,
-            "diffusion_steps": args.diffusion_steps}
+            "diffusion_steps": args.diffusion_steps, "sheet": args.sheet}
     if args.no_conv:
         over["conv"] = False
     if args.no_attention:
@@ -200,6 +202,8 @@ def add_runtime_argument(p) -> None:
 
 
 def register_evaluate(sub) -> None:
+    import argparse
+
     p = sub.add_parser("evaluate", help="score a model against the simulator per range band",
                        description="Held-out test conditions: a model's clouds against the "
                                    "standard clouds, MMD / JSD / Chamfer per slant-range band "
@@ -215,6 +219,10 @@ def register_evaluate(sub) -> None:
                    help="instead: measure which bin count separates good from wrong clouds")
     p.add_argument("--with-untrained", action="store_true",
                    help="also score a freshly initialised copy of the network")
+    p.add_argument("--faithfulness", action=argparse.BooleanOptionalAction, default=True,
+                   help="score faithfulness (closer to its own standard cloud than to the same "
+                        "type at yaw +-45 deg and to another category's type) beside the point "
+                        "z-buffer and embree 2x2 on the same pairs (default: on)")
     p.set_defaults(func=_run_evaluate)
 
 
@@ -235,7 +243,8 @@ def _run_evaluate(args) -> int:
         print(json.dumps({"best": study["best"], "min_gap": study["min_gap"]}))
         return 0
     report = evaluate(model, args.data, n_pairs=args.pairs or None, seed=args.seed,
-                      with_untrained=args.with_untrained, progress=True)
+                      with_untrained=args.with_untrained, progress=True,
+                      faithfulness=args.faithfulness)
     report["command"] = command
     out = write_report(report, args.output)
     print(markdown(report))
@@ -419,6 +428,8 @@ def _run_ablation(args) -> int:
 
 
 def register_compare(sub) -> None:
+    import argparse
+
     p = sub.add_parser("compare", help="every method side by side: budget, memory, speed, "
                                        "MMD / JSD per band",
                        description="Scores each model on the same held-out pairs (the one "
@@ -435,6 +446,9 @@ def register_compare(sub) -> None:
                    help="training steps timed for the memory peak (0: skip)")
     p.add_argument("--no-untrained", action="store_true",
                    help="skip the untrained networks")
+    p.add_argument("--faithfulness", action=argparse.BooleanOptionalAction, default=True,
+                   help="each method's faithfulness per band, beside the point z-buffer and "
+                        "embree 2x2 (decoys and references made once; default: on)")
     p.set_defaults(func=_run_compare)
 
 
@@ -446,7 +460,7 @@ def _run_compare(args) -> int:
               for name, path in method_names(args.model)]
     report = compare(models, args.data, n_pairs=args.pairs or None, seed=args.seed,
                      memory_steps=args.memory_steps, with_untrained=not args.no_untrained,
-                     progress=True)
+                     progress=True, faithfulness=args.faithfulness)
     report["command"] = "apcg compare " + " ".join(sys.argv[2:])
     out = write(report, args.output)
     print(markdown(report))

@@ -58,6 +58,7 @@ class TrainConfig:
     n_points: int = 256  # points per generated set
     voxel_res: int = 32  # occupancy grid resolution
     diffusion_steps: int = 200  # T of the DDPM schedule
+    sheet: int = 64  # side of an APCG+ sheet (4 x 2^k)
     keep_every: int = 0  # also keep checkpoints/step-NNNNNN.pt every this many steps (0: never)
     diverge_gp: float = 50.0  # stop when the gradient penalty's mean over 50 steps exceeds it
     ema: float = 0.0  # decay of an exponential moving average of the generator (0: none)
@@ -101,7 +102,7 @@ PRESETS = {
 def size_defaults() -> dict:
     """The family-specific sizes (name -> default) a family's ``train_options`` draws from."""
     return {f.name: f.default for f in fields(TrainConfig)
-            if f.name in ("n_points", "voxel_res", "diffusion_steps")}
+            if f.name in ("n_points", "voxel_res", "diffusion_steps", "sheet")}
 
 
 def gradient_penalty(d, real, fake, nu, eps) -> torch.Tensor:
@@ -440,7 +441,11 @@ def _broadcast(model, buffers_only: bool = False) -> None:
 
 
 def config_from(preset: str, **overrides) -> TrainConfig:
+    """The preset, then the family's own defaults (a family's ``train_defaults``: what its
+    training needs that the preset, made for the GANs, does not say), then ``overrides``."""
     if preset not in PRESETS:
         raise InputError(f"unknown preset {preset!r}; accepted: {', '.join(PRESETS)}")
     over = {k: v for k, v in overrides.items() if v is not None}
-    return replace(PRESETS[preset], **over)
+    family = get_family(over.get("family", PRESETS[preset].family), need="train_step")
+    cfg = replace(PRESETS[preset], **getattr(family, "train_defaults", {}))
+    return replace(cfg, **over)

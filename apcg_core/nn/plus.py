@@ -1,0 +1,111 @@
+"""The APCG+ network (apcg_core/plus.py): condition -> sheet (hit logit, range offset).
+
+The condition enters every block, not only the input: a learned embedding of the type (its code
+in the model's own type table) and Fourier features of the scaled pose (range, elevation, pitch,
+yaw, roll: nu without its type column) make one condition vector c; each upsampling block is
+modulated by c (FiLM: x * (1 + gamma(c)) + beta(c), gamma and beta zero at the start, as
+adaLN-Zero starts a block as the identity). Deliberately small: it runs on a CPU per condition.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import torch
+from torch import nn
+
+from ..errors import InputError
+
+POSE_DIM = 5  # nu without its type column
+BASE_CHANNELS = (512, 256, 128, 64, 32, 16, 8)
+
+
+@dataclass(frozen=True)
+class PlusConfig:
+    """Architecture of one APCG+ network. ``width`` scales every channel count; ``sheet`` is
+    the side of the square sheet (4 x 2^k); ``film`` False feeds c to the first layer only
+    (the ablation of per-block conditioning)."""
+
+    n_types: int
+    width: float = 1.0
+    sheet: int = 64
+    embed: int = 32
+    fourier: int = 6
+    hidden: int = 256
+    film: bool = True
+    family: str = "apcg-plus"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.n_types, int) or self.n_types < 1:
+            raise InputError(f"n_types must be an integer >= 1, got {self.n_types!r}")
+        if not 0 < self.width <= 4:
+            raise InputError(f"width must be in (0, 4], got {self.width}")
+        k = math.log2(self.sheet / 4) if self.sheet >= 8 else -1
+        if k != int(k) or not 1 <= k <= len(BASE_CHANNELS) - 1:
+            raise InputError(f"sheet must be 4 x 2^k with 1 <= k <= {len(BASE_CHANNELS) - 1} "
+                             f"(8, 16, ... 512), got {self.sheet}")
+
+    @property
+    def stages(self) -> int:
+        return int(math.log2(self.sheet // 4))
+
+    def channels(self) -> list[int]:
+        base = BASE_CHANNELS[len(BASE_CHANNELS) - 1 - self.stages:]
+        return [max(4, int(round(c * self.width))) for c in base]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PlusConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise InputError(f"an APCG+ network configuration has unknown settings {unknown}")
+        return cls(**d)
+
+
+def fourier_features(x: torch.Tensor, n: int) -> torch.Tensor:
+    """x and sin / cos of 2^k pi x for k < n (x in [-1, 1])."""
+    freqs = (2.0 ** torch.arange(n, dtype=x.dtype, device=x.device)) * math.pi
+    ang = x[..., None] * freqs
+    return torch.cat([x, torch.sin(ang).flatten(1), torch.cos(ang).flatten(1)], dim=1)
+
+
+class PlusNet(nn.Module):
+    def __init__(self, cfg: PlusConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        ch = cfg.channels()
+        self.type_embedding = nn.Embedding(cfg.n_types, cfg.embed)
+        cond_in = cfg.embed + POSE_DIM * (1 + 2 * cfg.fourier)
+        self.cond = nn.Sequential(nn.Linear(cond_in, cfg.hidden), nn.SiLU(),
+                                  nn.Linear(cfg.hidden, cfg.hidden), nn.SiLU())
+        self.stem = nn.Linear(cfg.hidden, ch[0] * 16)
+        self.ups = nn.ModuleList(nn.ConvTranspose2d(a, b, 4, 2, 1)
+                                 for a, b in zip(ch[:-1], ch[1:], strict=True))
+        self.films = nn.ModuleList(nn.Linear(cfg.hidden, 2 * b) for b in ch[1:]) \
+            if cfg.film else None
+        if self.films is not None:
+            for f in self.films:  # every block starts as the identity modulation
+                nn.init.zeros_(f.weight)
+                nn.init.zeros_(f.bias)
+        self.act = nn.SiLU()
+        self.head = nn.Conv2d(ch[-1], 2, 3, padding=1)
+
+    def forward(self, type_code: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+        """(N,) int64 type codes and (N, 5) scaled pose -> (N, 2, S, S) sheets."""
+        c = self.cond(torch.cat([self.type_embedding(type_code),
+                                 fourier_features(pose, self.cfg.fourier)], dim=1))
+        x = self.act(self.stem(c)).view(-1, self.stem.out_features // 16, 4, 4)
+        for i, up in enumerate(self.ups):
+            x = up(x)
+            if self.films is not None:
+                gamma, beta = self.films[i](c).chunk(2, dim=1)
+                x = x * (1.0 + gamma[:, :, None, None]) + beta[:, :, None, None]
+            x = self.act(x)
+        return self.head(x)
+
+
+__all__ = ["POSE_DIM", "PlusConfig", "PlusNet", "fourier_features"]

@@ -1,0 +1,222 @@
+"""APCG+ ("apcg-plus"): a generator that follows its condition, queried only where the lidar looks.
+
+The paper's cGAN draws a whole 64 x 256 normalised image from noise and the condition, then
+DeNorm and Im2PC (SPEC sections 5-6) turn it into a cloud. APCG+ keeps the condition -> image
+idea and changes three things, each measured (docs/evaluation/plus/):
+
+* **A sheet, not a window.** The network draws the target on a square *sheet* in the target's
+  own scale: sheet coordinates (u, v) are the lateral and vertical offsets from the centre of
+  mass divided by the type's bounding radius R, so every type at every range fills the sheet
+  alike (Norm's purpose, without its block copies).
+* **Only the box, at the lidar's own cells.** A cloud is read off the sheet at the centres of
+  the cells that can see the target (those within R of the centre: the simulator's box),
+  at their exact sheet coordinates (bilinear), not through DeNorm's nearest pixel. Far targets
+  cost few reads.
+* **Two outputs.** Channel 0 is the logit of "this cell has a return", channel 1 the range
+  offset (r - r0) / R of that return. A return is kept where the logit is above ``threshold``
+  (0: probability one half); its range is quantised to the lidar's time bins as the standard
+  data are.
+
+This module is numpy (and onnxruntime to run the exported network), like the rest of the core;
+the network itself is :mod:`apcg_core.nn.plus` (torch), used for training and for the torch
+runtime.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .cloud import PointCloud
+from .errors import InputError
+from .families import register
+from .frames import spherical_to_cartesian
+from .generation import RUNTIMES, ModelTypes
+from .lidar import LidarParams
+
+FAMILY = "apcg-plus"
+CHUNK = 256  # conditions per network call (bounds memory: a sheet is 2 x S x S floats)
+
+
+# --- sheet geometry (shared by training and generation: one definition) -------------------------
+def box_half_cells(range_m, elevation, radius_m, lidar: LidarParams):
+    """Half-extent (cells) of the box of cells that can see a sphere of radius R about the
+    target's centre, in azimuth and elevation, +1 cell of margin (a cell sees the sphere when
+    its centre ray passes within R of the centre)."""
+    r0 = np.asarray(range_m, np.float64)
+    rad = np.minimum(np.asarray(radius_m, np.float64), 0.999 * r0)
+    ang = np.arcsin(rad / r0)
+    cb = np.cos(np.asarray(elevation, np.float64))
+    w_half = np.floor(ang / (lidar.r_alpha * cb) + 1.0).astype(np.int64)
+    h_half = np.floor(ang / lidar.r_beta + 1.0).astype(np.int64)
+    return w_half, h_half
+
+
+def box_cells(range_m, elevation, radius_m, lidar: LidarParams):
+    """Every box cell of each condition, clipped to the lidar's window: (sample, w, h) arrays."""
+    w_half, h_half = box_half_cells(range_m, elevation, radius_m, lidar)
+    w_lo = np.maximum(-w_half, lidar.w_min)
+    w_hi = np.minimum(w_half, lidar.width // 2 - 1)
+    h_lo = np.maximum(-h_half, lidar.h_min)
+    h_hi = np.minimum(h_half, lidar.height // 2 - 1)
+    nw, nh = w_hi - w_lo + 1, h_hi - h_lo + 1
+    n = nw * nh
+    sample = np.repeat(np.arange(len(n)), n)
+    k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)  # index within its box
+    w = w_lo[sample] + k % nw[sample]
+    h = h_lo[sample] + k // nw[sample]
+    return sample, w, h
+
+
+def sheet_coords(w, h, range_m, elevation, radius_m, lidar: LidarParams):
+    """Sheet coordinates (u, v) of cells (w, h): lateral and vertical offsets of the cell's
+    centre ray from the target's centre, at the target's range, in units of R."""
+    r0 = np.asarray(range_m, np.float64)
+    rad = np.asarray(radius_m, np.float64)
+    u = r0 * np.cos(elevation) * np.tan(np.asarray(w, np.float64) * lidar.r_alpha) / rad
+    v = r0 * np.tan(np.asarray(h, np.float64) * lidar.r_beta) / rad
+    return u, v
+
+
+def sample_sheets(sheets: np.ndarray, sample, u, v) -> np.ndarray:
+    """Bilinear reads of ``sheets`` (N, C, S, S) at (u, v) for rows ``sample``: (len(u), C).
+
+    The same sampling as torch's ``grid_sample(mode='bilinear', padding_mode='border',
+    align_corners=False)`` with x = u and y = -v (row 0 is the top of the sheet, v = +1)."""
+    s = sheets.shape[-1]
+    x = np.clip(((np.asarray(u) + 1.0) * s - 1.0) / 2.0, 0.0, s - 1.0)
+    y = np.clip(((1.0 - np.asarray(v)) * s - 1.0) / 2.0, 0.0, s - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), s - 2)
+    y0 = np.minimum(np.floor(y).astype(np.int64), s - 2)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    flat = sheets.reshape(sheets.shape[0], sheets.shape[1], s * s)
+
+    def at(yy, xx):
+        return flat[sample, :, yy * s + xx]
+
+    return ((at(y0, x0) * (1 - fx) + at(y0, x0 + 1) * fx) * (1 - fy)
+            + (at(y0 + 1, x0) * (1 - fx) + at(y0 + 1, x0 + 1) * fx) * fy)
+
+
+# --- the model ---------------------------------------------------------------------------------
+@dataclass
+class _Runtime:
+    name: str
+    session: object = None
+    net: object = None
+
+
+class PlusModel(ModelTypes):
+    """An exported APCG+ model: model.json + sheets.onnx (inputs ``type_code`` (N,) int64 and
+    ``pose`` (N, 5) float32, nu without its type column; output ``sheet`` (N, 2, S, S))."""
+
+    def __init__(self, directory, runtime: str = "auto") -> None:
+        self._read_model_json(directory)
+        self.onnx_path = self.directory / "sheets.onnx"
+        if not self.onnx_path.is_file():
+            raise InputError(f"{self.directory} is not an {FAMILY} model (no sheets.onnx; "
+                             "`apcg export` makes one from a training run)")
+        if runtime not in RUNTIMES:
+            raise InputError(f"runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")
+        radius = [r.get("bounding_radius_m") for r in self.types.records]
+        if any(r is None or not np.isfinite(r) or r <= 0 for r in radius):
+            raise InputError(f"{self.directory / 'model.json'}: every type needs a "
+                             "bounding_radius_m > 0 (an APCG+ model reads its box from it)")
+        self.radius = np.asarray(radius, np.float64)
+        self.threshold = float(self.meta.get("threshold", 0.0))
+        self.quantize = bool(self.meta.get("quantize", True))
+        self.threads = self.meta.get("threads")
+        self.runtime = "onnx" if runtime == "auto" else runtime
+        self._rt: _Runtime | None = None
+
+    def _run(self, codes: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        if self._rt is None:
+            self._rt = self._open(self.runtime)
+        if self._rt.name == "onnx":
+            return self._rt.session.run(None, {"type_code": codes, "pose": pose})[0]
+        import torch
+        with torch.no_grad():
+            return self._rt.net(torch.from_numpy(codes), torch.from_numpy(pose)).numpy()
+
+    def _open(self, runtime: str) -> _Runtime:
+        if runtime == "onnx":
+            try:
+                import onnxruntime as ort
+            except ImportError as exc:
+                raise InputError("generation needs onnxruntime: pip install onnxruntime "
+                                 "(or --runtime torch)") from exc
+            opts = ort.SessionOptions()
+            if self.threads:
+                opts.intra_op_num_threads = int(self.threads)
+            return _Runtime("onnx", session=ort.InferenceSession(
+                str(self.onnx_path), opts, providers=["CPUExecutionProvider"]))
+        import torch
+
+        from .generation import onnx_weights
+        from .nn.plus import PlusConfig, PlusNet
+        net = PlusNet(PlusConfig.from_dict(self.meta["net"]))
+        state = onnx_weights(self.onnx_path)
+        own = net.state_dict()
+        missing = [k for k in own if k not in state]
+        if missing:
+            raise InputError(f"{self.onnx_path} lacks weights {missing[:5]}")
+        net.load_state_dict({k: torch.from_numpy(state[k]) for k in own})
+        return _Runtime("torch", net=net.eval())
+
+    def sheets(self, table: np.ndarray) -> np.ndarray:
+        """The network's sheets (N, 2, S, S) for condition rows in this model's types."""
+        nu = self.space.encode(table).astype(np.float32)
+        codes = table[:, 0].astype(np.int64)
+        out = [self._run(codes[s:s + CHUNK], np.ascontiguousarray(nu[s:s + CHUNK, 1:]))
+               for s in range(0, len(table), CHUNK)]
+        return np.concatenate(out) if out else np.zeros((0, 2, 1, 1), np.float32)
+
+    def clouds_of(self, table: np.ndarray, sheets: np.ndarray) -> PointCloud:
+        """Read the clouds of conditions ``table`` off their ``sheets`` (one stacked cloud)."""
+        codes = table[:, 0].astype(np.int64)
+        r0, b0, rad = table[:, 1], table[:, 2], self.radius[codes]
+        sample, w, h = box_cells(r0, b0, rad, self.lidar)
+        u, v = sheet_coords(w, h, r0[sample], b0[sample], rad[sample], self.lidar)
+        read = sample_sheets(sheets, sample, u, v)
+        keep = read[:, 0] > self.threshold
+        sample, w, h = sample[keep], w[keep], h[keep]
+        r = r0[sample] + read[keep, 1].astype(np.float64) * rad[sample]
+        if self.quantize:
+            r = self.lidar.quantize_range(r)
+        alpha, beta = self.lidar.cell_centre_angles(w, h, b0[sample])
+        return PointCloud(spherical_to_cartesian(alpha, beta, r), r, w, h, sample)
+
+    def generate(self, conditions, count: int = 1, seed: int = 0):
+        """Point clouds for ``conditions`` (mapped by type name into this model's types),
+        ``count`` per condition. The standard data are a function of the condition, and so is
+        this model: ``seed`` is accepted for the common interface and changes nothing."""
+        table = self.repeated_conditions(conditions, count)
+        clouds = []
+        for s in range(0, len(table), CHUNK):
+            part = table[s:s + CHUNK]
+            c = self.clouds_of(part, self.sheets(part))
+            c.sample = c.sample + s
+            clouds.append(c)
+        cloud = (PointCloud(*(np.concatenate([getattr(c, k) for c in clouds])
+                              for k in ("xyz", "range_m", "cell_w", "cell_h", "sample")))
+                 if clouds else PointCloud(np.zeros((0, 3)), [], [], [], np.zeros(0, np.int64)))
+        return self.result(cloud, np.zeros((0, self.lidar.height, self.lidar.width),
+                                           np.float32), table)
+
+
+class _PlusLoader:
+    """APCG+ as the core knows it: its loader (training adds the rest: training/plus.py)."""
+
+    name = FAMILY
+
+    @staticmethod
+    def load(directory, runtime: str = "auto"):
+        return PlusModel(Path(directory), runtime=runtime)
+
+
+register(_PlusLoader())
+
+__all__ = ["FAMILY", "PlusModel", "box_cells", "box_half_cells", "sample_sheets",
+           "sheet_coords"]

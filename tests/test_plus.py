@@ -1,0 +1,154 @@
+"""APCG+ (apcg_core/plus.py, training/plus.py): its geometry agrees with torch and with the
+simulator's box, it trains, exports, loads and generates like every family, and it learns."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apcg_core.errors import InputError
+from apcg_core.generation import load_model
+from apcg_core.plus import PlusModel, box_cells, box_half_cells, sample_sheets, sheet_coords
+from training import protocol
+from training.data import DepthDataset
+from training.export import export_model
+from training.trainer import Trainer, config_from
+
+torch = pytest.importorskip("torch")
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_training_data, tmp_path_factory):
+    """A small APCG+ trained briefly on the tiny dataset, exported, with its untrained twin."""
+    tmp = tmp_path_factory.mktemp("plus")
+    cfg = config_from("tiny", family="apcg-plus", steps=400, seed=3, width=0.25, sheet=32,
+                      checkpoint_every=10**6, log_every=100)
+    assert (cfg.lr, cfg.n_critic) == (1e-3, 1)  # the family's own defaults over the preset's
+    Trainer(tiny_training_data, tmp / "run", cfg, progress=False).fit()
+    model = load_model(export_model(tmp / "run", tmp / "model"))
+    return model, protocol.untrained(model, tmp / "untrained")
+
+
+def test_bilinear_reads_equal_torch_grid_sample():
+    rng = np.random.default_rng(0)
+    sheets = rng.standard_normal((3, 2, 16, 16)).astype(np.float32)
+    sample = rng.integers(0, 3, 500)
+    u, v = rng.uniform(-1.3, 1.3, 500), rng.uniform(-1.3, 1.3, 500)  # border reads included
+    got = sample_sheets(sheets, sample, u, v)
+    grid = torch.zeros(3, 500, 1, 2)
+    want = np.zeros((500, 2))
+    for s in range(3):
+        sel = np.flatnonzero(sample == s)
+        g = torch.from_numpy(np.stack([u[sel], -v[sel]], -1).astype(np.float32))[None, :, None]
+        out = torch.nn.functional.grid_sample(torch.from_numpy(sheets[s:s + 1]), g,
+                                              mode="bilinear", padding_mode="border",
+                                              align_corners=False)
+        want[sel] = out[0, :, :, 0].T.numpy()
+    del grid
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_every_standard_return_lies_in_the_box(tiny_training_data):
+    """The box generation reads covers every cell the simulator returned, on every sample."""
+    for split in ("train", "test"):
+        ds = DepthDataset(tiny_training_data, split)
+        rad = np.array([r["bounding_radius_m"] for r in ds.types.records])[
+            ds.conditions[:, 0].astype(int)]
+        w_half, h_half = box_half_cells(ds.conditions[:, 1], ds.conditions[:, 2], rad, ds.lidar)
+        for i in range(len(ds)):
+            c = ds.sample_cloud(i)
+            assert (np.abs(c.cell_w) <= w_half[i]).all() and (np.abs(c.cell_h) <= h_half[i]).all()
+            u, v = sheet_coords(c.cell_w, c.cell_h, ds.conditions[i, 1], ds.conditions[i, 2],
+                                rad[i], ds.lidar)
+            assert (np.hypot(u, v) <= 1.01).all()  # returns sit within R of the centre
+
+
+def test_box_cells_are_clipped_to_the_window():
+    from apcg_core.lidar import LidarParams
+    lidar = LidarParams()
+    # a 40 m radius at 3 km spans more than the 64 rows: the box stops at the window
+    sample, w, h = box_cells(np.array([3000.0, 18000.0]), np.array([0.06, 0.06]),
+                             np.array([40.0, 40.0]), lidar)
+    assert lidar.inside(w, h).all()
+    assert (h[sample == 0].min(), h[sample == 0].max()) == (-32, 31)
+    assert (sample == 1).sum() < (sample == 0).sum()  # far: fewer cells to read
+
+
+def test_trained_model_beats_its_untrained_network(trained, tiny_training_data):
+    model, fresh = trained
+    assert model.family == "apcg-plus"
+    pairs = protocol.draw_pairs(tiny_training_data, None, 0, "test")
+    got = protocol.score(model, pairs, floor=False, pointflow=False)
+    base = protocol.score(fresh, pairs, floor=False, pointflow=False)
+    assert got["mean"]["mmd"] < base["mean"]["mmd"], (got["mean"], base["mean"])
+    ratios = [b["points_ratio_p10_p50_p90"][1] for b in got["bands"].values()]
+    assert all(r is not None and 0.3 < r < 3.0 for r in ratios), ratios
+
+
+def test_onnx_and_torch_runtimes_agree(trained, tiny_training_data):
+    model, _ = trained
+    other = PlusModel(model.directory, runtime="torch")
+    cond = DepthDataset(tiny_training_data, "test").condition_rows(np.arange(6))
+    a, b = model.generate(cond), other.generate(cond)
+    np.testing.assert_allclose(model.sheets(a.table), other.sheets(b.table), atol=1e-4)
+    assert abs(len(a.cloud) - len(b.cloud)) <= 0.01 * len(a.cloud) + 2
+    # the condition decides the cloud: the seed changes nothing
+    again = model.generate(cond, seed=99)
+    np.testing.assert_array_equal(again.cloud.xyz, a.cloud.xyz)
+    # ranges sit on the lidar's time bins, as the standard data's do
+    bins = a.cloud.range_m / model.lidar.r_r - 0.5
+    np.testing.assert_allclose(bins, np.round(bins), atol=1e-6)
+
+
+def test_clouds_come_back_one_per_condition_in_order(trained, tiny_training_data):
+    model, _ = trained
+    ds = DepthDataset(tiny_training_data, "test")
+    cond = ds.condition_rows(np.arange(5))
+    res = model.generate(cond, count=2)
+    assert len(res.conditions.table) == 10
+    clouds = res.cloud.split(10)
+    for k, c in enumerate(clouds):
+        if len(c):
+            r = np.linalg.norm(c.xyz, axis=1)
+            assert abs(np.median(r) - res.table[k, 1]) < 60.0  # about the condition's range
+
+
+def test_refuses_types_it_does_not_know_and_broken_model_json(trained, tmp_path):
+    model, _ = trained
+    with pytest.raises(InputError, match="Cessna 172"):
+        model.condition("Cessna 172", 5000.0, 0.06)
+    meta = dict(model.meta)
+    meta["types"] = [{k: v for k, v in t.items() if k != "bounding_radius_m"}
+                     for t in meta["types"]]
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "model.json").write_text(json.dumps(meta))
+    (bad / "sheets.onnx").write_bytes((Path(model.directory) / "sheets.onnx").read_bytes())
+    with pytest.raises(InputError, match="bounding_radius_m"):
+        load_model(bad)
+    with pytest.raises(InputError, match="sheets.onnx"):
+        (bad / "sheets.onnx").unlink()
+        load_model(bad)
+
+
+def test_generate_command_writes_its_clouds(trained, tmp_path):
+    model, _ = trained
+    name = model.types.names[0]
+    out = tmp_path / "c.npz"
+    r = subprocess.run([sys.executable, "-m", "apcg_core.cli", "generate", "--model",
+                        str(model.directory), "--type", name, "--range-m",
+                        str(model.space.aircraft_range_m[0] + 500.0), "--elevation-deg", "3.5",
+                        "--pitch-deg", "2", "-o", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    with np.load(out) as f:
+        assert len(f["xyz"]) > 0
+
+
+def test_sheet_size_is_checked():
+    from apcg_core.nn.plus import PlusConfig
+    for bad in (0, 48, 100, 4096):
+        with pytest.raises(InputError, match="sheet"):
+            PlusConfig(n_types=2, sheet=bad)

@@ -1,0 +1,229 @@
+"""Training APCG+ (apcg_core/plus.py): the family object the trainer, export and evaluation use.
+
+The standard data are (almost) a function of the condition: one first-surface return per cell.
+So the network is fitted to them directly, cell by cell, as pix2pix pairs an L1 loss with its
+adversary (here the reconstruction loss alone: see docs/evaluation/plus for what an adversary
+added). Each step draws, for every sample of the batch, ``QUERIES`` cells of its box:
+
+* a quarter uniformly over the box (what generation reads),
+* a quarter among the sample's returns,
+* half near its returns (a return's cell moved by up to ``EDGE_CELLS`` cells: the silhouette,
+  where the errors are),
+
+reads the sheets there (bilinear, as generation does) and takes binary cross-entropy on "has a
+return" plus ``DEPTH_WEIGHT`` x L1 on the range offset of the cells that have one. Log columns:
+``loss_d`` is the cross-entropy, ``loss_g`` the L1, ``wasserstein`` the share of cells classified
+right (there is no critic).
+"""
+
+from __future__ import annotations
+
+import json
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+from apcg_core.errors import InputError
+from apcg_core.plus import FAMILY, box_half_cells, sheet_coords
+
+from .families import Family
+
+QUERIES = 1024
+EDGE_CELLS = 3
+DEPTH_WEIGHT = 4.0
+
+
+class HitLookup:
+    """Which cells of which training sample hold a return, and its range offset: one sorted
+    key per return (sample x H x W + pixel) for vectorised lookups."""
+
+    def __init__(self, ds) -> None:
+        n_px = ds.height * ds.width
+        counts = np.diff(ds.offsets)
+        self.sample_of = np.repeat(np.arange(len(ds)), counts)
+        keys = self.sample_of * n_px + ds.pixel
+        order = np.argsort(keys, kind="stable")
+        self.keys = keys[order]
+        self.delta = ds.delta_range_m[order].astype(np.float64)
+        self.offsets = ds.offsets
+        self.pixel = ds.pixel
+        self.n_px = n_px
+
+    def find(self, sample, pixel):
+        """(is a return, its range offset in metres or 0) for cells ``pixel`` of ``sample``."""
+        key = sample * self.n_px + pixel
+        pos = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
+        hit = self.keys[pos] == key
+        return hit, np.where(hit, self.delta[pos], 0.0)
+
+
+_LOOKUPS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def hit_lookup(ds) -> HitLookup:
+    if ds not in _LOOKUPS:
+        _LOOKUPS[ds] = HitLookup(ds)
+    return _LOOKUPS[ds]
+
+
+def radius_of(ds) -> np.ndarray:
+    """Each sample's type's bounding radius (m), from the dataset's type table."""
+    rad = [r.get("bounding_radius_m") for r in ds.types.records]
+    if any(r is None for r in rad):
+        raise InputError(f"dataset {ds.directory} does not record bounding_radius_m for its "
+                         "types; rebuild it with this version of `apcg dataset build`")
+    return np.asarray(rad, np.float64)[ds.conditions[:, 0].astype(np.int64)]
+
+
+def draw_queries(ds, idx, rng, n: int = QUERIES):
+    """Query cells of samples ``idx``: (B, n) arrays of u, v, hit (0/1) and range offset / R."""
+    lidar = ds.lidar
+    look = hit_lookup(ds)
+    idx = np.asarray(idx, np.int64)
+    b = len(idx)
+    r0, b0 = ds.conditions[idx, 1], ds.conditions[idx, 2]
+    rad = radius_of(ds)[idx]
+    w_half, h_half = box_half_cells(r0, b0, rad, lidar)
+    w_lo = np.maximum(-w_half, lidar.w_min)
+    w_hi = np.minimum(w_half, lidar.width // 2 - 1)
+    h_lo = np.maximum(-h_half, lidar.h_min)
+    h_hi = np.minimum(h_half, lidar.height // 2 - 1)
+    n_box, n_hit = n // 4, n // 4
+    n_edge = n - n_box - n_hit
+    # uniform over the box
+    wu = rng.integers(w_lo[:, None], w_hi[:, None] + 1, (b, n_box))
+    hu = rng.integers(h_lo[:, None], h_hi[:, None] + 1, (b, n_box))
+    # returns, and cells near them (a sample without returns falls back to the box)
+    starts, counts = look.offsets[idx], np.diff(look.offsets)[idx]
+    pick = rng.integers(0, np.maximum(counts, 1)[:, None], (b, n_hit + n_edge))
+    px = look.pixel[np.minimum(starts[:, None] + pick, len(look.pixel) - 1)]
+    row, col = np.divmod(px, lidar.width)
+    wr, hr = lidar.w_of_col(col), lidar.h_of_row(row)
+    jitter = rng.integers(-EDGE_CELLS, EDGE_CELLS + 1, (2, b, n_edge))
+    wr[:, n_hit:] += jitter[0]
+    hr[:, n_hit:] += jitter[1]
+    none = counts == 0
+    wr[none] = rng.integers(w_lo[none, None], w_hi[none, None] + 1, (none.sum(), n_hit + n_edge))
+    hr[none] = rng.integers(h_lo[none, None], h_hi[none, None] + 1, (none.sum(), n_hit + n_edge))
+    w = np.clip(np.concatenate([wu, wr], axis=1), w_lo[:, None], w_hi[:, None])
+    h = np.clip(np.concatenate([hu, hr], axis=1), h_lo[:, None], h_hi[:, None])
+    pixel = lidar.row_of_h(h) * lidar.width + lidar.col_of_w(w)
+    hit, delta = look.find(np.repeat(idx[:, None], n, axis=1), pixel)
+    u, v = sheet_coords(w, h, r0[:, None], b0[:, None], rad[:, None], lidar)
+    return u, v, hit.astype(np.float32), (delta / rad[:, None])
+
+
+class PlusFamily(Family):
+    """APCG+: trained by regression on the standard data (no critic), exported to ONNX."""
+
+    name = FAMILY
+    sizes = ("sheet",)
+    # The regression trains with Adam's usual betas at a larger rate than a GAN can, one batch
+    # per step; the average of the weights (decay 0.999) is what is exported.
+    train_defaults = {"lr": 1e-3, "betas": (0.9, 0.99), "n_critic": 1, "ema": 0.999,
+                      "width": 1.0}
+
+    @staticmethod
+    def load(directory, runtime: str = "auto"):
+        from apcg_core.plus import PlusModel
+        return PlusModel(directory, runtime=runtime)
+
+    def net_config(self, cfg, dataset):
+        from apcg_core.nn.plus import PlusConfig
+        return PlusConfig(n_types=len(dataset.types), width=cfg.width, sheet=cfg.sheet)
+
+    def networks(self, net):
+        from apcg_core.nn.plus import PlusNet
+        return PlusNet(net), None
+
+    def prepare(self, dataset) -> None:
+        hit_lookup(dataset)
+        radius_of(dataset)
+
+    def batches_per_step(self, cfg) -> int:
+        return 1
+
+    def batch(self, tr, idx):
+        """The batch's query cells (u, v, hit, offset) as tensors, drawn with the batch's own
+        seed (so a resumed run draws the same cells)."""
+        import torch
+        rng = np.random.default_rng([tr.cfg.seed, tr.batch_counter, tr.rank])
+        u, v, hit, off = draw_queries(tr.data, idx, rng)
+        grid = torch.from_numpy(np.stack([u, -v], axis=-1).astype(np.float32))[:, :, None]
+        return (torch.from_numpy(np.asarray(idx, np.int64)), grid, torch.from_numpy(hit),
+                torch.from_numpy(off.astype(np.float32)))
+
+    def train_step(self, tr) -> dict:
+        import torch
+        import torch.nn.functional as F
+        (idx, grid, hit, off), nu = tr.next_batch()
+        codes = torch.from_numpy(tr.data.conditions[idx.numpy(), 0].astype(np.int64))
+        tr.G.train()
+        with tr.autocast():
+            sheets = tr.G(codes, nu[:, 1:])
+        read = F.grid_sample(sheets.float(), grid, mode="bilinear", padding_mode="border",
+                             align_corners=False)[..., 0]  # (B, 2, Q)
+        logit, depth = read[:, 0], read[:, 1]
+        bce = F.binary_cross_entropy_with_logits(logit, hit)
+        l1 = (torch.abs(depth - off) * hit).sum() / hit.sum().clamp(min=1.0)
+        loss = bce + DEPTH_WEIGHT * l1
+        tr.opt_g.zero_grad(set_to_none=True)
+        loss.backward()
+        tr.allreduce_grads(tr.G)
+        tr.opt_g.step()
+        right = ((logit > 0).float() == hit).float().mean()
+        return tr.finish_step(bce, l1, 0.0, right)
+
+    def export(self, state: dict, header: dict, out_dir, meta: dict, data_dir,
+               sampling_steps=None) -> Path:
+        from apcg_core.nn.plus import PlusConfig, PlusNet
+        self.check_sampling_steps(sampling_steps, state)
+        net = PlusNet(PlusConfig.from_dict(state["net"]))
+        net.load_state_dict(state["G"])
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        export_sheets_onnx(net, out / "sheets.onnx")
+        meta = {**meta, "family": FAMILY, "threshold": 0.0,
+                "quantize": bool(header.get("config", {}).get("quantize", True))}
+        meta.pop("tau", None)
+        meta.pop("norm", None)
+        (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
+        return out
+
+    def untrained(self, model, out_dir, seed: int = 0):
+        """The same network freshly initialised (seeded), as a model directory."""
+        import torch
+
+        from apcg_core.nn.plus import PlusConfig, PlusNet
+        from apcg_core.plus import PlusModel
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        torch.manual_seed(seed)
+        export_sheets_onnx(PlusNet(PlusConfig.from_dict(model.meta["net"])),
+                           out / "sheets.onnx")
+        (out / "model.json").write_text(json.dumps(model.meta))
+        return PlusModel(out, runtime="onnx")
+
+
+def export_sheets_onnx(net, path: Path) -> None:
+    """The network as ONNX: inputs type_code (N,) int64 and pose (N, 5); output sheet."""
+    import os
+    import warnings
+
+    import torch
+    net = net.eval()
+    tmp = path.with_name(path.name + ".part")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(net, (torch.zeros(2, dtype=torch.int64), torch.zeros(2, 5)), str(tmp),
+                          input_names=["type_code", "pose"], output_names=["sheet"],
+                          opset_version=17, dynamo=False, do_constant_folding=False,
+                          dynamic_axes={"type_code": {0: "batch"}, "pose": {0: "batch"},
+                                        "sheet": {0: "batch"}})
+    os.replace(tmp, path)
+
+
+PLUS = PlusFamily()
+
+__all__ = ["PLUS", "PlusFamily", "draw_queries", "export_sheets_onnx"]
