@@ -30,30 +30,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from apcg_core.catalog.catalog import default_catalog  # noqa: E402
 from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian  # noqa: E402
 from training import protocol  # noqa: E402
 from training.data import DepthDataset  # noqa: E402
-
-
-def simulated(backend: str, ds, idx, supersample: int = 1):
-    """Clouds of the test samples ``idx`` by one simulator backend, and seconds per cloud."""
-    from dataset_builder.simulate import Simulator
-    cat = default_catalog()
-    table = ds.conditions[idx]
-    out = [None] * len(idx)
-    with Simulator(backend, ds.lidar, supersample=supersample) as sim:
-        codes = table[:, 0].astype(int)
-        for code in np.unique(codes):  # meshes and casters built before the clock starts
-            sim.simulate_type(cat, ds.types.name(code), table[codes == code][:1])
-        t0 = time.perf_counter()
-        for code in np.unique(codes):
-            sel = np.flatnonzero(codes == code)
-            res = sim.simulate_type(cat, ds.types.name(code), table[sel])
-            for k, c in zip(sel, res.clouds(), strict=True):
-                out[k] = c.xyz
-        dt = time.perf_counter() - t0
-    return out, dt / len(idx)
+from training.faithfulness import simulated  # noqa: E402  (one backend's clouds, timed)
 
 
 def generated(model, ds, idx, seed: int = 0):

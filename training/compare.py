@@ -1,8 +1,10 @@
 """`apcg compare`: every method side by side, the paper's way (its Figs. 14, 15, 17), from one
 command: each model's training budget, its peak memory while training, its generation time per
-cloud and its MMD / JSD per slant-range band, beside its own untrained network.
+cloud, its MMD / JSD per slant-range band beside its own untrained network, and its
+faithfulness per band beside two simulator references (:mod:`training.faithfulness`, decoys and
+references made once for all methods).
 
-    apcg compare --data DIR -o REPORT --model DIR --model DIR ... [--pairs N]
+    apcg compare --data DIR -o REPORT --model DIR --model DIR ... [--pairs N] [--no-faithfulness]
 
 Writes REPORT/compare.json, REPORT/compare.md and REPORT/compare.png. Memory is measured by
 training a few steps of each model's own configuration in a fresh process (the peak of a process
@@ -86,17 +88,26 @@ def method_names(dirs) -> list[tuple[str, str]]:
 
 
 def compare(models, data_dir, n_pairs: int | None = protocol.DEFAULT_PAIRS, seed: int = 0,
-            memory_steps: int = 5, with_untrained: bool = True, progress: bool = False) -> dict:
+            memory_steps: int = 5, with_untrained: bool = True, progress: bool = False,
+            faithfulness: bool = True) -> dict:
     """``models``: (name, loaded model) pairs. Every model is scored on the same pairs, by the
-    evaluation protocol."""
+    evaluation protocol (with faithfulness: against the same decoys, beside the references)."""
     pairs = draw_pairs(data_dir, n_pairs, seed, half="test")
     keep = ("pairs", "scored", "no_score", "mmd", "jsd", "points_standard",
-            "points_generated", "points_ratio_p10_p50_p90")
+            "points_generated", "points_ratio_p10_p50_p90") + (
+        ("faithfulness",) if faithfulness else ())
+    prep = None
+    if faithfulness:
+        from .faithfulness import prepare
+        if progress:
+            print("faithfulness: decoys and references", file=sys.stderr, flush=True)
+        prep = prepare(pairs)
     rows = []
     for name, model in models:
         if progress:
             print(f"{name}: scoring", file=sys.stderr, flush=True)
-        rep = protocol.score(model, pairs, floor=False, pointflow=False)
+        rep = protocol.score(model, pairs, floor=False, pointflow=False,
+                             faithfulness=prep or False)
         row = {"method": name, "model": str(model.directory), "family": model.family,
                "budget": budget(model),
                "ms_per_cloud": round(1e3 * rep["seconds"]["generate"] / rep["pairs"], 3),
@@ -108,6 +119,8 @@ def compare(models, data_dir, n_pairs: int | None = protocol.DEFAULT_PAIRS, seed
             for b, v in row["bands"].items():
                 v["untrained"] = {k: fresh["bands"][b][k] for k in ("mmd", "jsd")}
         row["mean"] = {k: band_mean(row["bands"], k) for k in ("mmd", "jsd")}
+        if faithfulness:
+            row["mean"]["faithfulness"] = rep["mean"]["faithfulness"]
         if with_untrained:
             untrained = {b: v["untrained"] for b, v in row["bands"].items()}
             row["mean"]["untrained"] = {k: band_mean(untrained, k) for k in ("mmd", "jsd")}
@@ -117,7 +130,11 @@ def compare(models, data_dir, n_pairs: int | None = protocol.DEFAULT_PAIRS, seed
             row["training_memory"] = training_memory(model.meta["train"], data_dir,
                                                      memory_steps)
         rows.append(row)
-    return {**pairs.record(), "protocol": protocol.constants(), "rows": rows}
+    out = {**pairs.record(), "protocol": protocol.constants(), "rows": rows}
+    if prep is not None:
+        out["references"] = prep.references
+        out["seconds_faithfulness_references"] = round(prep.seconds, 2)
+    return out
 
 
 def _f(v, d=3) -> str:
@@ -156,7 +173,38 @@ def markdown(report: dict) -> str:
         cells = [r["method"]] + [f"{_f(r['bands'][n]['points_generated'], 0)} / "
                                  f"{_f(r['bands'][n]['points_standard'], 0)}" for n in bands]
         lines.append("| " + " | ".join(cells) + " |")
+    lines += faithfulness_lines(report, bands)
     return "\n".join(lines) + "\n"
+
+
+def faithfulness_lines(report: dict, bands: list) -> list[str]:
+    """Per method and reference, per band: the faithful share (closer than the yaw decoy /
+    than the other type) and MMD."""
+    refs = report.get("references")
+    if not refs:
+        return []
+
+    def cell(b):
+        f = b.get("faithfulness") if b else None
+        if not f or f["share"] is None:
+            return "-"
+        return (f"{100 * f['share']:.0f}% ({100 * f['share_vs_yaw']:.0f}% / "
+                f"{100 * f['share_vs_other_type']:.0f}%), MMD {_f(b['mmd'])}")
+
+    def mean(m):
+        v = m.get("faithfulness", {}).get("all")
+        return "-" if v is None else f"{100 * v:.0f}%"
+    lines = ["", "Faithfulness (SPEC section 9): the share of scorable pairs whose cloud is "
+             "closer (MMD) to its own standard cloud than to the same type at yaw +-45 deg and "
+             "to a type of another category (in brackets each alone), the same decoys for every "
+             "method; the references simulate their clouds (point z-buffer, embree 2 x 2):", "",
+             "| " + " | ".join(["method", "mean over bands"] + bands) + " |",
+             "|" + "---|" * (2 + len(bands))]
+    for name, r in [(r["method"], r) for r in report["rows"]] + [
+            (f"{n} (reference)", v) for n, v in refs.items()]:
+        cells = [name, mean(r["mean"])] + [cell(r["bands"].get(b)) for b in bands]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def plot(report: dict, path: Path) -> None:

@@ -1,10 +1,12 @@
 """`apcg evaluate`: a model against the simulator on held-out conditions, the paper's way
 (Fig. 17: mean MMD and JSD per slant-range band, aircraft and drones apart) and more honestly
 (the cell-jitter floor, pairs with too few points flagged instead of averaged, point-count
-ratios, per-type scores, the PointFlow-protocol Chamfer set metrics). Scoring is
-:mod:`training.protocol`'s; this module writes the report.
+ratios, per-type scores, the PointFlow-protocol Chamfer set metrics, and the faithfulness
+score of :mod:`training.faithfulness` beside the point z-buffer's and embree 2 x 2's). Scoring
+is :mod:`training.protocol`'s; this module writes the report.
 
     apcg evaluate --model DIR --data DIR -o REPORT [--pairs N] [--seed S] [--with-untrained]
+        [--no-faithfulness]
 
 Writes REPORT/metrics.json, REPORT/report.md and REPORT/fig17.png. Every number carries the
 command that reproduces it.
@@ -26,11 +28,13 @@ from .protocol import MAX_POINTS, band_of, draw_pairs
 
 
 def evaluate(model, data_dir, n_pairs: int | None = protocol.DEFAULT_PAIRS, seed: int = 0,
-             with_untrained: bool = False, progress: bool = False) -> dict:
+             with_untrained: bool = False, progress: bool = False,
+             faithfulness: bool = True) -> dict:
     """The protocol's report of ``model`` on the test half of ``data_dir``'s held-out split,
-    with per-type scores (and the untrained network's per band when asked)."""
+    with per-type scores, faithfulness and its references (unless ``faithfulness`` is False),
+    and the untrained network's scores per band when asked."""
     pairs = draw_pairs(data_dir, n_pairs, seed, half="test")
-    report = protocol.score(model, pairs, progress=progress)
+    report = protocol.score(model, pairs, progress=progress, faithfulness=faithfulness)
     report["types"] = protocol.per_type(report)
     if with_untrained:
         with tempfile.TemporaryDirectory() as tmp:
@@ -73,6 +77,7 @@ def markdown(report: dict) -> str:
             f"{_fmt(b['floor']['mmd'])} | {_fmt(u.get('mmd'))} | {_fmt(b['jsd'])} | "
             f"{_fmt(b['floor']['jsd'])} | {_fmt(u.get('jsd'))} | {_fmt(b['chamfer_m2'], 2)} | "
             f"{_fmt(pf.get('cov_cd'), 2)} | {_fmt(pf.get('nna_cd'), 2)} |")
+    lines += faithfulness_table(report)
     if report.get("types"):
         lines += ["", "Per type (catalog name):", "",
                   "| type | pairs | scored | pts std | pts gen | MMD | JSD |",
@@ -81,9 +86,54 @@ def markdown(report: dict) -> str:
             lines.append(f"| {name} | {t['pairs']} | {t['scored']} | "
                          f"{t['points_standard']:.0f} | {t['points_generated']:.0f} | "
                          f"{_fmt(t['mmd'])} | {_fmt(t['jsd'])} |")
-    lines += ["", f"Took {report['seconds']['total']} s "
-              f"(generation {report['seconds']['generate']} s)."]
+    sec = report["seconds"]
+    lines += ["", f"Took {sec['total']} s (generation {sec['generate']} s"
+              + (f", faithfulness {sec['faithfulness']} s" if "faithfulness" in sec else "")
+              + ")."]
     return "\n".join(lines) + "\n"
+
+
+def _share(f: dict | None) -> str:
+    if not f or f.get("share") is None:
+        return "-"
+    return (f"{100 * f['share']:.0f}% ({100 * f['share_vs_yaw']:.0f}% / "
+            f"{100 * f['share_vs_other_type']:.0f}%)")
+
+
+def _ratio(b: dict) -> str:
+    return " / ".join(_fmt(v, 2) for v in b["points_ratio_p10_p50_p90"])
+
+
+def faithfulness_table(report: dict) -> list[str]:
+    """Markdown lines: per band the model's MMD, JSD, point-count ratio and faithfulness beside
+    the references' MMD and faithfulness (nothing when the report has no faithfulness)."""
+    refs = report.get("references")
+    if not refs:
+        return []
+    m = report["mean"]["faithfulness"]
+    pct = {k: "-" if v is None else f"{100 * v:.0f}%" for k, v in m.items()}
+    lines = ["", "Faithfulness (SPEC section 9): the share of scorable pairs whose generated "
+             "cloud is closer (MMD) to its own standard cloud than to both decoys, the same "
+             "type at yaw +-45 deg and a type of another category at the same condition (in "
+             "brackets: closer than the yaw decoy / than the other type). Pairs whose standard "
+             f"cloud has fewer than {report['protocol']['min_points']} points are not scorable; "
+             "a generated cloud with fewer is not faithful. The references make their clouds by "
+             "simulation on the same pairs: the paper's point z-buffer and embree with 2 x 2 "
+             "rays per cell. Points ratio: generated / standard points, p10 / median / p90. "
+             f"Mean share over bands: {pct['all']} (aircraft {pct['aircraft']}, drones "
+             f"{pct['drone']}).", "",
+             "| band | pairs | scorable | too few pts | MMD | JSD | points ratio | faithful "
+             + "".join(f"| {r} MMD | {r} faithful " for r in refs) + "|",
+             "|" + "---|" * (8 + 2 * len(refs))]
+    for name, b in report["bands"].items():
+        f = b["faithfulness"]
+        cells = [name, str(b["pairs"]), str(f["scorable"]), str(f["too_few_points"]),
+                 _fmt(b["mmd"]), _fmt(b["jsd"], 2), _ratio(b), _share(f)]
+        for r in refs.values():
+            rb = r["bands"].get(name, {})
+            cells += [_fmt(rb.get("mmd")), _share(rb.get("faithfulness"))]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def plot(report: dict, path: Path) -> None:

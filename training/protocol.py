@@ -14,6 +14,10 @@
   percentile per band).
 * **Floor.** Per band, up to :data:`FLOOR_PER_BAND` standard clouds against their own copy
   jittered inside each resolution cell: the best a generator can score.
+* **Faithfulness** (when asked; :mod:`training.faithfulness`): per band, the share of pairs whose
+  generated cloud is closer (MMD) to its own standard cloud than to the same type at yaw
+  +-45 deg and to a type of another category, beside the same scores of two simulator
+  references (the point z-buffer and embree 2 x 2) on the same pairs.
 
 A report records the dataset, model, half, pairs per band, seed and every constant above, so
 that the same call reproduces it to the digit.
@@ -185,9 +189,11 @@ def constants() -> dict:
 
 
 def score(model, pairs: Pairs, floor: bool = True, pointflow: bool = True,
-          progress: bool = False) -> dict:
+          progress: bool = False, faithfulness=False) -> dict:
     """Scores of ``model`` on ``pairs``: per band, with the floor and the PointFlow set metrics
-    when asked, and a row per pair."""
+    when asked, and a row per pair. ``faithfulness``: True (or a
+    :class:`training.faithfulness.Prepared` of these pairs, to share decoys and references
+    between models) adds each band's faithfulness, the references and the mean shares."""
     t0 = time.perf_counter()
     gen, t_gen = generate(model, pairs)
     ds = pairs.ds
@@ -221,15 +227,35 @@ def score(model, pairs: Pairs, floor: bool = True, pointflow: bool = True,
                 entry["pointflow"] = {"error": str(exc)}
         out_bands[name] = entry
     names = ds.types.names
-    return {"protocol": constants(), **pairs.record(), "model": str(model.directory),
-            "family": model.family, "tau": getattr(model, "tau", None), "bands": out_bands,
-            "mean": {k: band_mean(out_bands, k) for k in ("mmd", "jsd")},
-            "per_pair": [{"sample_id": int(ds.sample_id[i]), "type": names[int(
-                ds.conditions[i, 0])], "band": pairs.bands[j],
-                "range_m": float(ds.conditions[i, 1]), **rows[j]}
-                for j, i in enumerate(pairs.idx)],
-            "seconds": {"generate": round(t_gen, 6),
-                        "total": round(time.perf_counter() - t0, 2)}}
+    extra: list = [{}] * len(pairs)
+    seconds = {"generate": round(t_gen, 6)}
+    if faithfulness:
+        from . import faithfulness as fa
+        t1 = time.perf_counter()
+        prep = faithfulness if isinstance(faithfulness, fa.Prepared) else fa.prepare(pairs,
+                                                                                      stds)
+        prep.check(pairs)
+        verdicts = prep.verdicts(gen, [r["mmd"] for r in rows])
+        for name, entry in fa.band_report(pairs, rows, verdicts).items():
+            out_bands[name]["faithfulness"] = entry["faithfulness"]
+        extra = [{k: v[k] for k in ("faithful", "closer_than_yaw", "closer_than_other_type",
+                                    "decoy_type", "mmd_yaw", "mmd_other_type")}
+                 for v in verdicts]
+        seconds["faithfulness"] = round(time.perf_counter() - t1, 2)  # shared work excluded
+    mean = {k: band_mean(out_bands, k) for k in ("mmd", "jsd")}
+    report = {"protocol": constants(), **pairs.record(), "model": str(model.directory),
+              "family": model.family, "tau": getattr(model, "tau", None), "bands": out_bands,
+              "mean": mean,
+              "per_pair": [{"sample_id": int(ds.sample_id[i]), "type": names[int(
+                  ds.conditions[i, 0])], "band": pairs.bands[j],
+                  "range_m": float(ds.conditions[i, 1]), **rows[j], **extra[j]}
+                  for j, i in enumerate(pairs.idx)],
+              "seconds": seconds}
+    if faithfulness:
+        mean["faithfulness"] = fa.mean_shares(out_bands)
+        report["references"] = prep.references
+    seconds["total"] = round(time.perf_counter() - t0, 2)
+    return report
 
 
 def per_type(report: dict) -> dict:
