@@ -131,7 +131,19 @@ def load_model(directory=None, runtime: str = "auto"):
 
 
 class APCGModel(ModelTypes):
-    """The paper's cGAN as exported: model.json + generator.onnx."""
+    """The paper's cGAN as exported: model.json + generator.onnx. ``tau`` is its Im2PC
+    threshold (SPEC section 6); ``TAUS`` the candidates `apcg choose-tau` sweeps."""
+
+    TAUS = (-0.99, -0.98, -0.95, -0.9, -0.8, -0.6, -0.3, 0.0)
+    DEFAULT_TAU = TAU_DEFAULT
+
+    @staticmethod
+    def check_tau(tau) -> float:
+        if not (isinstance(tau, (int, float, np.floating)) and np.isfinite(tau)
+                and -1.0 <= tau < 1.0):
+            raise InputError(f"tau = {tau!r} is out of range; accepted: -1 <= tau < 1 (the "
+                             "generator's tanh output, background -1)")
+        return float(tau)
 
     def __init__(self, directory=None, runtime: str = "auto") -> None:
         self._read_model_json(directory)
@@ -245,19 +257,27 @@ def onnx_weights(path) -> dict:
 
 def conditions_from_csv(path, model: ModelTypes) -> Conditions:
     """Rows ``type,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg`` (header required; the
-    type by catalog name, or catalog index), in the model's type table."""
+    type by catalog name, or catalog index), in the model's type table. A dataset's
+    conditions.csv (its ``type_name`` column) is read as it is."""
     import csv
 
     from .lidar import DEG
     need = ["type", "range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg"]
     names, pose = [], []
+    known: dict = {}
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
-        if reader.fieldnames is None or any(k not in reader.fieldnames for k in need):
-            raise InputError(f"{path}: a conditions CSV needs the header {','.join(need)}")
+        fields = reader.fieldnames or []
+        type_col = "type" if "type" in fields else "type_name"
+        if any(k not in fields for k in [type_col, *need[1:]]):
+            raise InputError(f"{path}: a conditions CSV needs the header {','.join(need)} "
+                             "(or a dataset's conditions.csv)")
         for i, r in enumerate(reader):
             try:
-                names.append(model.type_name(r["type"].strip()))
+                key = r[type_col].strip()
+                if key not in known:
+                    known[key] = model.type_name(key)
+                names.append(known[key])
                 row = [float(r["range_m"])] + [float(r[k]) * DEG for k in need[2:]]
                 Condition(0, *row)  # physical checks, named
                 pose.append(row)

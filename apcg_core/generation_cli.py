@@ -23,7 +23,8 @@ def register_generate(sub) -> None:
     p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="auto",
                    help="cGAN inference: auto (torch when installed, else onnxruntime), onnx, "
                         "torch; the same images either way")
-    p.add_argument("--tau", type=float, help="Im2PC threshold (default: the model's)")
+    p.add_argument("--tau", type=float, help="output threshold (default: the model's): the "
+                                             "cGAN's Im2PC tau, APCG+'s hit logit")
     p.add_argument("-o", "--output", required=True,
                    help=".ply / .npz / .las; several clouds go in one file, told apart by "
                         "their `sample` attribute")
@@ -39,9 +40,9 @@ def _run_generate(args) -> int:
     model = load_model(args.model, runtime=args.runtime)
     if args.tau is not None:
         if getattr(model, "tau", None) is None:
-            raise InputError(f"--tau is an Im2PC threshold; {model.directory} is a "
+            raise InputError(f"--tau is an output threshold; {model.directory} is a "
                              f"{model.family} model, which has none")
-        model.tau = float(args.tau)
+        model.tau = model.check_tau(args.tau)
     if args.conditions:
         if args.type:
             raise InputError("give either --conditions or --type with a pose, not both")

@@ -13,9 +13,10 @@ idea and changes three things, each measured (docs/evaluation/plus/):
   at their exact sheet coordinates (bilinear), not through DeNorm's nearest pixel. Far targets
   cost few reads.
 * **Two outputs.** Channel 0 is the logit of "this cell has a return", channel 1 the range
-  offset (r - r0) / R of that return. A return is kept where the logit is above ``threshold``
-  (0: probability one half); its range is quantised to the lidar's time bins as the standard
-  data are.
+  offset (r - r0) / R of that return. A return is kept where the logit is above ``tau``, the
+  model's output threshold as Im2PC's tau is the cGAN's (0: probability one half; chosen on the
+  validation half by `apcg choose-tau`); its range is quantised to the lidar's time bins as
+  the standard data are.
 
 This module is numpy (and onnxruntime to run the exported network), like the rest of the core;
 the network itself is :mod:`apcg_core.nn.plus` (torch), used for training and for the torch
@@ -96,8 +97,9 @@ def sample_sheets(sheets: np.ndarray, sample, u, v) -> np.ndarray:
     def at(yy, xx):
         return flat[sample, :, yy * s + xx]
 
-    return ((at(y0, x0) * (1 - fx) + at(y0, x0 + 1) * fx) * (1 - fy)
-            + (at(y0 + 1, x0) * (1 - fx) + at(y0 + 1, x0 + 1) * fx) * fy)
+    # rows first, then columns: the order PlusModel's reader uses, so both round alike
+    return ((at(y0, x0) * (1 - fy) + at(y0 + 1, x0) * fy) * (1 - fx)
+            + (at(y0, x0 + 1) * (1 - fy) + at(y0 + 1, x0 + 1) * fy) * fx)
 
 
 # --- the model ---------------------------------------------------------------------------------
@@ -112,6 +114,16 @@ class PlusModel(ModelTypes):
     """An exported APCG+ model: model.json + sheets.onnx (inputs ``type_code`` (N,) int64 and
     ``pose`` (N, 5) float32, nu without its type column; output ``sheet`` (N, 2, S, S))."""
 
+    TAUS = (-1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 3.0)  # hit-logit thresholds choose-tau sweeps
+    DEFAULT_TAU = 0.0
+
+    @staticmethod
+    def check_tau(tau) -> float:
+        if not (isinstance(tau, (int, float, np.floating)) and np.isfinite(tau)):
+            raise InputError(f"tau (the hit-logit threshold) must be a finite number, got "
+                             f"{tau!r}")
+        return float(tau)
+
     def __init__(self, directory, runtime: str = "auto") -> None:
         self._read_model_json(directory)
         self.onnx_path = self.directory / "sheets.onnx"
@@ -125,7 +137,7 @@ class PlusModel(ModelTypes):
             raise InputError(f"{self.directory / 'model.json'}: every type needs a "
                              "bounding_radius_m > 0 (an APCG+ model reads its box from it)")
         self.radius = np.asarray(radius, np.float64)
-        self.threshold = float(self.meta.get("threshold", 0.0))
+        self.tau = self.check_tau(self.meta.get("tau", self.DEFAULT_TAU))
         self.quantize = bool(self.meta.get("quantize", True))
         self.threads = self.meta.get("threads")
         self.runtime = "onnx" if runtime == "auto" else runtime
@@ -174,14 +186,54 @@ class PlusModel(ModelTypes):
         return np.concatenate(out) if out else np.zeros((0, 2, 1, 1), np.float32)
 
     def clouds_of(self, table: np.ndarray, sheets: np.ndarray) -> PointCloud:
-        """Read the clouds of conditions ``table`` off their ``sheets`` (one stacked cloud)."""
+        """Read the clouds of conditions ``table`` off their ``sheets`` (one stacked cloud):
+        the same returns as reading every box cell with :func:`sample_sheets`, found faster.
+
+        The bilinear read is separable (u depends on w alone, v on h alone), so each box row
+        h is first interpolated between two sheet rows; a cell can then exceed tau only where
+        one of the two sheet columns it lies between does, which bounds each row's cells to
+        one interval of w. Only those cells are read (a few more than the returns)."""
+        lidar = self.lidar
         codes = table[:, 0].astype(np.int64)
         r0, b0, rad = table[:, 1], table[:, 2], self.radius[codes]
-        sample, w, h = box_cells(r0, b0, rad, self.lidar)
-        u, v = sheet_coords(w, h, r0[sample], b0[sample], rad[sample], self.lidar)
-        read = sample_sheets(sheets, sample, u, v)
-        keep = read[:, 0] > self.threshold
-        sample, w, h = sample[keep], w[keep], h[keep]
+        s = sheets.shape[-1]
+        w_half, h_half = box_half_cells(r0, b0, rad, lidar)
+        w_lo = np.maximum(-w_half, lidar.w_min)
+        w_hi = np.minimum(w_half, lidar.width // 2 - 1)
+        h_lo = np.maximum(-h_half, lidar.h_min)
+        nh = np.minimum(h_half, lidar.height // 2 - 1) - h_lo + 1
+        row_n = np.repeat(np.arange(len(table)), nh)
+        h = h_lo[row_n] + np.arange(nh.sum()) - np.repeat(np.cumsum(nh) - nh, nh)
+        _, v = sheet_coords(0, h, r0[row_n], b0[row_n], rad[row_n], lidar)
+        y = np.clip(((1.0 - v) * s - 1.0) / 2.0, 0.0, s - 1.0)
+        y0 = np.minimum(np.floor(y).astype(np.int64), s - 2)
+        fy = (y - y0)[:, None, None]
+        rows = sheets[row_n, :, y0, :] * (1 - fy) + sheets[row_n, :, y0 + 1, :] * fy  # (R,C,S)
+        active = rows[:, 0, :] > self.tau
+        live = np.flatnonzero(active.any(axis=1))
+        first = np.argmax(active[live], axis=1)
+        last = s - 1 - np.argmax(active[live, ::-1], axis=1)
+        # sheet x of cell w is ((a tan(w Ra) + 1) s - 1) / 2, a = r0 cos(b0) / R: invert it
+        n = row_n[live]
+        a = r0[n] * np.cos(b0[n]) / rad[n]
+
+        def w_at(x):
+            return np.arctan(((2.0 * x + 1.0) / s - 1.0) / a) / lidar.r_alpha
+
+        start = np.maximum(np.ceil(w_at(first - 1.0)).astype(np.int64) - 1, w_lo[n])
+        stop = np.minimum(np.floor(w_at(last + 1.0)).astype(np.int64) + 1, w_hi[n])
+        count = np.maximum(stop - start + 1, 0)
+        cell_row = np.repeat(live, count)
+        w = np.repeat(start, count) + np.arange(count.sum()) - np.repeat(
+            np.cumsum(count) - count, count)
+        sample = row_n[cell_row]
+        u, _ = sheet_coords(w, 0, r0[sample], b0[sample], rad[sample], lidar)
+        x = np.clip(((u + 1.0) * s - 1.0) / 2.0, 0.0, s - 1.0)
+        x0 = np.minimum(np.floor(x).astype(np.int64), s - 2)
+        fx = (x - x0)[:, None]
+        read = rows[cell_row, :, x0] * (1 - fx) + rows[cell_row, :, x0 + 1] * fx
+        keep = read[:, 0] > self.tau
+        sample, w, h = sample[keep], w[keep], h[cell_row[keep]]
         r = r0[sample] + read[keep, 1].astype(np.float64) * rad[sample]
         if self.quantize:
             r = self.lidar.quantize_range(r)

@@ -440,7 +440,8 @@ def test_ablation_runs_all_eight_variants_under_one_budget(data, tmp_path):
                          "model.json").read_text())
     assert nonorm["norm"] is False and rep["rows"][-1]["norm"] is False
     assert all(r["norm"] for r in rep["rows"][:8])
-    from training.protocol import TAUS
+    from apcg_core.generation import APCGModel
+    TAUS = APCGModel.TAUS
     for r in rep["rows"]:  # each variant's own tau, chosen on the validation half
         saved_model = json.loads((tmp_path / "abl" / r["variant"] / "model" / "model.json")
                                  .read_text())

@@ -7,8 +7,8 @@ from hypothesis import strategies as st
 
 from apcg_core.frames import (
     ATTITUDE,
-    POSE_NAMES,
     M0,
+    POSE_NAMES,
     attitude_angles,
     attitude_matrix,
     blender_to_observation,

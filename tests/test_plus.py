@@ -152,3 +152,57 @@ def test_sheet_size_is_checked():
     for bad in (0, 48, 100, 4096):
         with pytest.raises(InputError, match="sheet"):
             PlusConfig(n_types=2, sheet=bad)
+
+
+def test_choose_tau_sweeps_the_hit_logit_on_the_validation_half(trained, tiny_training_data):
+    model, _ = trained
+    rep = protocol.choose_tau(model, tiny_training_data, n_pairs=40)
+    assert rep["half"] == "validation"
+    assert set(rep["taus"]) == {f"{t:g}" for t in model.TAUS}
+    assert rep["best"] in model.TAUS and model.tau == 0.0  # the sweep leaves the model as it was
+    counts = [rep["taus"][f"{t:g}"]["points_ratio_median_mean_over_bands"] for t in model.TAUS]
+    assert counts == sorted(counts, reverse=True)  # a higher threshold keeps fewer returns
+    for bad in (float("nan"), float("inf"), "1"):
+        with pytest.raises(InputError, match="tau"):
+            model.check_tau(bad)
+
+
+def _read_every_box_cell(model, table, sheets):
+    """The reference reader: every cell of every box, bilinear, kept above tau."""
+    codes = table[:, 0].astype(int)
+    r0, b0, rad = table[:, 1], table[:, 2], model.radius[codes]
+    sample, w, h = box_cells(r0, b0, rad, model.lidar)
+    u, v = sheet_coords(w, h, r0[sample], b0[sample], rad[sample], model.lidar)
+    read = sample_sheets(sheets, sample, u, v)
+    keep = read[:, 0] > model.tau
+    r = model.lidar.quantize_range(r0[sample[keep]] + read[keep, 1] * rad[sample[keep]])
+    return sample[keep], w[keep], h[keep], r
+
+
+@pytest.mark.parametrize("kind", ["trained", "random", "speckled"])
+def test_fast_reader_finds_every_return_of_the_full_box(trained, tiny_training_data, kind):
+    """The interval reader equals reading every box cell, on trained sheets and on sheets
+    with many separate blobs per row (where one interval per row must still cover them)."""
+    model, _ = trained
+    ds = DepthDataset(tiny_training_data, "test")
+    table = model.repeated_conditions(ds.condition_rows(np.arange(len(ds))), 1)
+    sheets = model.sheets(table)
+    rng = np.random.default_rng(1)
+    if kind == "random":
+        sheets = rng.normal(-1.0, 2.0, sheets.shape).astype(np.float32)
+    elif kind == "speckled":
+        sheets = np.where(rng.random(sheets.shape) < 0.03, 5.0, -5.0).astype(np.float32)
+    for tau in (0.0, 1.3):
+        model.tau = tau
+        try:
+            got = model.clouds_of(table, sheets)
+            want = _read_every_box_cell(model, table, sheets)
+        finally:
+            model.tau = 0.0
+        assert len(want[0]) > 0
+        key = lambda s, w, h: np.lexsort((h, w, s))  # noqa: E731
+        g, k = key(got.sample, got.cell_w, got.cell_h), key(*want[:3])
+        np.testing.assert_array_equal(got.sample[g], want[0][k])
+        np.testing.assert_array_equal(got.cell_w[g], want[1][k])
+        np.testing.assert_array_equal(got.cell_h[g], want[2][k])
+        np.testing.assert_allclose(got.range_m[g], want[3][k], rtol=0, atol=1e-9)

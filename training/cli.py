@@ -151,7 +151,9 @@ def register_export(sub) -> None:
                                    "them.")
     p.add_argument("--run", required=True, help="training run directory")
     p.add_argument("-o", "--output", required=True, help="model directory")
-    p.add_argument("--tau", type=float, default=None, help="Im2PC threshold to record")
+    p.add_argument("--tau", type=float, default=None,
+                   help="output threshold to record (the cGAN's Im2PC tau, default -0.95; "
+                        "APCG+'s hit logit, default 0); `apcg choose-tau` chooses it")
     p.add_argument("--checkpoint", help="a kept checkpoint of the run (default: the latest)")
     p.add_argument("--raw", action="store_true",
                    help="export the generator's raw weights, not their moving average")
@@ -163,11 +165,9 @@ def register_export(sub) -> None:
 
 
 def _run_export(args) -> int:
-    from apcg_core.depth import TAU_DEFAULT
-
     from .export import export_model
-    out = export_model(args.run, args.output, tau=args.tau if args.tau is not None
-                       else TAU_DEFAULT, checkpoint=args.checkpoint, raw=args.raw,
+    out = export_model(args.run, args.output, tau=args.tau, checkpoint=args.checkpoint,
+                       raw=args.raw,
                        sampling_steps=args.sampling_steps)
     print(json.dumps({"model": str(out)}))
     return 0
@@ -253,17 +253,19 @@ def _run_evaluate(args) -> int:
 
 
 def register_choose_tau(sub) -> None:
-    p = sub.add_parser("choose-tau", help="choose a cGAN model's Im2PC threshold on the "
+    p = sub.add_parser("choose-tau", help="choose a model's output threshold tau on the "
                                           "validation half",
-                       description="Scores the model at several Im2PC thresholds tau on the "
+                       description="Scores the model at several output thresholds tau (the "
+                                   "cGAN's Im2PC threshold, APCG+'s hit logit) on the "
                                    "validation half of the dataset's held-out split (never "
                                    "the half that `apcg evaluate` reports on) and picks the "
                                    "lowest mean MMD that leaves at most 1% of clouds empty. "
                                    "--apply writes it into the model's model.json.")
     add_model_argument(p)
     p.add_argument("--data", required=True, help="dataset directory")
-    p.add_argument("--taus", help="comma-separated thresholds (default: "
-                                  "-0.99,-0.98,-0.95,-0.9,-0.8,-0.6,-0.3,0)")
+    p.add_argument("--taus", help="comma-separated thresholds (default: the model's own: "
+                                  "-0.99 .. 0 for the cGAN's Im2PC, -1 .. 3 for APCG+'s hit "
+                                  "logit)")
     add_protocol_arguments(p, pairs=False)
     p.add_argument("--pairs", type=int, default=400, help="validation pairs (default 400)")
     add_runtime_argument(p)
@@ -280,8 +282,8 @@ def _run_choose_tau(args) -> int:
     from apcg_core.generation import default_model_dir, load_model
     from apcg_core.io.dataset import json_bytes, write_atomic
 
-    from .protocol import TAUS, choose_tau
-    taus = TAUS
+    from .protocol import choose_tau
+    taus = None  # the model's own candidates
     if args.taus:
         try:
             taus = tuple(float(t) for t in args.taus.split(","))

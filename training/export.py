@@ -37,7 +37,7 @@ def export_onnx(g: Generator, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
+def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
                  checkpoint=None, raw: bool = False, sampling_steps: int | None = None) -> Path:
     """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest.
     The generator's moving average is exported when the run kept one, the raw weights when
@@ -60,7 +60,8 @@ def export_model(run_dir, out_dir, tau: float = TAU_DEFAULT, data_dir=None,
     meta = {"format": "apcg-model", "format_version": 1, "net": st["net"],
             "condition_space": head["condition_space"], "lidar": head["lidar"],
             "types": TypeTable.from_records(head["types"]).to_records(),
-            "tau": tau, "trained_steps": st["step"],
+            "tau": getattr(family, "default_tau", TAU_DEFAULT) if tau is None else tau,
+            "trained_steps": st["step"],
             "trained_epochs": trained_epochs(st, data, record.get("world", 1)),
             "dataset": head.get("name"), "train": st["train"],
             "norm": bool(st["train"].get("norm", True)),

@@ -70,7 +70,6 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
     default); score a shipped model's run at the tau chosen for it. ``max_checkpoints`` scores at
     most that many per run, evenly spaced and always the last (a slow sampler with many kept
     checkpoints otherwise takes most of the time)."""
-    from apcg_core.depth import TAU_DEFAULT
     from apcg_core.generation import load_model
 
     from . import protocol
@@ -78,7 +77,7 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
     if isinstance(runs, (str, Path)):
         runs = [(Path(runs).name, runs)]
     runs = list(runs.items()) if isinstance(runs, dict) else list(runs)
-    tau = TAU_DEFAULT if tau is None else float(tau)
+    tau = None if tau is None else float(tau)  # None: each family's export default
     pairs = protocol.draw_pairs(data_dir, n_pairs, seed, half="test")
     table = {}
     for name, run in runs:
@@ -101,7 +100,8 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
     data = {"runs": table, **pairs.record(), "protocol": protocol.constants(), "tau": tau,
             "max_checkpoints": max_checkpoints,
             "command": "apcg figure 14 " + " ".join(f"--run {n}={_rel(r)}" for n, r in runs)
-            + f" --data {_rel(data_dir)} --pairs {n_pairs} --tau {tau:g}{limit} -o {_rel(out)}"}
+            + f" --data {_rel(data_dir)} --pairs {n_pairs}"
+            + ("" if tau is None else f" --tau {tau:g}") + f"{limit} -o {_rel(out)}"}
     series = []
     for name, rows in table.items():
         h = [r["hours"] for r in rows]

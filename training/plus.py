@@ -119,6 +119,7 @@ class PlusFamily(Family):
 
     name = FAMILY
     sizes = ("sheet",)
+    default_tau = 0.0  # the hit logit's threshold: probability one half
     # The regression trains with Adam's usual betas at a larger rate than a GAN can, one batch
     # per step; the average of the weights (decay 0.999) is what is exported.
     train_defaults = {"lr": 1e-3, "betas": (0.9, 0.99), "n_critic": 1, "ema": 0.999,
@@ -184,9 +185,8 @@ class PlusFamily(Family):
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         export_sheets_onnx(net, out / "sheets.onnx")
-        meta = {**meta, "family": FAMILY, "threshold": 0.0,
+        meta = {**meta, "family": FAMILY,
                 "quantize": bool(header.get("config", {}).get("quantize", True))}
-        meta.pop("tau", None)
         meta.pop("norm", None)
         (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
         return out

@@ -50,7 +50,6 @@ DEFAULT_PAIRS = 2000
 CHUNK = 512  # pairs generated at a time (bounds memory)
 HALVES = ("validation", "test")
 _HALF_SEED = 20251118  # fixes which held-out samples are validation; never change it
-TAUS = (-0.99, -0.98, -0.95, -0.9, -0.8, -0.6, -0.3, 0.0)
 BANDS_M = {"aircraft": (3000, 6000, 9000, 12000, 15000, 18000.001),
            "drone": (100, 225, 350, 475, 600.001)}
 
@@ -275,21 +274,21 @@ def untrained(model, out_dir, seed: int = 0):
     return get_family(model.family, need="untrained").untrained(model, out_dir, seed)
 
 
-def choose_tau(model, data, taus=TAUS, n_pairs: int = 400, seed: int = 0) -> dict:
-    """The Im2PC threshold with the lowest mean (over bands) MMD among those that leave at most
-    1% of the clouds empty, on the **validation** half only (same pairs and noise for every
-    threshold)."""
+def choose_tau(model, data, taus=None, n_pairs: int = 400, seed: int = 0) -> dict:
+    """The model's output threshold tau (the cGAN's Im2PC threshold, APCG+'s hit logit: the
+    model's ``TAUS`` are the candidates unless ``taus`` are given) with the lowest mean (over
+    bands) MMD among those that leave at most 1% of the clouds empty, on the **validation**
+    half only (same pairs and noise for every threshold)."""
     if getattr(model, "tau", None) is None:
-        raise InputError(f"{model.directory} is a {model.family} model, which has no Im2PC "
+        raise InputError(f"{model.directory} is a {model.family} model, which has no output "
                          "threshold to choose")
+    taus = model.TAUS if taus is None else taus
     pairs = draw_pairs(data, n_pairs, seed, half="validation")
     kept = model.tau
     rows = {}
     try:
         for tau in taus:
-            if not (np.isfinite(tau) and -1.0 <= tau < 1.0):
-                raise InputError(f"tau = {tau!r} is out of range; accepted: -1 <= tau < 1")
-            model.tau = float(tau)
+            model.tau = model.check_tau(tau)
             rep = score(model, pairs, floor=False, pointflow=False)
             no_score = sum(b["no_score"] for b in rep["bands"].values())
             ratios = [b["points_ratio_p10_p50_p90"][1] for b in rep["bands"].values()
