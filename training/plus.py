@@ -19,6 +19,7 @@ right (there is no critic).
 from __future__ import annotations
 
 import json
+import sys
 import weakref
 from pathlib import Path
 
@@ -204,6 +205,110 @@ class PlusFamily(Family):
                            out / "sheets.onnx")
         (out / "model.json").write_text(json.dumps(model.meta))
         return PlusModel(out, runtime="onnx")
+
+
+    def teach(self, model, data_dir, out_dir, minutes: float = 10.0, steps: int | None = None,
+              seed: int = 0, progress: bool = True) -> dict:
+        """Fit one new row of the type embedding and of the type offset to the type of
+        ``data_dir`` (a dataset of that type alone), starting from the known type it resembles
+        most, every other weight frozen; write the model with the type added."""
+        import time
+        from dataclasses import replace
+
+        import torch
+        import torch.nn.functional as F
+
+        from apcg_core.generation import onnx_weights
+        from apcg_core.nn.plus import PlusConfig, PlusNet
+
+        from .data import DepthDataset
+        ds = DepthDataset(data_dir, "train")
+        if len(ds.types) != 1:
+            raise InputError(f"{data_dir} holds {len(ds.types)} types; teaching takes one")
+        old = PlusConfig.from_dict(model.meta["net"])
+        new_code = old.n_types
+        net = PlusNet(replace(old, n_types=old.n_types + 1))
+        state = onnx_weights(model.onnx_path)
+        own = net.state_dict()
+        emb, offs = state["type_embedding.weight"], state["type_offset.weight"]
+        state["type_embedding.weight"] = np.concatenate([emb, emb[:1]])
+        state["type_offset.weight"] = np.concatenate([offs, offs[:1]])
+        net.load_state_dict({k: torch.from_numpy(np.asarray(state[k])) for k in own})
+        for p in net.parameters():
+            p.requires_grad_(False)
+        rng = np.random.default_rng(seed)
+        batch = min(32, len(ds))
+        codes = torch.full((batch,), new_code, dtype=torch.int64)
+        t0 = time.perf_counter()
+
+        one = F.one_hot(torch.tensor(new_code), old.n_types + 1)[:, None].float()
+
+        def with_row(table, row):
+            return table.detach() * (1.0 - one) + one * row
+
+        def loss_of(rows, idx, queries):
+            u, v, hit, off = queries
+            grid = torch.from_numpy(np.stack([u, -v], -1).astype(np.float32))[:, :, None]
+            hit_t, off_t = torch.from_numpy(hit), torch.from_numpy(off.astype(np.float32))
+            sheets = net(codes[:len(idx)], torch.from_numpy(ds.nu[idx, 1:]),
+                         embedding=with_row(net.type_embedding.weight, rows[0]),
+                         offset=with_row(net.type_offset.weight, rows[1]))
+            read = F.grid_sample(sheets, grid, mode="bilinear", padding_mode="border",
+                                 align_corners=False)[..., 0]
+            bce = F.binary_cross_entropy_with_logits(read[:, 0], hit_t)
+            l1 = (torch.abs(read[:, 1] - off_t) * hit_t).sum() / hit_t.sum().clamp(min=1.0)
+            right = ((read[:, 0] > 0).float() == hit_t).float().mean()
+            return bce + DEPTH_WEIGHT * l1, float(right)
+
+        # start from the known type the new one resembles most (lowest loss on one batch)
+        idx = rng.choice(len(ds), batch, replace=False)
+        probe = draw_queries(ds, idx, rng)
+        with torch.no_grad():
+            losses = [float(loss_of((torch.from_numpy(e), torch.from_numpy(o)), idx, probe)[0])
+                      for e, o in zip(emb, offs, strict=True)]
+        nearest = int(np.argmin(losses))
+        rows = (torch.from_numpy(emb[nearest].copy()).requires_grad_(True),
+                torch.from_numpy(offs[nearest].copy()).requires_grad_(True))
+        opt = torch.optim.Adam(rows, lr=1e-2)
+        n_steps = steps if steps is not None else 10**9
+        budget = max(minutes * 60.0 - (time.perf_counter() - t0), 5.0)
+        t1, step, loss_v, right_v = time.perf_counter(), 0, float("nan"), float("nan")
+        while step < n_steps and time.perf_counter() - t1 < budget:
+            idx = rng.choice(len(ds), batch, replace=False)
+            loss, right_v = loss_of(rows, idx, draw_queries(ds, idx, rng))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            loss_v = float(loss.detach())
+            if progress and step % 100 == 0:
+                print(f"teach step {step}: loss {loss_v:.4f}, cells right {right_v:.3f}",
+                      file=sys.stderr, flush=True)
+        with torch.no_grad():
+            net.type_embedding.weight[new_code] = rows[0]
+            net.type_offset.weight[new_code] = rows[1]
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        export_sheets_onnx(net, out / "sheets.onnx")
+        rec = {**ds.types.records[0]}
+        space = dict(model.meta["condition_space"])
+        space["n_types"] = old.n_types + 1
+        if rec.get("range_band") == "near":
+            space["drone_types"] = sorted([*space.get("drone_types", []), new_code])
+        fit = {"steps": step, "seconds": round(time.perf_counter() - t0, 2),
+               "last_loss": loss_v, "cells_right": right_v,
+               "trained": "the type's rows of the type embedding and offset",
+               "started_from": model.types.names[nearest],
+               "dataset": ds.header.get("config", {}).get("description")}
+        meta = {**model.meta, "net": net.cfg.to_dict(), "condition_space": space,
+                "types": [*model.types.to_records(), {"code": new_code, **rec}],
+                "taught": [*model.meta.get("taught", []), {"type": rec["name"], **fit}]}
+        (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
+        for name in ("train_config.json", "log.csv"):
+            src = Path(model.directory) / name
+            if src.exists():
+                (out / name).write_bytes(src.read_bytes())
+        return fit
 
 
 def export_sheets_onnx(net, path: Path) -> None:

@@ -49,6 +49,7 @@ POINTFLOW_PER_BAND = 64
 DEFAULT_PAIRS = 2000
 CHUNK = 512  # pairs generated at a time (bounds memory)
 HALVES = ("validation", "test")
+WHOLE = "held-out"  # both halves: only where nothing is chosen on validation (apcg teach)
 _HALF_SEED = 20251118  # fixes which held-out samples are validation; never change it
 BANDS_M = {"aircraft": (3000, 6000, 9000, 12000, 15000, 18000.001),
            "drone": (100, 225, 350, 475, 600.001)}
@@ -78,8 +79,10 @@ def band_mean(bands: dict, key: str) -> float | None:
 def half_mask(ds: DepthDataset, half: str) -> np.ndarray:
     """Which held-out samples belong to ``half`` ('validation' or 'test'): a fixed function of
     the sample id, so both halves are the same for every model, seed and command."""
+    if half == WHOLE:
+        return np.ones(len(ds), bool)
     if half not in HALVES:
-        raise InputError(f"half must be one of {', '.join(HALVES)}, got {half!r}")
+        raise InputError(f"half must be one of {', '.join((*HALVES, WHOLE))}, got {half!r}")
     draw = np.random.default_rng(_HALF_SEED).random(int(ds.sample_id.max()) + 1)
     in_validation = draw[ds.sample_id] < 0.5
     return in_validation if half == "validation" else ~in_validation

@@ -79,6 +79,10 @@ class PlusNet(nn.Module):
         self.cfg = cfg
         ch = cfg.channels()
         self.type_embedding = nn.Embedding(cfg.n_types, cfg.embed)
+        # a free offset of the condition vector per type (zero at the start): what `apcg teach`
+        # fits, with the type's embedding, to add a type to a trained network
+        self.type_offset = nn.Embedding(cfg.n_types, cfg.hidden)
+        nn.init.zeros_(self.type_offset.weight)
         cond_in = cfg.embed + POSE_DIM * (1 + 2 * cfg.fourier)
         self.cond = nn.Sequential(nn.Linear(cond_in, cfg.hidden), nn.SiLU(),
                                   nn.Linear(cfg.hidden, cfg.hidden), nn.SiLU())
@@ -94,10 +98,17 @@ class PlusNet(nn.Module):
         self.act = nn.SiLU()
         self.head = nn.Conv2d(ch[-1], 2, 3, padding=1)
 
-    def forward(self, type_code: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
-        """(N,) int64 type codes and (N, 5) scaled pose -> (N, 2, S, S) sheets."""
-        c = self.cond(torch.cat([self.type_embedding(type_code),
-                                 fourier_features(pose, self.cfg.fourier)], dim=1))
+    def forward(self, type_code: torch.Tensor, pose: torch.Tensor,
+                embedding: torch.Tensor | None = None,
+                offset: torch.Tensor | None = None) -> torch.Tensor:
+        """(N,) int64 type codes and (N, 5) scaled pose -> (N, 2, S, S) sheets. ``embedding``
+        and ``offset`` replace the weights of the type embedding and the type offset (``apcg
+        teach`` fits one row of each)."""
+        emb = (self.type_embedding(type_code) if embedding is None
+               else nn.functional.embedding(type_code, embedding))
+        off = (self.type_offset(type_code) if offset is None
+               else nn.functional.embedding(type_code, offset))
+        c = self.cond(torch.cat([emb, fourier_features(pose, self.cfg.fourier)], dim=1)) + off
         x = self.act(self.stem(c)).view(-1, self.stem.out_features // 16, 4, 4)
         for i, up in enumerate(self.ups):
             x = up(x)
