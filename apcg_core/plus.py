@@ -38,7 +38,7 @@ from .generation import RUNTIMES, ModelTypes
 from .lidar import LidarParams
 
 FAMILY = "apcg-plus"
-CHUNK = 256  # conditions per network call (bounds memory: a sheet is 2 x S x S floats)
+CHUNK = 1024  # conditions per network call (bounds memory: a sheet is 2 x S x S floats)
 
 
 # --- sheet geometry (shared by training and generation: one definition) -------------------------

@@ -237,3 +237,14 @@ def test_teach_adds_a_type_and_leaves_the_known_ones_exactly(trained, tiny_train
     with pytest.raises(InputError, match="No Such Jet"):
         teach(model.directory, "No Such Jet", tmp_path / "x", samples=24, steps=1,
               progress=False)
+
+
+def test_figure_16_sets_generated_beside_standard(trained, tmp_path):
+    from training.figures import fig16
+    model, _ = trained
+    data = fig16(model, tmp_path / "fig16.png", types=("A320neo", "Mavic 3"))
+    assert (tmp_path / "fig16.png").stat().st_size > 10_000
+    assert [(p["type"], p["range_m"]) for p in data["panels"]] == [
+        ("A320neo", 4500.0), ("A320neo", 9000.0), ("A320neo", 15000.0),
+        ("Mavic 3", 150.0), ("Mavic 3", 350.0), ("Mavic 3", 550.0)]
+    assert all(p["points_standard"] > 0 for p in data["panels"])

@@ -307,18 +307,19 @@ def _run_choose_tau(args) -> int:
 
 
 def register_figure(sub) -> None:
-    p = sub.add_parser("figure", help="the paper's figures 13, 14, 18, 19 as PNG + JSON",
+    p = sub.add_parser("figure", help="the paper's figures 13, 14, 16, 18, 19 as PNG + JSON",
                        description="13: |L_D| and L_G per epoch from a run's log. 14: MMD and "
                                    "JSD of the run's kept checkpoints against training time. "
-                                   "18: generation time against the number of clouds. 19: "
+                                   "16: generated clouds beside standard ones, 6 types x 3 "
+                                   "ranges. 18: generation time against the number of clouds. 19: "
                                    "generated clouds against standard and cell-jittered ones.")
-    p.add_argument("number", type=int, choices=[13, 14, 18, 19])
+    p.add_argument("number", type=int, choices=[13, 14, 16, 18, 19])
     p.add_argument("--run", action="append", metavar="[NAME=]RUN",
                    help="training run directory (13; 14 takes several, any family)")
     p.add_argument("--tau", type=float,
                    help="Im2PC threshold for the cGAN checkpoints of figure 14 (default: the "
                         "export default; use the shipped model's tau to match it)")
-    p.add_argument("--model", help="model directory (18, 19; default: the default model)")
+    p.add_argument("--model", help="model directory (16, 18, 19; default: the default model)")
     p.add_argument("--data", help="dataset directory (figure 14)")
     p.add_argument("--pairs", type=int, default=400, help="test pairs per checkpoint (14)")
     p.add_argument("--max-checkpoints", type=int, metavar="K",
@@ -333,7 +334,7 @@ def _run_figure(args) -> int:
 
     from apcg_core.errors import InputError
 
-    from .figures import fig13, fig14, fig18, fig19
+    from .figures import fig13, fig14, fig16, fig18, fig19
     if args.number in (13, 14) and not args.run:
         raise InputError(f"figure {args.number} needs --run (a training run directory)")
     if args.number in (14, 19) and not args.data:
@@ -353,7 +354,9 @@ def _run_figure(args) -> int:
     else:
         from apcg_core.generation import load_model
         model = load_model(args.model)
-        if args.number == 18:
+        if args.number == 16:
+            fig16(model, args.output)
+        elif args.number == 18:
             fig18(model, args.output)
         else:
             fig19(model, args.data, args.output, n_pairs=args.pairs)

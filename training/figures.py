@@ -260,3 +260,66 @@ def _save(fig, out, data) -> None:
     fig.savefig(out, dpi=110)
     plt.close(fig)
     out.with_suffix(".json").write_text(json.dumps(data, indent=1) + "\n")
+
+
+FIG16_TYPES = ("A320neo", "777-300ER", "F-16C Fighting Falcon", "UH-60 Black Hawk",
+               "Matrice 300 RTK", "Mavic 3")
+FIG16_RANGES_M = {"far": (4500.0, 9000.0, 15000.0), "near": (150.0, 350.0, 550.0)}
+FIG16_POSE_DEG = {"elevation": 3.4, "pitch": 2.3, "yaw": 13.2, "roll": 0.13}
+
+
+def fig16(model, out, types=FIG16_TYPES, pose_deg=None) -> dict:
+    """Generated clouds beside the standard ones (the paper's Fig. 16): each type at three
+    ranges of its band, seen from the lidar (lateral and vertical offsets from the target's
+    centre, metres), the standard cloud (embree) left, the model's right, point counts in the
+    titles."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.lidar import DEG
+    from dataset_builder.simulate import Simulator
+    pose = {**FIG16_POSE_DEG, **(pose_deg or {})}
+    cat = default_catalog()
+    rows = []
+    with Simulator("embree", model.lidar) as sim:
+        for name in types:
+            t = cat.get(name)
+            for r in FIG16_RANGES_M[t.range_band]:
+                cond = model.condition(t.name, r, pose["elevation"] * DEG, pose["pitch"] * DEG,
+                                       pose["yaw"] * DEG, pose["roll"] * DEG)
+                std = sim.simulate_type(cat, t.name, cond.table).cloud.xyz
+                gen = model.generate(cond, seed=0).cloud.xyz
+                rows.append((t.name, r, std, gen))
+    fig, axes = plt.subplots(len(types), 6, figsize=(18, 2.1 * len(types)),
+                             constrained_layout=True)
+    data = {"command": f"apcg figure 16 --model {_rel(model.directory)} -o {_rel(out)}",
+            "model": str(model.directory), "pose_deg": pose, "panels": []}
+    for k, (name, r, std, gen) in enumerate(rows):
+        i, j = divmod(k, 3)
+        centre = np.array([0.0, r * np.sin(pose["elevation"] * DEG),
+                           r * np.cos(pose["elevation"] * DEG)])
+        lim = max(np.abs(std - centre)[:, :2].max(initial=1.0), 1.0) * 1.15
+        for c, (cloud, label) in enumerate(((std, "standard"), (gen, model.family))):
+            ax = axes[i, 2 * j + c]
+            p = cloud - centre
+            ax.scatter(p[:, 0], p[:, 1], s=max(0.3, 30.0 / max(len(p), 1) ** 0.5),
+                       c="black" if c == 0 else "tab:red", linewidths=0)
+            ax.set_xlim(-lim, lim)
+            ax.set_ylim(-lim / 2.5, lim / 2.5)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            rng = f"{r / 1000:g} km" if r >= 1000 else f"{r:g} m"
+            ax.set_title(f"{name}, {rng}: {label} ({len(p)} pts)", fontsize=7)
+        data["panels"].append({"type": name, "range_m": r, "points_standard": len(std),
+                               "points_generated": len(gen)})
+    fig.suptitle(f"Standard (black) and generated (red) clouds, pose (deg) {pose} "
+                 f"(paper Fig. 16): {Path(model.directory).name}", fontsize=9)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    out.with_suffix(".json").write_text(json.dumps(data, indent=1) + "\n")
+    return data
