@@ -1,1 +1,2 @@
-"""dataset_builder (filled in by later issues)."""
+"""dataset_builder: the exact simulator's backends (embree, Blender, the point z-buffer), the
+dataset planner and writer, and their command line (docs/DATASET.md)."""

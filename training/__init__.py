@@ -1,1 +1,2 @@
-"""training (filled in by later issues)."""
+"""training: every model family's training, export, evaluation protocol, figures and reports
+(see DEVELOPERS.md). Imports torch where a step needs it."""
