@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from importlib.metadata import entry_points
 
@@ -31,8 +32,29 @@ def build_parser(registrars=None) -> argparse.ArgumentParser:
     return parser
 
 
+# Options whose value may begin with a minus sign that argparse would read as an option
+# ("--forward -X"): such a pair is joined ("--forward=-X") before parsing.
+SIGNED_VALUE_OPTIONS = ("--forward", "--up")
+_AXIS = re.compile(r"^[+-]?[XYZxyz]$")
+
+
+def join_signed_values(argv: list[str]) -> list[str]:
+    """``--forward -X`` -> ``--forward=-X`` for the options that take an axis."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a in SIGNED_VALUE_OPTIONS and i + 1 < len(argv) and _AXIS.match(argv[i + 1]):
+            out.append(f"{a}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None, registrars=None) -> int:
     parser = build_parser(registrars)
+    argv = join_signed_values(list(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

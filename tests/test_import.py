@@ -156,6 +156,14 @@ def _run(*args, env=None):
     return subprocess.run([APCG, *args], capture_output=True, text=True, timeout=300, env=env)
 
 
+def test_signed_axis_values_are_joined_to_their_option():
+    from apcg_core.cli import join_signed_values
+    assert join_signed_values(["add", "f.obj", "--forward", "-X", "--up", "-y", "--name", "-X"]) \
+        == ["add", "f.obj", "--forward=-X", "--up=-y", "--name", "-X"]
+    # only an axis is joined: a following option stays an option
+    assert join_signed_values(["--forward", "--up", "Z"]) == ["--forward", "--up=Z"]
+
+
 def test_catalog_cli(tmp_path):
     env = {**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")}
     out = _run("catalog", "list", "--json", env=env)
@@ -166,7 +174,7 @@ def test_catalog_cli(tmp_path):
         assert key in rows[0]
     assert {r["kind"] for r in rows} == {"aircraft", "drone"}
     add = _run("catalog", "add", str(REF / "px4_believer_body_m.glb"), "--name", "believer",
-               "--forward=-X", "--up", "Z", "--unit-scale", "1", "--kind", "drone", env=env)
+               "--forward", "-X", "--up", "Z", "--unit-scale", "1", "--kind", "drone", env=env)
     assert add.returncode == 0, add.stderr
     assert "index 1000" in add.stdout and "96 bodies" in add.stdout
     rows = json.loads(_run("catalog", "list", "--json", env=env).stdout)

@@ -57,7 +57,11 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
     if not (minutes > 0):
         raise InputError(f"--minutes must be > 0, got {minutes!r}")
     model = load_model(model_dir)
-    family = get_family(model.family, need="teach")
+    family = get_family(model.family, need="load")
+    if not callable(getattr(family, "teach", None)):
+        raise InputError(f"{model.directory} is a {model.family} model, which cannot be taught "
+                         "a type (its network takes the type as one scaled number); teach an "
+                         "apcg-plus model (the default), or train a new model with the type")
     t = default_catalog().get(type_name)  # refuses an unknown type, naming what is accepted
     if t.name in model.types:
         raise InputError(f"{model.directory} already knows {t.name!r}; nothing to teach")
