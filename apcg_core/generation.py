@@ -263,7 +263,6 @@ def conditions_from_csv(path, model: ModelTypes) -> Conditions:
 
     from .lidar import DEG
     need = ["type", "range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg"]
-    names, pose = [], []
     known: dict = {}
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
@@ -272,20 +271,34 @@ def conditions_from_csv(path, model: ModelTypes) -> Conditions:
         if any(k not in fields for k in [type_col, *need[1:]]):
             raise InputError(f"{path}: a conditions CSV needs the header {','.join(need)} "
                              "(or a dataset's conditions.csv)")
-        for i, r in enumerate(reader):
-            try:
-                key = r[type_col].strip()
-                if key not in known:
-                    known[key] = model.type_name(key)
-                names.append(known[key])
-                row = [float(r["range_m"])] + [float(r[k]) * DEG for k in need[2:]]
-                Condition(0, *row)  # physical checks, named
-                pose.append(row)
-            except (ValueError, InputError) as exc:
-                raise InputError(f"{path}, row {i + 1}: {exc}") from exc
-    if not names:
+        rows = list(reader)
+    if not rows:
         raise InputError(f"{path} has no conditions")
-    return model.conditions(names, np.array(pose))
+    names = []
+    for i, r in enumerate(rows):
+        key = (r[type_col] or "").strip()
+        if key not in known:
+            try:
+                known[key] = model.type_name(key)
+            except InputError as exc:
+                raise InputError(f"{path}, row {i + 1}: {exc}") from exc
+        names.append(known[key])
+    try:
+        pose = np.array([[float(r[k]) for k in need[1:]] for r in rows], dtype=np.float64)
+    except (TypeError, ValueError):
+        pose = None
+    if pose is not None:
+        pose[:, 1:] *= DEG
+        bad = ~np.isfinite(pose).all(axis=1) | (pose[:, 0] <= 0) \
+            | (np.abs(pose[:, 1]) >= np.pi / 2) | (np.abs(pose[:, 2]) > np.pi / 2) \
+            | (np.abs(pose[:, 3:]) > np.pi).any(axis=1)
+    if pose is None or bad.any():  # the first bad row, with the physical check's own words
+        for i, r in enumerate(rows):
+            try:
+                Condition(0, float(r["range_m"]), *(float(r[k]) * DEG for k in need[2:]))
+            except (TypeError, ValueError, InputError) as exc:
+                raise InputError(f"{path}, row {i + 1}: {exc}") from exc
+    return model.conditions(names, pose)
 
 
 __all__ = ["NOISE_DIM", "APCGModel", "Conditions", "GenerationResult", "ModelTypes",
