@@ -157,6 +157,9 @@ def register_export(sub) -> None:
     p.add_argument("--checkpoint", help="a kept checkpoint of the run (default: the latest)")
     p.add_argument("--raw", action="store_true",
                    help="export the generator's raw weights, not their moving average")
+    p.add_argument("--log-every", type=int, default=1, metavar="N",
+                   help="keep every N-th step of the run's log (and the last; default 1: all), "
+                        "e.g. for a model small enough to ship")
     p.add_argument("--sampling-steps", type=int, metavar="N",
                    help="families that sample on a schedule (diffusion): sample on N evenly "
                         "spaced steps of it (default: all of them; fewer is faster and "
@@ -167,8 +170,8 @@ def register_export(sub) -> None:
 def _run_export(args) -> int:
     from .export import export_model
     out = export_model(args.run, args.output, tau=args.tau, checkpoint=args.checkpoint,
-                       raw=args.raw,
-                       sampling_steps=args.sampling_steps)
+                       raw=args.raw, sampling_steps=args.sampling_steps,
+                       log_every=args.log_every)
     print(json.dumps({"model": str(out)}))
     return 0
 

@@ -38,13 +38,17 @@ def export_onnx(g: Generator, path: Path) -> None:
 
 
 def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
-                 checkpoint=None, raw: bool = False, sampling_steps: int | None = None) -> Path:
+                 checkpoint=None, raw: bool = False, sampling_steps: int | None = None,
+                 log_every: int = 1) -> Path:
     """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest.
     The generator's moving average is exported when the run kept one, the raw weights when
     ``raw`` or when it did not. ``sampling_steps`` (families that sample on a schedule) records
     how many of the schedule's steps generation takes by default (fewer: faster, coarser); a
     family without a schedule refuses it. What the model directory holds is the run's family's
-    (``training/families.py``); nothing is written when the family refuses."""
+    (``training/families.py``); nothing is written when the family refuses. ``log_every`` keeps
+    every n-th step of the log (and the last), for a model that ships in the package."""
+    from apcg_core.errors import check_int
+    check_int("log_every", log_every, 1)
     run = Path(run_dir)
     ck = Path(checkpoint) if checkpoint else run / "checkpoint.pt"
     if not ck.exists():
@@ -72,8 +76,15 @@ def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
         shutil.copy(run / "train_config.json", out / "train_config.json")
     if (run / "log.csv").exists():  # the log up to the exported step
         lines = (run / "log.csv").read_text().splitlines(keepends=True)
-        keep = [lines[0]] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) <= st["step"]]
-        (out / "log.csv").write_text("".join(keep))
+        rows = [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) <= st["step"]]
+        keep = [ln for ln in rows[:-1] if int(ln.split(",", 1)[0]) % log_every == 0] + rows[-1:]
+        (out / "log.csv").write_text("".join([lines[0], *keep]))
+        if log_every > 1:
+            meta_path = out / "model.json"
+            meta_now = json.loads(meta_path.read_text())
+            meta_now["log"] = (f"log.csv keeps every {log_every}th of the run's {len(rows)} "
+                               "logged steps, and the last")
+            meta_path.write_text(json.dumps(meta_now, indent=1) + "\n")
     return out
 
 
