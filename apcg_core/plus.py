@@ -25,13 +25,14 @@ runtime.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .cloud import PointCloud
-from .errors import InputError
+from .errors import InputError, check_int
 from .families import register
 from .frames import spherical_to_cartesian
 from .generation import RUNTIMES, ModelTypes
@@ -139,7 +140,10 @@ class PlusModel(ModelTypes):
         self.radius = np.asarray(radius, np.float64)
         self.tau = self.check_tau(self.meta.get("tau", self.DEFAULT_TAU))
         self.quantize = bool(self.meta.get("quantize", True))
-        self.threads = self.meta.get("threads")
+        # chunks generated side by side, each network call on one thread: measured fastest
+        # here (bench/plus_speed.py); APCG_THREADS sets the count (1: one chunk at a time)
+        self.workers = check_int("APCG_THREADS", int(os.environ.get(
+            "APCG_THREADS", os.cpu_count() or 1)), 1)
         self.runtime = "onnx" if runtime == "auto" else runtime
         self._rt: _Runtime | None = None
 
@@ -160,8 +164,7 @@ class PlusModel(ModelTypes):
                 raise InputError("generation needs onnxruntime: pip install onnxruntime "
                                  "(or --runtime torch)") from exc
             opts = ort.SessionOptions()
-            if self.threads:
-                opts.intra_op_num_threads = int(self.threads)
+            opts.intra_op_num_threads = 1 if self.workers > 1 else 0  # 0: onnxruntime's own
             return _Runtime("onnx", session=ort.InferenceSession(
                 str(self.onnx_path), opts, providers=["CPUExecutionProvider"]))
         import torch
@@ -245,12 +248,22 @@ class PlusModel(ModelTypes):
         ``count`` per condition. The standard data are a function of the condition, and so is
         this model: ``seed`` is accepted for the common interface and changes nothing."""
         table = self.repeated_conditions(conditions, count)
-        clouds = []
-        for s in range(0, len(table), CHUNK):
+
+        def chunk(s):
             part = table[s:s + CHUNK]
             c = self.clouds_of(part, self.sheets(part))
             c.sample = c.sample + s
-            clouds.append(c)
+            return c
+
+        starts = range(0, len(table), CHUNK)
+        if self.workers > 1 and len(starts) > 1:
+            # onnxruntime gains little from a second thread on this small network, and the
+            # reader is numpy: chunks side by side keep every core busy (both release the GIL)
+            from concurrent.futures import ThreadPoolExecutor
+            with ThreadPoolExecutor(self.workers) as pool:
+                clouds = list(pool.map(chunk, starts))
+        else:
+            clouds = [chunk(s) for s in starts]
         cloud = (PointCloud(*(np.concatenate([getattr(c, k) for c in clouds])
                               for k in ("xyz", "range_m", "cell_w", "cell_h", "sample")))
                  if clouds else PointCloud(np.zeros((0, 3)), [], [], [], np.zeros(0, np.int64)))
