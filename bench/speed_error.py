@@ -124,6 +124,7 @@ def plot(report: dict, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True)
     colours = plt.get_cmap("tab20").colors  # ten default colours repeat beyond ten methods
     markers = "DosP^vX*<>h"
@@ -136,6 +137,7 @@ def plot(report: dict, path: Path) -> None:
             ax.scatter([m["ms_per_cloud"]], [np.mean(vals)], marker=markers[i % len(markers)],
                        s=55, color=c, edgecolor="black", linewidth=0.5, label=name)
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # no crowded labels
         ax.set_xlabel("ms per cloud (this machine, one process)")
         ax.set_ylabel(metric.upper() + (f" ({report['jsd_bins']}^3 bins)"
                                         if metric == "jsd" else "") + " to the exact reference")
