@@ -140,11 +140,11 @@ def test_apcg_generate_runs_a_comparison_family_model(data, tmp_path, capsys):
     capsys.readouterr()
     assert main(["generate", "--model", str(mdir), *pose, "--tau", "-0.5", "-o",
                  str(tmp_path / "t.npz")]) == 2
-    assert "--tau is an Im2PC threshold" in capsys.readouterr().err
+    assert "--tau is an output threshold" in capsys.readouterr().err
     meta_path = mdir / "model.json"
     meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "family": "gizmo"}))
-    with pytest.raises(InputError, match="unknown model family 'gizmo'; installed: cgan, "
-                                         "diffusion, point-gan, voxel-gan"):
+    with pytest.raises(InputError, match="unknown model family 'gizmo'; installed: apcg-plus, "
+                                         "cgan, diffusion, point-gan, voxel-gan"):
         load_model(mdir)
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from apcg_core.errors import InputError
-from apcg_core.generation import load_model
+from apcg_core.generation import default_model_dir, load_model
 from apcg_core.metrics import jsd, mmd
 from apcg_core.typetable import Conditions, TypeTable
 from dataset_builder.build import build_dataset
@@ -146,8 +146,11 @@ def test_a_shifted_generator_scores_worse_and_the_floor_is_below(three_types, mo
 
 
 def test_choose_tau_uses_the_validation_half_only(three_types, model):
-    rep = protocol.choose_tau(model, three_types, taus=(-0.99, -0.5), n_pairs=20, seed=0)
-    assert rep["half"] == "validation" and rep["best"] in (-0.99, -0.5)
+    rep = protocol.choose_tau(model, three_types, n_pairs=20, seed=0)
+    assert rep["half"] == "validation" and rep["best"] in model.TAUS  # the model's own
     assert model.tau == load_model(runtime="onnx").tau  # restored
+    cgan = load_model(default_model_dir().parent / "cgan", runtime="onnx")
+    rep = protocol.choose_tau(cgan, three_types, taus=(-0.99, -0.5), n_pairs=20, seed=0)
+    assert rep["half"] == "validation" and rep["best"] in (-0.99, -0.5)
     with pytest.raises(InputError, match=r"tau = 1\.5 is out of range"):
-        protocol.choose_tau(model, three_types, taus=(1.5,), n_pairs=5)
+        protocol.choose_tau(cgan, three_types, taus=(1.5,), n_pairs=5)
