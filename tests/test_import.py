@@ -143,7 +143,7 @@ def test_user_catalog_add_reload_and_refuse(tmp_path):
     assert again.get("my-plane").index == 1000
     np.testing.assert_array_equal(again.mesh("my-plane").vertices, mesh.vertices)
     assert again.get(3).name == "A320neo"  # built-in indices untouched
-    t2 = again.add_user_type("second", mesh, "drone", "user", "x")
+    t2 = again.add_user_type("second", mesh, "aircraft", "user", "x")
     assert t2.index == 1001 and Catalog(user_path=tmp_path).get(1001).name == "second"
     with pytest.raises(InputError, match="already exists"):
         again.add_user_type("A320neo", mesh, "aircraft", "user", "x")

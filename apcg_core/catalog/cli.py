@@ -27,19 +27,38 @@ def register(sub) -> None:
     sh.add_argument("--dpi", type=int, default=70)
     sh.set_defaults(func=_show)
 
+    from .formats import FORMATS
+
+    kinds = "; ".join(f"{f.name} ({' '.join(f.suffixes)}): {f.via}" for f in FORMATS)
     ad = cs.add_parser("add", help="register an imported model as a new type",
-                       description="Import a model (OFF, OBJ, STL, PLY, glTF/GLB) into the body "
-                                   "frame and store it in the user catalog "
-                                   "($APCG_DATA_DIR/catalog or ~/.local/share/apcg/catalog).")
+                       description="Import a model into the body frame (x nose, y left wing, "
+                                   "z up), in metres, and store it in the user catalog "
+                                   "($APCG_DATA_DIR/catalog or ~/.local/share/apcg/catalog). "
+                                   f"Formats: {kinds}. The unit and axes the file declares "
+                                   "are used unless given; a size implausible for the kind "
+                                   "is refused unless --force.")
     ad.add_argument("file")
     ad.add_argument("--name", required=True)
-    size = ad.add_mutually_exclusive_group(required=True)
-    size.add_argument("--length-m", type=float, help="scale so the nose-to-tail length is this")
-    size.add_argument("--unit-scale", type=float, help="file units -> metres factor")
-    ad.add_argument("--forward", default="X", help="the file's nose axis (X, -X, Y, ...)")
-    ad.add_argument("--up", default="Z", help="the file's up axis")
+    size = ad.add_mutually_exclusive_group()
+    size.add_argument("--length-m", type=float,
+                      help="scale so the nose-to-tail length is this (overrides the file)")
+    size.add_argument("--unit-scale", type=float,
+                      help="file units -> metres factor, e.g. 0.001 for millimetres "
+                           "(overrides the unit the file declares)")
+    ad.add_argument("--forward", help="the file's nose axis: X, -X, Y, -Y, Z, -Z (default: "
+                                      "what the file declares, else X)")
+    ad.add_argument("--up", help="the file's up axis (default: what the file declares, else Z)")
+    ad.add_argument("--objects", metavar="PATTERN",
+                    help="take only the objects whose name matches (shell patterns, "
+                         "comma-separated, e.g. 'Fuselage*,Wing*')")
     ad.add_argument("--kind", choices=("aircraft", "drone"), default="aircraft")
     ad.add_argument("--category", default="user")
+    ad.add_argument("--preview", metavar="PNG",
+                    help="draw top / side / front views of the imported model into PNG")
+    ad.add_argument("--dry-run", action="store_true",
+                    help="import, check and report (and --preview) without adding the type")
+    ad.add_argument("--force", action="store_true",
+                    help="add a model whose size is implausible for its kind (with a warning)")
     ad.set_defaults(func=_add)
 
 
@@ -79,11 +98,52 @@ def _show(args) -> int:
 
 
 def _add(args) -> int:
+    import sys
+
+    from .checks import check_size, hole_entry_share
     from .importer import import_model
+
     mesh, rep = import_model(args.file, forward=args.forward, up=args.up,
-                             unit_scale=args.unit_scale, length_m=args.length_m)
-    t = _catalog().add_user_type(args.name, mesh, args.kind, args.category, source=args.file)
-    print(f"added {t.name!r} as type index {t.index}: {rep.n_faces} triangles, "
-          f"{rep.n_bodies} bodies, {'closed' if rep.watertight else 'open'} "
-          f"(origin: {rep.centre}), extents {[round(e, 3) for e in rep.extents_m]} m")
+                             unit_scale=args.unit_scale, length_m=args.length_m,
+                             objects=args.objects, guess=args.forward is None or args.up is None)
+    say = print
+    say(f"read {args.file}: {rep.n_faces} triangles, {rep.n_bodies} bodies, "
+        f"{'closed' if rep.watertight else 'open'} (origin: {rep.centre})")
+    say(f"  objects: {', '.join(rep.objects)}"
+        + (f"; skipped: {', '.join(rep.skipped)}" if rep.skipped else ""))
+    say(f"  unit: {rep.unit} (x{rep.scale:g})")
+    say(f"  axes: {rep.axes}")
+    g = rep.guess
+    if g and g.confident and (g.forward, g.up) != _axes_used(rep.axes):
+        say(f"  the shape suggests --forward {g.forward} --up {g.up} ({g.why}); check with "
+            "--preview")
+    say(f"  extents: length {rep.extents_m[0]:.4g} m, span {rep.extents_m[1]:.4g} m, "
+        f"height {rep.extents_m[2]:.4g} m")
+    holes = hole_entry_share(mesh)
+    if holes["share"] > 0.01:
+        print(f"warning: {holes['share']:.1%} of lidar rays enter {args.file} through holes "
+              "and return from its inside (open windows, missing panels); the scans will "
+              "show inner walls. Close the holes in a modeller, or pick the outer skin with "
+              "--objects (docs: README 'Bring your own aircraft').", file=sys.stderr)
+    if args.preview:
+        from .sheet import three_views
+        say(f"wrote {three_views(mesh, args.preview, title=args.name)}")
+    if args.dry_run:
+        problem = check_size(mesh.extents, args.kind, True, rep.scale)
+        if problem:
+            print(f"warning: {args.name!r}: {problem}", file=sys.stderr)
+        say("dry run: nothing added")
+        return 0
+    problem = check_size(mesh.extents, args.kind, args.force, rep.scale, name=repr(args.name))
+    if problem:
+        print(f"warning: {args.name!r}: {problem}; added anyway (--force)", file=sys.stderr)
+    t = _catalog().add_user_type(args.name, mesh, args.kind, args.category, source=args.file,
+                                 force=args.force, unit_scale=rep.scale)
+    say(f"added {t.name!r} as type index {t.index}")
     return 0
+
+
+def _axes_used(axes: str) -> tuple[str, str]:
+    """(forward, up) from an ImportReport's ``axes`` text ("forward X (default), up Z (...)")."""
+    words = dict(part.split()[:2] for part in axes.split(", "))
+    return words["forward"], words["up"]

@@ -1,23 +1,25 @@
-"""Import of real models (OFF, OBJ, STL, PLY, glTF/GLB) into the body frame, and export.
+"""Import of real models into the body frame, in metres, and export.
 
-trimesh is imported here, when used (the `sim` extra). OFF is parsed by our own reader
-because ModelNet's files break other readers: CRLF line ends, and a first line where "OFF"
-runs into the counts ("OFF490 518 0").
+Which reader takes which file, and what each file declares of its unit and axes, is the table
+in ``formats.py``. Here: axes, unit and centre are applied, in that order of precedence for
+each: the user's option, else what the file declares, else the default (x forward, z up,
+metres), and the result is reported.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from .formats import SUFFIXES, _trimesh, read_model
 from .mesh import Mesh
 
 AXES = {"X": (0, 1.0), "Y": (1, 1.0), "Z": (2, 1.0),
         "-X": (0, -1.0), "-Y": (1, -1.0), "-Z": (2, -1.0)}
-FORMATS = (".off", ".obj", ".stl", ".ply", ".glb", ".gltf")
+FORMATS = SUFFIXES
 
 
 @dataclass
@@ -30,69 +32,16 @@ class ImportReport:
     centre: str  # "volume centroid" or "bounding-box centre"
     scale: float  # factor applied to the file's units
     extents_m: tuple[float, float, float]  # length (x), span (y), height (z)
-
-
-def _trimesh():
-    try:
-        import trimesh
-    except ImportError as exc:
-        raise InputError("importing and exporting models needs trimesh: "
-                         "pip install 'apcg[sim]'") from exc
-    return trimesh
-
-
-def read_off(path: Path) -> Mesh:
-    """ModelNet-tolerant OFF reader (polygons are fan-triangulated)."""
-    text = path.read_bytes().decode("utf-8", errors="replace").replace("\r", "")
-    tokens_lines = [ln.split("#")[0].strip() for ln in text.split("\n")]
-    lines = [ln for ln in tokens_lines if ln]
-    if not lines or not lines[0].upper().startswith("OFF"):
-        raise InputError(f"{path}: not an OFF file (the first line does not start with 'OFF')")
-    head = lines[0][3:].split()  # "OFF490 518 0" keeps its counts on the first line
-    body = lines[1:]
-    if not head:
-        head, body = body[0].split(), body[1:]
-    try:
-        nv, nf = int(head[0]), int(head[1])
-        verts = np.array([ln.split()[:3] for ln in body[:nv]], dtype=np.float64)
-        faces = []
-        for ln in body[nv:nv + nf]:
-            idx = [int(v) for v in ln.split()]
-            k = idx[0]
-            poly = idx[1:1 + k]
-            faces += [[poly[0], poly[i], poly[i + 1]] for i in range(1, k - 1)]
-    except (ValueError, IndexError) as exc:
-        raise InputError(f"{path}: corrupt OFF file ({exc})") from exc
-    if len(verts) != nv or not faces:
-        raise InputError(f"{path}: corrupt OFF file (expected {nv} vertices and {nf} faces)")
-    return Mesh(verts, np.array(faces))
+    unit: str = ""  # where the scale came from
+    axes: str = ""  # where forward and up came from
+    objects: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    guess: object = None  # checks.AxesGuess: the file axes the shape suggests
 
 
 def read_mesh(path) -> Mesh:
     """Read a mesh file as it is stored (no unit or axis change), all bodies concatenated."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: no such file")
-    if path.stat().st_size == 0:
-        raise InputError(f"{path}: the file is empty")
-    suffix = path.suffix.lower()
-    if suffix not in FORMATS:
-        raise InputError(f"{path}: unsupported format {suffix!r}; accepted: {', '.join(FORMATS)}")
-    if suffix == ".off":
-        mesh = read_off(path)
-    else:
-        trimesh = _trimesh()
-        try:
-            loaded = trimesh.load(str(path), process=False, force="mesh")
-        except Exception as exc:  # trimesh raises many types on bad files
-            raise InputError(f"{path}: cannot read the file ({type(exc).__name__}: {exc})") \
-                from exc
-        if not hasattr(loaded, "faces") or len(loaded.faces) == 0:
-            raise InputError(f"{path}: the file holds no triangles")
-        mesh = Mesh(np.asarray(loaded.vertices), np.asarray(loaded.faces))
-    if len(mesh.faces) == 0 or not np.isfinite(mesh.vertices).all():
-        raise InputError(f"{path}: the mesh is empty or has non-finite coordinates")
-    return mesh
+    return read_model(path).mesh
 
 
 def axis_matrix(forward: str = "X", up: str = "Z") -> np.ndarray:
@@ -123,17 +72,43 @@ def _merge_close(mesh: Mesh) -> Mesh:
     return Mesh(mesh.vertices[first], faces[keep])
 
 
-def import_model(path, forward: str = "X", up: str = "Z", unit_scale: float | None = None,
-                 length_m: float | None = None, centre: bool = True):
+def _default_forward(up: str) -> str:
+    return "X" if up.upper().lstrip("-") != "X" else "Y"
+
+
+def import_model(path, forward: str | None = None, up: str | None = None,
+                 unit_scale: float | None = None, length_m: float | None = None,
+                 centre: bool = True, objects: str | None = None, guess: bool = False):
     """Load a model into the body frame (x nose, y left, z up), in metres.
 
-    Scale either by ``unit_scale`` (file units -> metres) or so the length along the nose axis
-    is ``length_m``. With ``centre`` the origin moves to the volume centroid when the mesh is
-    closed, else to the bounding-box centre (SPEC section 2). Returns ``(Mesh, ImportReport)``.
-    """
+    Axes: ``forward`` / ``up`` name the file's nose and up axes; where not given, what the file
+    declares (glTF: +Z front, +Y up; COLLADA: its up_axis; Blender-read formats: Z up), else x
+    forward and z up. Size: ``length_m`` (the nose-to-tail length), else ``unit_scale`` (file
+    units -> metres), else the unit the file declares, else metres. With ``centre`` the origin
+    moves to the volume centroid when the mesh is closed, else to the bounding-box centre (SPEC
+    section 2). ``objects``: comma-separated name patterns of the objects to take. With
+    ``guess`` the report also holds the file axes the shape suggests (checks.guess_axes).
+    Returns ``(Mesh, ImportReport)``."""
     if unit_scale is not None and length_m is not None:
         raise InputError("give either unit_scale or length_m, not both")
-    mesh = _merge_close(read_mesh(path))
+    raw = read_model(path, objects)
+    mesh = _merge_close(raw.mesh)
+    guessed = None
+    if guess:
+        from .checks import guess_axes
+        guessed = guess_axes(mesh)
+    axes_from = []
+    for label, given, declared, default in (("up", up, raw.up, "Z"),
+                                            ("forward", forward, raw.forward, None)):
+        if given is not None:
+            axes_from.append(f"{label} {given} (given)")
+        elif declared is not None:
+            axes_from.append(f"{label} {declared} (the file)")
+        else:
+            axes_from.append(f"{label} {default or _default_forward(up or raw.up or 'Z')} "
+                             "(default)")
+    up = up or raw.up or "Z"
+    forward = forward or raw.forward or _default_forward(up)
     mesh = mesh.transformed(axis_matrix(forward, up))
     ext = mesh.extents
     if length_m is not None:
@@ -142,10 +117,16 @@ def import_model(path, forward: str = "X", up: str = "Z", unit_scale: float | No
         if ext[0] <= 0:
             raise InputError(f"{path}: the model has no extent along its forward axis")
         scale = float(length_m) / float(ext[0])
-    else:
-        scale = 1.0 if unit_scale is None else float(unit_scale)
+        unit = f"scaled to --length-m {length_m:g}"
+    elif unit_scale is not None:
+        scale = float(unit_scale)
         if not np.isfinite(scale) or scale <= 0:
             raise InputError(f"unit_scale must be > 0, got {unit_scale!r}")
+        unit = f"--unit-scale {scale:g}"
+    elif raw.unit_m is not None:
+        scale, unit = float(raw.unit_m), raw.unit_note
+    else:
+        scale, unit = 1.0, "not declared by the file: metres assumed"
     mesh = mesh.transformed(np.eye(3) * scale)
     rep = mesh.report()
     how = "none"
@@ -157,7 +138,9 @@ def import_model(path, forward: str = "X", up: str = "Z", unit_scale: float | No
             origin, how = mesh.bounds.mean(axis=0), "bounding-box centre"
         mesh = mesh.transformed(offset=-origin)
     report = ImportReport(str(path), len(mesh.vertices), len(mesh.faces), rep.n_bodies,
-                          rep.watertight, how, scale, tuple(float(e) for e in mesh.extents))
+                          rep.watertight, how, scale, tuple(float(e) for e in mesh.extents),
+                          unit, ", ".join(reversed(axes_from)), raw.objects, raw.skipped,
+                          guessed)
     return mesh, report
 
 

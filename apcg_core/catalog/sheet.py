@@ -37,19 +37,57 @@ def _draw(ax, mesh: Mesh, h: int, v: int, d: int, colour) -> None:
     ax.axis("off")
 
 
-def contact_sheet(catalog, names=None, out: str | Path = "sheet.png", columns: int = 6,
-                  dpi: int = 70) -> Path:
-    """Draw top / side / front views of each type into one PNG; returns its path.
-
-    Top view: nose right, left wing up. Side: nose right, up up. Front: seen from ahead
-    (left wing on the right of the picture, as when facing the aircraft)."""
+def _pyplot():
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as exc:
-        raise InputError("the contact sheet needs matplotlib: pip install 'apcg[io]'") from exc
+        raise InputError("drawing needs matplotlib: pip install 'apcg[io]'") from exc
+    return plt
+
+
+def _save(fig, out, dpi: int) -> Path:
+    """Write through a temporary name: a PNG under its final name is complete."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".part.png")
+    fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    tmp.replace(out)
+    return out
+
+
+PREVIEW_LABELS = ("top: nose right, left wing up", "side: nose right, top up",
+                  "front: seen from ahead, top up")
+
+
+def three_views(mesh: Mesh, out: str | Path, title: str = "", colour=(0.55, 0.65, 0.85),
+                dpi: int = 110) -> Path:
+    """One model's top / side / front views in a PNG, labelled with the body axes, to check
+    that an imported model's nose, span and up landed where they should."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    for j, (ax, (_, h, v, d)) in enumerate(zip(axes, VIEWS, strict=True)):
+        m = mesh if j != 2 else mesh.transformed(np.diag([1.0, -1.0, 1.0]))
+        _draw(ax, m, h, v, d, colour)
+        ax.set_title(PREVIEW_LABELS[j], fontsize=9)
+    ext = mesh.extents
+    fig.suptitle(f"{title}  length {ext[0]:.3g} m, span {ext[1]:.3g} m, height {ext[2]:.3g} m",
+                 fontsize=10)
+    return _save(fig, out, dpi)
+
+
+def contact_sheet(catalog, names=None, out: str | Path = "sheet.png", columns: int = 6,
+                  dpi: int = 70) -> Path:
+    """Draw top / side / front views of each type into one PNG; returns its path.
+
+    Top view: nose right, left wing up. Side: nose right, up up. Front: seen from ahead
+    (left wing on the right of the picture, as when facing the aircraft)."""
+    plt = _pyplot()
     types = [catalog.get(n) for n in names] if names else list(catalog)
     if not types:
         raise InputError("no types to draw")
@@ -66,8 +104,4 @@ def contact_sheet(catalog, names=None, out: str | Path = "sheet.png", columns: i
             _draw(ax, m, h, v, d, colours.get(t.kind, (0.6, 0.6, 0.6)))
             if j == 0:
                 ax.set_title(f"{t.index}: {t.name} ({t.length_m:g} m)", fontsize=7, loc="left")
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi, bbox_inches="tight")
-    plt.close(fig)
-    return out
+    return _save(fig, out, dpi)

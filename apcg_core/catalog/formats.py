@@ -1,0 +1,268 @@
+"""Model files in: which reader takes which suffix, and what the file says of its unit and axes.
+
+One table, :data:`FORMATS`. OFF has our own reader (ModelNet's files break others); OBJ, STL,
+PLY, glTF and COLLADA go through trimesh (COLLADA with pycollada), in this process; FBX,
+.blend, USD and Alembic go through Blender's own importers in a separate Blender process
+(``blender_import.py``): the bpy module when this Python has it, else ``$APCG_BLENDER`` or a
+``blender`` on PATH. Each reader returns the mesh as the file stores it, in file units and file
+axes, with the unit and axes the file declares (None where it declares none).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import importlib.util
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .mesh import Mesh
+
+
+@dataclass
+class RawModel:
+    """A file's surfaces as stored, with what the file declares."""
+
+    mesh: Mesh
+    unit_m: float | None = None  # metres per file unit, where the file declares it
+    unit_note: str = "not declared by the file"
+    up: str | None = None  # the axis the file declares as up (an AXES key)
+    forward: str | None = None
+    objects: list[str] = field(default_factory=list)  # the objects taken
+    skipped: list[str] = field(default_factory=list)  # left out, with why
+
+
+@dataclass(frozen=True)
+class Format:
+    name: str
+    suffixes: tuple[str, ...]
+    via: str  # what reads it, for the user
+    read: object  # callable(path: Path, patterns: list[str]) -> RawModel
+
+
+def _trimesh():
+    try:
+        import trimesh
+    except ImportError as exc:
+        raise InputError("importing and exporting models needs trimesh: "
+                         "pip install 'apcg[sim]'") from exc
+    return trimesh
+
+
+def _match(name: str, patterns: list[str]) -> bool:
+    return not patterns or any(fnmatch.fnmatchcase(name, p) for p in patterns)
+
+
+def read_off(path: Path, patterns=()) -> RawModel:
+    """ModelNet-tolerant OFF reader (polygons are fan-triangulated)."""
+    text = path.read_bytes().decode("utf-8", errors="replace").replace("\r", "")
+    tokens_lines = [ln.split("#")[0].strip() for ln in text.split("\n")]
+    lines = [ln for ln in tokens_lines if ln]
+    if not lines or not lines[0].upper().startswith("OFF"):
+        raise InputError(f"{path}: not an OFF file (the first line does not start with 'OFF')")
+    head = lines[0][3:].split()  # "OFF490 518 0" keeps its counts on the first line
+    body = lines[1:]
+    if not head:
+        head, body = body[0].split(), body[1:]
+    try:
+        nv, nf = int(head[0]), int(head[1])
+        verts = np.array([ln.split()[:3] for ln in body[:nv]], dtype=np.float64)
+        faces = []
+        for ln in body[nv:nv + nf]:
+            idx = [int(v) for v in ln.split()]
+            k = idx[0]
+            poly = idx[1:1 + k]
+            faces += [[poly[0], poly[i], poly[i + 1]] for i in range(1, k - 1)]
+    except (ValueError, IndexError) as exc:
+        raise InputError(f"{path}: corrupt OFF file ({exc})") from exc
+    if len(verts) != nv or not faces:
+        raise InputError(f"{path}: corrupt OFF file (expected {nv} vertices and {nf} faces)")
+    return RawModel(Mesh(verts, np.array(faces)), objects=[path.stem])
+
+
+def _scene_meshes(scene, patterns, path: Path) -> RawModel:
+    """Join a trimesh scene's geometry, each instance moved by its node's world transform."""
+    trimesh = _trimesh()
+    verts, faces, taken, skipped, offset = [], [], [], [], 0
+    for node in scene.graph.nodes_geometry:
+        matrix, geom_name = scene.graph[node]
+        geom = scene.geometry[geom_name]
+        name = str(node)
+        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+            skipped.append(f"{name} (no faces)")
+            continue
+        if not (_match(name, patterns) or _match(str(geom_name), patterns)):
+            skipped.append(f"{name} (not matched)")
+            continue
+        v = np.asarray(geom.vertices, np.float64)
+        m = np.asarray(matrix, np.float64)
+        verts.append(v @ m[:3, :3].T + m[:3, 3])
+        faces.append(np.asarray(geom.faces, np.int64) + offset)
+        offset += len(v)
+        taken.append(name)
+    if not taken:
+        raise InputError(f"{path}: no surface to take; objects: {', '.join(skipped) or 'none'}"
+                         + (f" (--objects {','.join(patterns)})" if patterns else ""))
+    return RawModel(Mesh(np.concatenate(verts), np.concatenate(faces)), objects=taken,
+                    skipped=skipped)
+
+
+def _trimesh_scene(path: Path, **kwargs):
+    trimesh = _trimesh()
+    try:
+        return trimesh.load(str(path), process=False, force="scene", **kwargs)
+    except InputError:
+        raise
+    except Exception as exc:  # trimesh and its parsers raise many types on bad files
+        raise InputError(f"{path}: cannot read the file ({type(exc).__name__}: {exc})") from exc
+
+
+def read_trimesh(path: Path, patterns=()) -> RawModel:
+    """OBJ, STL, PLY: no unit, no axes declared."""
+    return _scene_meshes(_trimesh_scene(path), list(patterns), path)
+
+
+def read_gltf(path: Path, patterns=()) -> RawModel:
+    """glTF 2.0 declares metres, +Y up and the asset's front facing +Z (its section 3.4)."""
+    raw = _scene_meshes(_trimesh_scene(path), list(patterns), path)
+    raw.unit_m, raw.unit_note = 1.0, "glTF: metres by its specification"
+    raw.up, raw.forward = "Y", "Z"
+    return raw
+
+
+_COLLADA_UP = {"X_UP": "X", "Y_UP": "Y", "Z_UP": "Z"}
+
+
+def collada_asset(path: Path) -> tuple[float | None, str, str]:
+    """(metres per unit, unit name, up axis) from a COLLADA file's top ``<asset>``."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError) as exc:
+        raise InputError(f"{path}: not a readable COLLADA (XML) file: {exc}") from exc
+    ns = re.match(r"\{[^}]*\}", root.tag)
+    ns = ns.group(0) if ns else ""
+    asset = root.find(f"{ns}asset")
+    unit_m, unit_name, up = None, "", "Y"  # COLLADA's defaults: metre, Y_UP
+    if asset is not None:
+        unit = asset.find(f"{ns}unit")
+        if unit is not None:
+            try:
+                unit_m = float(unit.get("meter", "1"))
+            except ValueError as exc:
+                raise InputError(f"{path}: <unit meter={unit.get('meter')!r}> is not a "
+                                 "number") from exc
+            if not np.isfinite(unit_m) or unit_m <= 0:
+                raise InputError(f"{path}: <unit meter={unit_m!r}> must be > 0")
+            unit_name = unit.get("name", "")
+        axis = asset.find(f"{ns}up_axis")
+        if axis is not None and axis.text:
+            key = axis.text.strip().upper()
+            if key not in _COLLADA_UP:
+                raise InputError(f"{path}: <up_axis>{axis.text}</up_axis> unknown; COLLADA "
+                                 "accepts X_UP, Y_UP, Z_UP")
+            up = _COLLADA_UP[key]
+    return unit_m, unit_name, up
+
+
+def read_collada(path: Path, patterns=()) -> RawModel:
+    """COLLADA through trimesh + pycollada; unit and up axis from its ``<asset>``."""
+    if importlib.util.find_spec("collada") is None:
+        raise InputError(f"{path}: COLLADA files need pycollada: pip install 'apcg[sim]'")
+    unit_m, unit_name, up = collada_asset(path)
+    raw = _scene_meshes(_trimesh_scene(path), list(patterns), path)
+    if unit_m is None:
+        raw.unit_m, raw.unit_note = 1.0, "COLLADA: no <unit>, the format's default metre"
+    else:
+        raw.unit_m = unit_m
+        raw.unit_note = f"COLLADA <unit meter=\"{unit_m:g}\" name=\"{unit_name}\">"
+    raw.up = up
+    return raw
+
+
+def blender_command(script: str, args: list[str]) -> list[str]:
+    """The command that runs ``script`` in Blender: this Python when it has bpy, else
+    ``$APCG_BLENDER`` or ``blender`` on PATH."""
+    exe = os.environ.get("APCG_BLENDER")
+    if not exe and importlib.util.find_spec("bpy") is not None:
+        return [sys.executable, script, *args]
+    exe = exe or shutil.which("blender")
+    if not exe:
+        raise InputError("this format is read by Blender's importers: pip install "
+                         "'apcg[blender]' (the bpy module), or put a blender on PATH or in "
+                         "$APCG_BLENDER")
+    return [exe, "-b", "--factory-startup", "--python-exit-code", "1", "-P", script, "--",
+            *args]
+
+
+def read_blender(path: Path, patterns=()) -> RawModel:
+    """FBX, .blend, USD, Alembic through Blender's importers, in metres, Blender's Z up."""
+    script = str(Path(__file__).with_name("blender_import.py"))
+    with tempfile.TemporaryDirectory(prefix="apcg-import-") as tmp:
+        out = Path(tmp) / "mesh.npz"
+        cmd = blender_command(script, [str(path.resolve()), str(out), ",".join(patterns)])
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp)
+        if proc.returncode != 0 or not out.exists():
+            lines = [ln for ln in (proc.stderr + proc.stdout).splitlines() if ln.strip()]
+            said = [ln for ln in lines if "blender_import:" in ln or "Error" in ln]
+            why = (said or lines or [f"exit code {proc.returncode}"])[-1]
+            raise InputError(f"{path}: Blender could not import it: "
+                             f"{why.replace('blender_import: ', '').strip()}")
+        with np.load(out, allow_pickle=False) as z:
+            info = json.loads(str(z["info"]))
+            mesh = Mesh(z["vertices"], z["faces"])
+    declared = not info["unit_note"].startswith("not declared")
+    return RawModel(mesh, 1.0 if declared else None, info["unit_note"], up="Z",
+                    objects=info["objects"], skipped=info["skipped"])
+
+
+FORMATS = (
+    Format("OFF", (".off",), "own reader", read_off),
+    Format("Wavefront OBJ", (".obj",), "trimesh", read_trimesh),
+    Format("STL", (".stl",), "trimesh", read_trimesh),
+    Format("PLY", (".ply",), "trimesh", read_trimesh),
+    Format("glTF 2.0", (".glb", ".gltf"), "trimesh", read_gltf),
+    Format("COLLADA", (".dae",), "trimesh + pycollada", read_collada),
+    Format("FBX", (".fbx",), "Blender", read_blender),
+    Format("Blender", (".blend",), "Blender", read_blender),
+    Format("USD", (".usd", ".usda", ".usdc", ".usdz"), "Blender", read_blender),
+    Format("Alembic", (".abc",), "Blender", read_blender),
+)
+SUFFIXES = tuple(s for f in FORMATS for s in f.suffixes)
+
+
+def format_of(path) -> Format:
+    suffix = Path(path).suffix.lower()
+    for f in FORMATS:
+        if suffix in f.suffixes:
+            return f
+    raise InputError(f"{path}: unsupported format {suffix!r}; accepted: {', '.join(SUFFIXES)}")
+
+
+def read_model(path, objects: str | None = None) -> RawModel:
+    """Read ``path`` as stored; ``objects``: comma-separated name patterns to keep."""
+    path = Path(path)
+    fmt = format_of(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory, not a model file")
+    if path.stat().st_size == 0:
+        raise InputError(f"{path}: the file is empty")
+    patterns = [p.strip() for p in (objects or "").split(",") if p.strip()]
+    raw = fmt.read(path, patterns)
+    if fmt.read is read_off and patterns:
+        raise InputError(f"{path}: an OFF file holds one object; --objects does not apply")
+    m = raw.mesh
+    if len(m.faces) == 0 or not np.isfinite(m.vertices).all():
+        raise InputError(f"{path}: the mesh is empty or has non-finite coordinates")
+    return raw
