@@ -25,9 +25,10 @@ REF = _reference_dir()
 APCG = str(Path(sys.executable).parent / "apcg")
 CAT = Catalog(include_user=False)
 
-# (file, forward, up, kind): axes as ../shared/reference/README.md gives them; the believer's
-# nose points to the file's -X (its fin sits at +X).
-AIRPLANES = [("odedstein_plane.obj", "X", "Z"), ("pyvista_airplane.ply", "X", "Z"),
+# (file, forward, up): the believer's nose points to the file's -X (its fin sits at +X). The
+# PyVista airplane's nose points to -Y (its length is along y, its span along x), although
+# ../shared/reference/README.md says "length along x": its three-view drawing shows it.
+AIRPLANES = [("odedstein_plane.obj", "X", "Z"), ("pyvista_airplane.ply", "-Y", "Z"),
              ("px4_believer_body_m.glb", "-X", "Z")]
 
 
@@ -46,8 +47,12 @@ def test_reference_airplanes_land_nose_forward_up_up(name, forward, up):
     top = v[v[:, 2] > v[:, 2].max() - 0.03 * mesh.extents[2]]
     mid_x = v[:, 0].min() + 0.5 * mesh.extents[0]
     assert top[:, 0].mean() < mid_x
-    # the span is along y and the aircraft is flat: height is the smallest extent
+    # the span is along y (the model is its own mirror image across y) and the aircraft is
+    # flat: height is the smallest extent
     assert mesh.extents[2] < mesh.extents[0] and mesh.extents[2] < mesh.extents[1]
+    from apcg_core.catalog.checks import _mirror_error
+    pts = v[::max(1, len(v) // 4000)]
+    assert _mirror_error(pts, 1) < _mirror_error(pts, 0)
     # importing with the opposite forward axis puts the fin forward: the test can fail
     flipped, _ = import_model(REF / name, forward=forward.replace("-", "") if "-" in forward
                               else "-" + forward, up=up, length_m=12.5)
