@@ -26,7 +26,7 @@ def register_generate(sub) -> None:
     p.add_argument("--tau", type=float, help="output threshold (default: the model's): the "
                                              "cGAN's Im2PC tau, APCG+'s hit logit")
     p.add_argument("-o", "--output", required=True,
-                   help=".ply / .npz / .las; several clouds go in one file, told apart by "
+                   help=".ply / .npz / .las / .laz; several clouds go in one file, told apart by "
                         "their `sample` attribute")
     p.set_defaults(func=_run_generate)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import bpy
 import numpy as np
@@ -19,7 +20,7 @@ import numpy as np
 from apcg_core.cloud import PointCloud
 from apcg_core.errors import InputError
 from apcg_core.frames import lidar_local_to_observation, observation_to_lidar_local
-from apcg_core.io.clouds import read_cloud, write_cloud
+from apcg_core.io.clouds import read_cloud_attributes, write_cloud
 
 CLOUD_KEY = "apcg_cloud"  # JSON: source, r0, beta0, azimuth, origin (lidar-local, m), meta
 GROUP_NAME = "APCG Points"
@@ -207,18 +208,59 @@ def cloud_from_object(obj) -> tuple[PointCloud, dict]:
 
 
 def import_cloud(path, lidar=None, name: str | None = None):
-    """A PLY / NPZ / LAS cloud written by apcg (or any PLY / LAS with x, y, z) as an object."""
+    """A PLY / NPZ / LAS / LAZ cloud, written by apcg or another lidar tool, as an object. Every
+    other per-point value of the file (intensity, classification, normals, extra bytes...)
+    becomes a point attribute of the mesh, shown in the spreadsheet; red / green / blue also
+    the colour attribute "Col". The attributes' names are kept in the info's "attributes"."""
     from pathlib import Path
-    cloud, meta = read_cloud(path)
+    cloud, meta, attrs = read_cloud_attributes(path)
     cond = meta.get("condition") or {}
     r0 = cond.get("range_m")
     beta0 = math.radians(cond["elevation_deg"]) if "elevation_deg" in cond else 0.0
-    return cloud_object(cloud, name or Path(path).stem, lidar=lidar, source="imported",
-                        r0=r0, beta0=beta0, meta=meta)
+    obj = cloud_object(cloud, name or Path(path).stem, lidar=lidar, source="imported",
+                       r0=r0, beta0=beta0, meta=meta)
+    info = cloud_info(obj)
+    info["attributes"] = _add_file_attrs(obj.data, attrs)
+    obj[CLOUD_KEY] = json.dumps(info)
+    return obj
+
+
+def _new_attr(me, name: str, kind: str):
+    """A new point attribute named like ``name``: Blender hides names starting with ".", refuses
+    long ones and built-in ones (material_index...), so those get cleaned or a _1, _2 suffix."""
+    base = re.sub(r"[^\w .-]", "_", name, flags=re.ASCII).lstrip(".")[:48] or "attribute"
+    for i in range(1000):
+        cand = f"{base}_{i}" if i else base
+        if cand not in me.attributes:
+            attr = me.attributes.new(cand, kind, "POINT")
+            if attr is not None:
+                return attr
+    raise InputError(f"cannot add an attribute named like {name!r} to {me.name!r}")
+
+
+def _add_file_attrs(me, attrs: dict) -> list[str]:
+    """Blender's attributes are 32-bit: integers that fit stay INT, the rest become FLOAT."""
+    names = []
+    for name, a in attrs.items():
+        fits = a.dtype.kind in "biu" and (a.size == 0 or (a.min() >= -2**31 and a.max() < 2**31))
+        attr = _new_attr(me, name, "INT" if fits else "FLOAT")
+        attr.data.foreach_set("value", a.astype(np.int32 if fits else np.float32))
+        names.append(attr.name)
+    if {"red", "green", "blue"} <= attrs.keys():
+        rgb = np.stack([attrs[c] for c in ("red", "green", "blue")], 1).astype(np.float64)
+        if attrs["red"].dtype.kind in "iu" and len(rgb):
+            # LAS colours are 16-bit, but many tools store 8-bit values in them
+            rgb /= 255.0 if rgb.max() <= 255 else 65535.0
+        col = _new_attr(me, "Col", "FLOAT_COLOR")
+        rgba = np.column_stack([rgb, np.ones(len(rgb))]).astype(np.float32)
+        col.data.foreach_set("color_srgb", rgba.ravel())  # file colours are sRGB
+        names.append(col.name)
+    me.update()
+    return names
 
 
 def export_cloud(obj, path) -> str:
-    """Write a cloud object to PLY / NPZ / LAS (by extension), observation frame, float64."""
+    """Write a cloud object to PLY / NPZ / LAS / LAZ (by extension), observation frame, float64."""
     cloud, info = cloud_from_object(obj)
     meta = dict(info.get("meta") or {})
     meta.update({"exported_from_blender": obj.name, "source": info["source"]})

@@ -273,19 +273,23 @@ class APCG_OT_generate(_ChunkedOperator, bpy.types.Operator):
 
 
 class APCG_OT_import_cloud(bpy.types.Operator, ImportHelper):
-    """Import a point cloud (PLY, NPZ, LAS) as points under the active lidar"""
+    """Import a point cloud (PLY, NPZ, LAS, LAZ) and its attributes under the active lidar"""
     bl_idname = "apcg.import_cloud"
     bl_label = "Import APCG Cloud"
     bl_options = {"REGISTER", "UNDO"}
 
-    filter_glob: StringProperty(default="*.ply;*.npz;*.las", options={"HIDDEN"})
+    filter_glob: StringProperty(default="*.ply;*.npz;*.las;*.laz", options={"HIDDEN"})
 
     def execute(self, context):
+        from .clouds import cloud_info
         try:
             obj = api.import_cloud(self.filepath, lidar=_active_lidar(context))
         except Exception as exc:  # noqa: BLE001
             return _report_error(self, exc)
         _select_only(context, obj)
+        names = cloud_info(obj).get("attributes") or []
+        self.report({"INFO"}, f"read {len(obj.data.vertices)} points; other attributes: "
+                              f"{', '.join(names) if names else 'none'}")
         return {"FINISHED"}
 
 

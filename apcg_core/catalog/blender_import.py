@@ -18,24 +18,31 @@ import json
 import os
 import sys
 
-import bpy
 import numpy as np
 
 SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT"}
 _USD = (".usd", ".usda", ".usdc", ".usdz")
-# (suffixes, operator module, operator, options, how the unit is found), first found wins.
-# FBX: the C++ importer of Blender 4.5+ first (the Python one fails on lights in 5.0).
-IMPORTERS = (
-    ((".fbx",), bpy.ops.wm, "fbx_import", {}, "FBX unit, applied by Blender's importer"),
-    ((".fbx",), bpy.ops.import_scene, "fbx", {}, "FBX unit, applied by Blender's importer"),
-    (_USD, bpy.ops.wm, "usd_import", {}, "USD metersPerUnit, applied by Blender's importer"),
-    ((".abc",), bpy.ops.wm, "alembic_import", {"as_background_job": False},
-     "not declared (Alembic has no unit): metres assumed"),
-)
+
+
+def _importers():
+    """(suffixes, operator module, operator, options, how the unit is found), first found
+    wins. FBX: the C++ importer of Blender 4.5+ first (the Python one fails on lights in 5.0).
+    bpy is imported here, not at the top, so that apcg_core imports without Blender."""
+    import bpy
+
+    return (
+        ((".fbx",), bpy.ops.wm, "fbx_import", {}, "FBX unit, applied by Blender's importer"),
+        ((".fbx",), bpy.ops.import_scene, "fbx", {}, "FBX unit, applied by Blender's importer"),
+        (_USD, bpy.ops.wm, "usd_import", {}, "USD metersPerUnit, applied by Blender's importer"),
+        ((".abc",), bpy.ops.wm, "alembic_import", {"as_background_job": False},
+         "not declared (Alembic has no unit): metres assumed"),
+    )
 
 
 def _import(path: str) -> str:
     """Import ``path`` into an empty scene; returns how its unit was found."""
+    import bpy
+
     suffix = os.path.splitext(path)[1].lower()
     if suffix == ".blend":
         bpy.ops.wm.open_mainfile(filepath=path, load_ui=False)
@@ -44,7 +51,7 @@ def _import(path: str) -> str:
             return "not declared (a .blend with unit system None): metres assumed"
         return f".blend scene unit: {units.system.lower()}, unit scale {units.scale_length:g}"
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    for suffixes, module, op_name, kwargs, note in IMPORTERS:
+    for suffixes, module, op_name, kwargs, note in _importers():
         if suffix in suffixes:
             if op_name not in dir(module):
                 continue  # an older importer below, or none in this build
@@ -56,6 +63,8 @@ def _import(path: str) -> str:
 
 
 def _blend_scale(path: str) -> float:
+    import bpy
+
     units = bpy.context.scene.unit_settings
     if path.lower().endswith(".blend") and units.system != "NONE":
         return float(units.scale_length)
@@ -63,6 +72,8 @@ def _blend_scale(path: str) -> float:
 
 
 def main(argv: list[str]) -> int:
+    import bpy
+
     src, out = argv[0], argv[1]
     patterns = [p for p in (argv[2] if len(argv) > 2 else "").split(",") if p]
     unit_note = _import(src)

@@ -1,8 +1,9 @@
-"""Standard point clouds in files: PLY (binary), NPZ and LAS, observation frame, metres.
+"""Standard point clouds in files: PLY (binary), NPZ and LAS / LAZ, observation frame, metres.
 
 Every format carries the per-point attributes range_m (float64), cell_w and cell_h (centred cell
 indices), and, for stacked clouds, sample. Files are written through a ``.part`` file and
-renamed, so a file with its final name is complete.
+renamed, so a file with its final name is complete. Files of other lidar tools (PLY ascii or
+binary, LAS / LAZ of any point format) are read too, with all their per-point attributes.
 """
 
 from __future__ import annotations
@@ -16,13 +17,15 @@ import numpy as np
 from ..cloud import PointCloud
 from ..errors import InputError
 
-FORMATS = (".ply", ".npz", ".las")
+FORMATS = (".ply", ".npz", ".las", ".laz")
+_OWN = ("range_m", "cell_w", "cell_h", "sample")
 _PLY_PROPS = [("x", "f8"), ("y", "f8"), ("z", "f8"), ("range_m", "f8"), ("cell_w", "i4"),
               ("cell_h", "i4"), ("sample", "i4")]
 _PLY_TYPES = {"f8": "double", "i4": "int", "f4": "float", "u1": "uchar", "i2": "short",
               "u2": "ushort", "u4": "uint", "i1": "char"}
-_PLY_NAMES = {v: k for k, v in _PLY_TYPES.items()} | {"float64": "f8", "float32": "f4",
-                                                       "int32": "i4", "uint8": "u1"}
+_PLY_NAMES = {v: k for k, v in _PLY_TYPES.items()} | {
+    "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2", "int32": "i4", "uint32": "u4",
+    "float32": "f4", "float64": "f8"}
 
 
 def _fmt(path) -> str:
@@ -38,7 +41,8 @@ def _replace(tmp: Path, path: Path) -> None:
 
 
 def write_cloud(path, cloud: PointCloud, meta: dict | None = None) -> Path:
-    """Write ``cloud`` to ``path`` (.ply / .npz / .las); ``meta`` (JSON-able) goes in the header."""
+    """Write ``cloud`` to ``path`` (.ply / .npz / .las / .laz); ``meta`` (JSON-able) goes in
+    the header."""
     path = Path(path)
     ext = _fmt(path)
     meta = meta or {}
@@ -62,16 +66,13 @@ def write_cloud(path, cloud: PointCloud, meta: dict | None = None) -> Path:
             f.write(("\n".join(head) + "\n").encode())
             f.write(rec.tobytes())
     else:
-        _write_las(tmp, cloud, sample, meta)
+        _write_las(tmp, cloud, sample, meta, compress=ext == ".laz")
     _replace(tmp, path)
     return path
 
 
-def _write_las(tmp: Path, cloud: PointCloud, sample, meta: dict) -> None:
-    try:
-        import laspy
-    except ImportError as exc:
-        raise InputError("LAS files need laspy: pip install 'apcg[io]'") from exc
+def _write_las(tmp: Path, cloud: PointCloud, sample, meta: dict, compress: bool) -> None:
+    laspy = _laspy(compress)
     header = laspy.LasHeader(point_format=6, version="1.4")
     # LAS stores scaled int32 coordinates: 0.1 mm steps around the cloud's centre.
     centre = cloud.xyz.mean(axis=0) if len(cloud) else np.zeros(3)
@@ -88,92 +89,177 @@ def _write_las(tmp: Path, cloud: PointCloud, sample, meta: dict) -> None:
     las.header.vlrs.append(laspy.VLR(user_id="APCG", record_id=1, description="meta",
                                      record_data=json.dumps(meta).encode()))
     with open(tmp, "wb") as f:
-        las.write(f)
+        las.write(f, do_compress=compress)
 
 
 def read_cloud(path) -> tuple[PointCloud, dict]:
-    """Read a cloud written by :func:`write_cloud` (PLY also: any binary/ascii PLY with x y z)."""
+    """Read a cloud written by :func:`write_cloud` or by another lidar tool (any PLY with x y z,
+    LAS / LAZ); :func:`read_cloud_attributes` also gives the file's other per-point values."""
+    cloud, meta, _ = read_cloud_attributes(path)
+    return cloud, meta
+
+
+def read_cloud_attributes(path) -> tuple[PointCloud, dict, dict[str, np.ndarray]]:
+    """The cloud, its meta and every other per-point attribute of the file by name (length-n
+    arrays in the file's numeric types, native byte order): LAS / LAZ dimensions of any point
+    format (intensity, return_number, classification, gps_time, red / green / blue, extra bytes;
+    an extra dimension of k numbers as name_0 .. name_k-1), PLY vertex properties, NPZ arrays.
+
+    range_m, cell_w, cell_h and sample go into the cloud (range_m defaults to the norm of xyz,
+    the cell indices to 0); a broken or truncated file raises InputError naming it."""
     path = Path(path)
     ext = _fmt(path)
     if not path.exists():
         raise InputError(f"no such point cloud file: {path}")
     try:
-        if ext == ".npz":
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"])) if "meta" in z.files else {}
-                n = len(z["xyz"])
-                get = {k: (z[k] if k in z.files else None) for k in
-                       ("range_m", "cell_w", "cell_h", "sample")}
-                xyz = z["xyz"]
-        elif ext == ".ply":
-            xyz, get, meta = _read_ply(path)
-            n = len(xyz)
-        else:
-            import laspy
-            las = laspy.read(path)
-            xyz = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], 1)
-            n = len(xyz)
-            names = set(las.point_format.dimension_names)
-            get = {k: (np.asarray(las[k]) if k in names else None)
-                   for k in ("range_m", "cell_w", "cell_h", "sample")}
-            meta = {}
-            for v in las.header.vlrs:
-                if v.user_id == "APCG":
-                    meta = json.loads(bytes(v.record_data).decode())
+        read = {".npz": _read_npz, ".ply": _read_ply}.get(ext, _read_las)
+        xyz, cols, meta = read(path)
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - any parse failure is a broken file to the user
         raise InputError(f"cannot read point cloud {path}: {exc}") from exc
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    r = get["range_m"] if get["range_m"] is not None else np.linalg.norm(xyz, axis=1)
+    n = len(xyz)
+    own = {k: cols.pop(k, None) for k in _OWN}
+    r = own["range_m"] if own["range_m"] is not None else np.linalg.norm(xyz, axis=1)
     zeros = np.zeros(n, np.int32)
-    cloud = PointCloud(xyz, r, get["cell_w"] if get["cell_w"] is not None else zeros,
-                       get["cell_h"] if get["cell_h"] is not None else zeros,
-                       get["sample"] if get["sample"] is not None else None)
-    return cloud, meta
+    cloud = PointCloud(xyz, r, own["cell_w"] if own["cell_w"] is not None else zeros,
+                       own["cell_h"] if own["cell_h"] is not None else zeros, own["sample"])
+    return cloud, meta, cols
+
+
+def _laspy(compressed: bool):
+    try:
+        import laspy
+    except ImportError as exc:
+        raise InputError("LAS files need laspy: pip install 'apcg[io]'") from exc
+    if compressed and not laspy.LazBackend.detect_available():
+        raise InputError("LAZ files need lazrs: pip install lazrs (or pip install 'laspy[lazrs]')")
+    return laspy
+
+
+def _read_npz(path: Path):
+    with np.load(path, allow_pickle=False) as z:
+        if "xyz" not in z.files:
+            raise InputError(f"{path}: the NPZ file has no 'xyz' array (it has {z.files})")
+        xyz = np.asarray(z["xyz"], np.float64).reshape(-1, 3)
+        meta = json.loads(str(z["meta"])) if "meta" in z.files else {}
+        cols = {}
+        for k in z.files:
+            a = z[k] if k not in ("xyz", "meta") else None
+            # other arrays are per-point values only when they have one number per point
+            if a is not None and (k in _OWN or (a.ndim == 1 and len(a) == len(xyz)
+                                                and a.dtype.kind in "biuf")):
+                cols[k] = a
+    return xyz, cols, meta
+
+
+def _read_las(path: Path):
+    laspy = _laspy(path.suffix.lower() == ".laz")
+    try:
+        las = laspy.read(path)
+    except laspy.errors.LaspyException as exc:
+        if laspy.LazBackend.detect_available():
+            raise
+        # a compressed file named .las also needs the LAZ backend
+        raise InputError(f"cannot read point cloud {path}: {exc} (if it is compressed LAZ: "
+                         "pip install lazrs)") from exc
+    n, announced = len(las.points), las.header.point_count
+    if n != announced:  # laspy reads a short file as fewer (or no) points without complaint
+        raise InputError(f"{path} is truncated: {announced} points announced, {n} stored")
+    xyz = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], 1)
+    cols = {}
+    for name in las.point_format.dimension_names:
+        if name in ("X", "Y", "Z"):  # the unscaled integers behind las.x, las.y, las.z
+            continue
+        a = np.asarray(las[name])
+        if a.ndim == 2:
+            cols.update({f"{name}_{i}": a[:, i].copy() for i in range(a.shape[1])})
+        else:
+            cols[name] = a
+    meta = {}
+    for v in las.header.vlrs:
+        if v.user_id == "APCG":
+            meta = json.loads(bytes(v.record_data).decode())
+    return xyz, cols, meta
+
+
+def _ply_header(path: Path, data: bytes):
+    """format, meta, elements [(name, count, [(property, dtype code, or None for a list)])] and
+    where the body starts."""
+    end = data.find(b"end_header")
+    body = data.find(b"\n", end) + 1 if end >= 0 else 0
+    if not data.startswith(b"ply") or body == 0:
+        raise InputError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
+    fmt, meta, elements = None, {}, []
+    for line in data[:end].decode("ascii", "replace").splitlines()[1:]:
+        parts = line.split()
+        try:
+            if parts[:2] == ["comment", "meta"]:
+                meta = _json_dict(line.split("meta", 1)[1])
+            elif parts[:1] == ["format"]:
+                fmt = parts[1]
+            elif parts[:1] == ["element"]:
+                elements.append((parts[1], int(parts[2]), []))
+                if elements[-1][1] < 0:
+                    raise ValueError
+            elif parts[:1] == ["property"]:
+                is_list = parts[1] == "list"
+                types, name = (parts[2:4], parts[4]) if is_list else (parts[1:2], parts[2])
+                codes = [_PLY_NAMES[t] for t in types]
+                elements[-1][2].append((name, None if is_list else codes[0]))
+        except (IndexError, KeyError, ValueError):
+            raise InputError(f"{path}: bad PLY header line {line!r} (types: "
+                             f"{' '.join(sorted(_PLY_NAMES))})") from None
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise InputError(f"{path}: unknown PLY format {fmt!r}; accepted: ascii, "
+                         "binary_little_endian, binary_big_endian")
+    return fmt, meta, elements, body
+
+
+def _json_dict(text: str) -> dict:
+    """Our meta comment; another tool's comment that happens to start with "meta" is no meta."""
+    try:
+        meta = json.loads(text)
+    except ValueError:
+        return {}
+    return meta if isinstance(meta, dict) else {}
 
 
 def _read_ply(path: Path):
     with open(path, "rb") as f:
         data = f.read()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise InputError(f"{path} is not a PLY file")
-    body_start = data.index(b"\n", end) + 1
-    lines = data[:end].decode("ascii", "replace").splitlines()
-    fmt, n, props, meta = None, None, [], {}
-    in_vertex = False
-    for line in lines:
-        parts = line.split()
-        if not parts:
-            continue
-        if parts[0] == "format":
-            fmt = parts[1]
-        elif parts[0] == "comment" and len(parts) > 2 and parts[1] == "meta":
-            meta = json.loads(line.split("meta", 1)[1])
-        elif parts[0] == "element":
-            in_vertex = parts[1] == "vertex"
-            if in_vertex:
-                n = int(parts[2])
-        elif parts[0] == "property" and in_vertex:
-            if parts[1] == "list":
-                raise InputError(f"{path}: list properties on vertices are not supported")
-            props.append((parts[2], _PLY_NAMES.get(parts[1], None)))
-    if n is None or any(t is None for _, t in props):
-        raise InputError(f"{path}: PLY header lacks a vertex element or uses unknown types")
-    names = [p for p, _ in props]
+    fmt, meta, elements, body = _ply_header(path, data)
+    at = next((i for i, e in enumerate(elements) if e[0] == "vertex"), None)
+    if at is None:
+        raise InputError(f"{path}: the PLY file has no vertex element")
+    _, n, props = elements[at]
+    if any(t is None for _, t in props):
+        raise InputError(f"{path}: list properties on vertices are not supported")
     if fmt == "ascii":
-        rows = np.array(data[body_start:].split(), dtype=np.float64)[: n * len(props)]
-        rec = rows.reshape(n, len(props))
-        col = {p: rec[:, i] for i, p in enumerate(names)}
+        # one line per element: skip the lines of the elements before the vertices
+        lines = [ln for ln in data[body:].splitlines() if ln.strip()]
+        skip = sum(e[1] for e in elements[:at])
+        tokens = b" ".join(lines[skip:skip + n]).split()
+        if len(tokens) != n * len(props):
+            raise InputError(f"{path} is truncated or malformed: {n} vertices of {len(props)} "
+                             f"values announced, {len(tokens)} values found")
+        rec = np.array(tokens, dtype=np.float64).reshape(n, len(props))
+        cols = {p: rec[:, i].astype(t) for i, (p, t) in enumerate(props)}
     else:
         endian = "<" if fmt == "binary_little_endian" else ">"
+        for name, count, eprops in elements[:at]:
+            if any(t is None for _, t in eprops):
+                raise InputError(f"{path}: element {name!r} before the vertices has list "
+                                 "properties, so where the vertices start in this binary PLY "
+                                 "is unknown; write the vertex element first")
+            body += count * np.dtype([(p, endian + t) for p, t in eprops]).itemsize
         dt = np.dtype([(p, endian + t) for p, t in props])
-        if len(data) - body_start < n * dt.itemsize:
+        if len(data) - body < n * dt.itemsize:
             raise InputError(f"{path} is truncated: {n} vertices announced, fewer stored")
-        rec = np.frombuffer(data, dtype=dt, count=n, offset=body_start)
-        col = {p: rec[p] for p in names}
-    if not {"x", "y", "z"} <= set(col):
+        rec = np.frombuffer(data, dtype=dt, count=n, offset=body)
+        cols = {p: rec[p].astype(rec[p].dtype.newbyteorder("=")) for p, _ in props}
+    if not {"x", "y", "z"} <= set(cols):
         raise InputError(f"{path}: vertices have no x, y, z")
-    xyz = np.stack([col["x"], col["y"], col["z"]], 1)
-    return xyz, {k: col.get(k) for k in ("range_m", "cell_w", "cell_h", "sample")}, meta
+    xyz = np.stack([cols.pop("x"), cols.pop("y"), cols.pop("z")], 1)
+    return xyz, cols, meta
