@@ -53,7 +53,10 @@ def scene(scale_length, system="METRIC"):
     bpy.ops.object.empty_add(location=(0, 0, 0))
 scene(1.0)
 bpy.ops.export_scene.gltf(filepath=out + "/plane.glb", export_format="GLB", export_apply=True)
+bpy.ops.export_scene.gltf(filepath=out + "/plane.gltf", export_format="GLTF_SEPARATE",
+                          export_apply=True)
 bpy.ops.wm.usd_export(filepath=out + "/plane.usdc")
+bpy.ops.wm.usd_export(filepath=out + "/plane.usdz")
 bpy.ops.wm.alembic_export(filepath=out + "/plane.abc", as_background_job=False)
 scene(0.01)
 bpy.ops.export_scene.fbx(filepath=out + "/plane_cm.fbx", apply_unit_scale=True,
@@ -149,17 +152,18 @@ def _is_test_aircraft(mesh: Mesh, height: float = HEIGHT) -> None:
 
 # Every file made by Blender's exporters imports at its declared unit, with no option.
 @pytest.mark.parametrize("name,unit_words", [
-    ("plane.glb", "glTF"), ("plane_cm.fbx", "FBX"), ("plane_mm.blend", "unit scale 0.001"),
-    ("plane.usdc", "USD"), ("plane.abc", "metres assumed")])
+    ("plane.glb", "glTF"), ("plane.gltf", "glTF"), ("plane_cm.fbx", "FBX"),
+    ("plane_mm.blend", "unit scale 0.001"), ("plane.usdc", "USD"), ("plane.usdz", "USD"),
+    ("plane.abc", "metres assumed")])
 def test_blender_exported_files_import_at_their_unit(files, name, unit_words):
     # Blender's convention is nose -Y; glTF declares its own front (+Z, from Blender's -Y)
-    forward = None if name.endswith(".glb") else "-Y"
+    forward = None if name.endswith((".glb", ".gltf")) else "-Y"
     mesh, rep = import_model(files / name, forward=forward)
     _is_test_aircraft(mesh)
     assert unit_words in rep.unit
     assert sorted(rep.objects) == ["Fin", "Fuselage", "Wing"], rep.objects
     skipped = " ".join(rep.skipped)
-    if not name.endswith(".glb"):  # glTF exports no light or camera by default
+    if not name.endswith((".glb", ".gltf")):  # glTF exports no light or camera by default
         assert "camera" in skipped, rep.skipped
     if name.endswith((".fbx", ".blend", ".usdc")):  # Alembic keeps a light as an empty
         assert "light" in skipped, rep.skipped
@@ -201,6 +205,32 @@ def test_collada_declaring_inches_imports_at_the_right_size(files):
     # an option overrides the declared unit
     mesh, rep = import_model(files / "plane_in.dae", forward="-Y", unit_scale=1.0)
     assert mesh.extents[0] == pytest.approx(LENGTH / 0.0254, rel=1e-6)
+
+
+MAKE_34 = r"""
+import bpy, sys
+out = sys.argv[sys.argv.index("--") + 1]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+u = bpy.context.scene.unit_settings
+u.system, u.scale_length = "METRIC", 0.01
+bpy.ops.mesh.primitive_cube_add(size=1.0)
+bpy.context.active_object.scale = (400, 200, 100)   # 4 x 2 x 1 m, in centimetres
+bpy.ops.object.light_add(type="POINT")
+bpy.ops.wm.collada_export(filepath=out)
+"""
+
+
+def test_collada_from_blenders_own_exporter(tmp_path):
+    """Blender 3.4 (the last with COLLADA) writes the scene's unit: centimetres here."""
+    script, dae = tmp_path / "make.py", tmp_path / "box_cm.dae"
+    script.write_text(MAKE_34)
+    proc = subprocess.run(["blender", "-b", "--factory-startup", "--python-exit-code", "1",
+                           "-P", str(script), "--", str(dae)], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0 and dae.exists(), proc.stderr[-2000:]
+    mesh, rep = import_model(dae)
+    np.testing.assert_allclose(mesh.extents, [4.0, 2.0, 1.0], rtol=1e-6)
+    assert rep.scale == 0.01 and "centimeter" in rep.unit
 
 
 def test_usd_declaring_inches_and_y_up(files):
