@@ -59,6 +59,12 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    from .options import problems
+    refused = problems(vars(args))
+    for message in refused:
+        print(f"apcg {args.command}: error: {message}", file=sys.stderr)
+    if refused:
+        return 2
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:  # e.g. `apcg catalog list | head`

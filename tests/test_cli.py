@@ -39,7 +39,7 @@ def test_condition_json_codes_the_type_in_the_model_table():
 
 @pytest.mark.parametrize("args,needle", [
     (["--elevation-deg", "90"], "overhead"),
-    (["--elevation-deg", "3.5", "--yaw-deg", "nan"], "yaw must be finite"),
+    (["--elevation-deg", "3.5", "--yaw-deg", "nan"], "--yaw-deg nan not accepted"),
     (["--elevation-deg", "3.5", "--pitch-deg", "2", "--yaw-deg", "70"], "yaw = 70 deg is outside"),
 ])
 def test_condition_errors_are_clear(args, needle):

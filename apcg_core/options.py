@@ -1,0 +1,85 @@
+"""What each command-line option accepts: one table, by option name, for every command.
+
+An option's name has one meaning across the commands (``--seed`` is a seed wherever it
+appears), so its rule lives here once and ``apcg`` checks every parsed value against it before a
+command runs: a refused value is named with what is accepted, exit code 2, no traceback. Every
+numeric option of every command must have a rule (a test walks the parsers), so an option added
+later cannot go unchecked.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Rule:
+    accepted: str  # for the message: "an integer >= 1"
+    lo: float = -math.inf
+    hi: float = math.inf
+    lo_open: bool = False  # lo itself excluded
+    hi_open: bool = False
+
+    def ok(self, v: float) -> bool:
+        if not math.isfinite(v):
+            return False
+        above = v > self.lo if self.lo_open else v >= self.lo
+        below = v < self.hi if self.hi_open else v <= self.hi
+        return above and below
+
+
+COUNT = Rule("an integer >= 1", lo=1)
+POSITIVE = Rule("a finite number > 0", lo=0, lo_open=True)
+SEED = Rule("an integer from 0 to 4294967295", lo=0, hi=2**32 - 1)
+ANY = Rule("a finite number")
+ANGLE = Rule("a finite angle in degrees from -360 to 360", lo=-360, hi=360)
+
+# dest (the option's name with "_" for "-") -> Rule.
+RULES: dict[str, Rule] = {
+    # sizes and counts
+    "batch_size": COUNT, "count": COUNT, "pairs": COUNT, "steps": COUNT, "samples": COUNT,
+    "workers": COUNT, "threads": COUNT, "columns": COUNT, "n_critic": COUNT,
+    "n_points": COUNT, "checkpoint_every": COUNT, "keep_every": COUNT, "log_every": COUNT,
+    "sampling_steps": COUNT, "diffusion_steps": COUNT, "max_checkpoints": COUNT,
+    "memory_steps": COUNT, "tasks_per_process": COUNT,
+    "dpi": Rule("an integer from 10 to 1200", lo=10, hi=1200),
+    "supersample": Rule("an integer from 1 to 16", lo=1, hi=16),
+    "voxel_res": Rule("an integer from 4 to 256", lo=4, hi=256),
+    "sheet": Rule("an integer from 8 to 512", lo=8, hi=512),
+    "number": ANY,  # a figure number: argparse's choices check it
+    "seed": SEED,
+    # amounts of time and training
+    "epochs": POSITIVE, "hours": POSITIVE, "minutes": POSITIVE, "max_minutes": POSITIVE,
+    "width": Rule("a number > 0 and <= 4 (1.0 = the paper's width)", lo=0, hi=4,
+                  lo_open=True),
+    "ema": Rule("a number from 0 to 1, 1 excluded", lo=0, hi=1, hi_open=True),
+    "diverge_gp": POSITIVE,
+    "tau": ANY,  # its range is the model's own (Model.check_tau), checked where it is used
+    # geometry
+    "range_m": Rule("a finite range in metres > 0 and <= 1e6", lo=0, hi=1e6, lo_open=True),
+    # +-90 itself passes here to the pose check, which says why overhead is refused
+    "elevation_deg": Rule("a finite elevation in degrees from -90 to 90", lo=-90, hi=90),
+    "pitch_deg": ANGLE, "yaw_deg": ANGLE, "roll_deg": ANGLE, "azimuth_deg": ANGLE,
+    "length_m": Rule("a finite length in metres > 0 and <= 1000", lo=0, hi=1000,
+                     lo_open=True),
+    "unit_scale": Rule("a finite factor > 0 and <= 1000", lo=0, hi=1000, lo_open=True),
+}
+
+
+def option_name(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def problems(values: dict) -> list[str]:
+    """Messages for every numeric value in ``values`` (an argparse namespace's dict) that its
+    rule refuses; a float without a rule must still be finite."""
+    out = []
+    for dest, value in values.items():
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                continue
+            rule = RULES.get(dest, ANY)
+            if not rule.ok(float(v)):
+                out.append(f"{option_name(dest)} {v!r} not accepted: {rule.accepted}")
+    return out

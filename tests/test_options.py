@@ -1,0 +1,81 @@
+"""Every numeric option of every command has a rule, and a refused value is named, exit 2."""
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from apcg_core.cli import build_parser
+from apcg_core.options import RULES, problems
+
+APCG = str(Path(sys.executable).parent / "apcg")
+
+
+def _numeric_actions():
+    """(command path, action) for every int / float option of every installed command."""
+    out = []
+
+    def walk(parser, path):
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sub in a.choices.items():
+                    walk(sub, path + [name])
+            elif a.type in (int, float):
+                out.append((" ".join(path), a))
+    walk(build_parser(), [])
+    return out
+
+
+def test_every_numeric_option_has_a_rule():
+    actions = _numeric_actions()
+    assert len(actions) > 40  # the walk reached the commands' options
+    missing = sorted({f"{path}: {a.dest}" for path, a in actions if a.dest not in RULES})
+    assert not missing, f"options without a rule in apcg_core/options.py: {missing}"
+
+
+def test_defaults_pass_their_own_rules():
+    for path, a in _numeric_actions():
+        if a.default is not None and a.default is not argparse.SUPPRESS:
+            assert not problems({a.dest: a.default}), (path, a.dest, a.default)
+
+
+@given(st.sampled_from(sorted(RULES)), st.sampled_from([float("nan"), float("inf"),
+                                                        -float("inf")]))
+def test_non_finite_values_are_refused_everywhere(dest, value):
+    said = problems({dest: value})
+    assert len(said) == 1 and said[0].startswith("--" + dest.replace("_", "-"))
+
+
+@given(st.integers(min_value=-2**40, max_value=0))
+def test_counts_below_one_are_refused(n):
+    for dest in ("batch_size", "count", "pairs", "workers", "columns", "steps"):
+        assert problems({dest: n})
+
+
+@given(st.integers(min_value=0, max_value=2**32 - 1))
+def test_every_seed_in_range_is_accepted(n):
+    assert problems({"seed": n}) == []
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["train", "--data", "nowhere", "-o", "x", "--batch-size", "0"], "--batch-size 0"),
+    (["generate", "--type", "A320neo", "--range-m", "3000", "--elevation-deg", "3",
+      "--tau", "nan", "-o", "x.ply"], "--tau nan"),
+    (["generate", "--type", "A320neo", "--range-m", "3000", "--elevation-deg", "3",
+      "--seed", "-1", "-o", "x.ply"], "--seed -1"),
+    (["catalog", "show", "--columns", "0", "-o", "s.png"], "--columns 0"),
+    (["simulate", "--type", "A320neo", "--range-m", "-5", "--elevation-deg", "3", "-o",
+      "x.ply"], "--range-m -5.0"),
+    (["catalog", "add", "f.obj", "--name", "x", "--length-m", "1e308"], "--length-m 1e+308"),
+])
+def test_cli_names_the_refused_value(tmp_path, args, needle):
+    out = subprocess.run([APCG, *args], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path)
+    assert out.returncode == 2, out.stderr
+    assert needle in out.stderr and "not accepted" in out.stderr
+    assert "Traceback" not in out.stderr
+    assert list(tmp_path.iterdir()) == []  # nothing written
