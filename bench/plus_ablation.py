@@ -56,7 +56,7 @@ def run_variant(name: str, data: str, out: Path, steps: int, pairs) -> dict:
     cfg = config_from("cpu", steps=steps, checkpoint_every=500, keep_every=0, **over)
     tr = Trainer(data, run, cfg, resume=(run / "checkpoint.pt").exists(), progress=False)
     fit = tr.fit()
-    model = load_model(export_model(run, out / "models" / name))
+    model = load_model(export_model(run, out / "models" / name, force=True))
     model.sheets(model.repeated_conditions(pairs.ds.condition_rows(pairs.idx[:8]), 1))  # warm
     rep = protocol.score(model, pairs, floor=False, pointflow=False)
     ratios = [b["points_ratio_p10_p50_p90"][1] for b in rep["bands"].values()]

@@ -244,6 +244,25 @@ def test_export_counts_epochs_over_every_process_batches(data, tmp_path):
     assert two["trained_epochs"] == round(3 / ds.batches_per_epoch(32, 2), 3)
 
 
+def test_export_never_overwrites_and_never_leaves_half_a_model(data, tmp_path):
+    cfg = config_from("tiny", steps=1, seed=0, checkpoint_every=1000)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("the user's own")
+    with pytest.raises(InputError, match="already holds files.*--force"):
+        export_model(tmp_path / "run", mine)
+    assert (mine / "notes.txt").read_text() == "the user's own"
+    with pytest.raises(InputError, match="is the run directory itself"):
+        export_model(tmp_path / "run", tmp_path / "run")
+    out = export_model(tmp_path / "run", mine, force=True)  # replaced whole
+    assert out == mine and (mine / "model.json").exists() and not (mine / "notes.txt").exists()
+    # a failing export leaves neither the final name nor its staging directory behind
+    with pytest.raises(InputError):
+        export_model(tmp_path / "run", tmp_path / "half", checkpoint=tmp_path / "none.pt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "run"]
+
+
 def test_a_run_saved_with_removed_settings_still_resumes(data, tmp_path):
     """Configurations saved before `extra` and `channels_last` went still load and resume."""
     from training.trainer import TrainConfig

@@ -79,3 +79,4 @@ def test_cli_names_the_refused_value(tmp_path, args, needle):
     assert needle in out.stderr and "not accepted" in out.stderr
     assert "Traceback" not in out.stderr
     assert list(tmp_path.iterdir()) == []  # nothing written
+

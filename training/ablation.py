@@ -66,9 +66,9 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
         # Each variant gets its own Im2PC threshold, chosen on the validation half (a young
         # generator's speckle makes a fixed tau favour some variants; the pairs that score it
         # must not choose it).
-        sweep = protocol.choose_tau(load_model(export_model(run, run / "model")), data_dir,
-                                    n_pairs=pairs, seed=seed)
-        model = load_model(export_model(run, run / "model", tau=sweep["best"]))
+        first = export_model(run, run / "model", force=True)
+        sweep = protocol.choose_tau(load_model(first), data_dir, n_pairs=pairs, seed=seed)
+        model = load_model(export_model(run, run / "model", tau=sweep["best"], force=True))
         (run / "model" / "tau_sweep.json").write_text(json.dumps(sweep, indent=1) + "\n")
         bands = protocol.score(model, test_pairs, floor=False, pointflow=False)["mean"]
         fresh = protocol.score(protocol.untrained(model, run / "untrained", seed=seed),

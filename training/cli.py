@@ -164,6 +164,8 @@ def register_export(sub) -> None:
                    help="families that sample on a schedule (diffusion): sample on N evenly "
                         "spaced steps of it (default: all of them; fewer is faster and "
                         "coarser); the others refuse it")
+    p.add_argument("--force", action="store_true",
+                   help="replace what the output directory holds (default: refuse)")
     p.set_defaults(func=_run_export)
 
 
@@ -171,7 +173,7 @@ def _run_export(args) -> int:
     from .export import export_model
     out = export_model(args.run, args.output, tau=args.tau, checkpoint=args.checkpoint,
                        raw=args.raw, sampling_steps=args.sampling_steps,
-                       log_every=args.log_every)
+                       log_every=args.log_every, force=args.force)
     print(json.dumps({"model": str(out)}))
     return 0
 

@@ -39,7 +39,39 @@ def export_onnx(g: Generator, path: Path) -> None:
 
 def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
                  checkpoint=None, raw: bool = False, sampling_steps: int | None = None,
-                 log_every: int = 1) -> Path:
+                 log_every: int = 1, force: bool = False) -> Path:
+    """Export a run as a model directory (see :func:`_export`). The model is written into a
+    hidden staging directory beside ``out_dir`` and renamed into place when complete, so a
+    directory under the final name is always a whole model. An ``out_dir`` that holds anything
+    is refused unless ``force`` (then replaced whole); the run directory itself is refused."""
+    run, out = Path(run_dir), Path(out_dir)
+    if out.resolve() == run.resolve():
+        raise InputError(f"-o {out} is the run directory itself; export to another directory")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"-o {out} is a file, not a directory")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise InputError(f"-o {out} already holds files; choose a new directory, or --force to "
+                         "replace it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.with_name(f".{out.name}.export-{os.getpid()}")
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        _export(run, staging, tau, data_dir, checkpoint, raw, sampling_steps, log_every)
+        if out.exists():
+            old = out.with_name(f".{out.name}.replaced-{os.getpid()}")
+            out.rename(old)
+            staging.rename(out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            staging.rename(out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return out
+
+
+def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
+            checkpoint=None, raw: bool = False, sampling_steps: int | None = None,
+            log_every: int = 1) -> Path:
     """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest.
     The generator's moving average is exported when the run kept one, the raw weights when
     ``raw`` or when it did not. ``sampling_steps`` (families that sample on a schedule) records

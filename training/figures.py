@@ -90,7 +90,7 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
         for snap in snaps:
             step = int(snap.stem.split("-")[1])
             with tempfile.TemporaryDirectory() as tmp:
-                model = load_model(export_model(run, tmp, tau=tau, checkpoint=snap))
+                model = load_model(export_model(run, tmp, tau=tau, checkpoint=snap, force=True))
                 mean = protocol.score(model, pairs, floor=False, pointflow=False)["mean"]
             at = np.searchsorted(log["step"], step)
             hours = float(log["hours"][min(at, len(log["hours"]) - 1)])
