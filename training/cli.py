@@ -91,6 +91,7 @@ def _run_train(args) -> int:
               else args.family or "cgan")
     _check_family_options(family, args.family, over)
     if saved is not None:
+        _check_resume_matches(args, saved, over)
         saved.update({k: v for k, v in over.items() if v is not None and k in
                       ("steps", "epochs", "checkpoint_every", "threads", "keep_every",
                        "diverge_gp", "ema", "hours")})
@@ -116,7 +117,38 @@ def _run_train(args) -> int:
         os._exit(0)
     elif trainer.rank == 0:
         print(json.dumps(summary))
+    if summary.get("interrupted"):
+        print(f"apcg train: {summary['interrupted']} at step {summary['step']}: the checkpoint "
+              f"is saved; continue with: apcg train --data {args.data} -o {args.output} "
+              "--resume", file=sys.stderr)
+        return 130
     return 0
+
+
+# What a resumed run may change (its length, budget and bookkeeping); every other setting is
+# the run's own, and a different value given on resume is refused rather than ignored.
+RESUMABLE = ("steps", "epochs", "checkpoint_every", "threads", "keep_every", "diverge_gp",
+             "ema", "hours")
+
+
+def _check_resume_matches(args, saved: dict, over: dict) -> None:
+    from pathlib import Path
+
+    from apcg_core.errors import InputError
+
+    differ = [f"--{k.replace('_', '-')} {v} (the run's: {saved.get(k)})"
+              for k, v in over.items()
+              if v is not None and k not in RESUMABLE and k != "family" and k in saved
+              and saved[k] != v]
+    record = Path(args.output) / "train_config.json"
+    if record.exists():
+        ran_on = json.loads(record.read_text()).get("data")
+        if ran_on and Path(ran_on).resolve() != Path(args.data).resolve():
+            differ.append(f"--data {args.data} (the run's: {ran_on})")
+    if differ:
+        raise InputError("a resumed run keeps its own settings; these differ from it: "
+                         + "; ".join(differ) + ". Leave them out to resume, or train a new "
+                         "run with another -o")
 
 
 def _check_family_options(family: str, asked: str | None, over: dict) -> None:

@@ -20,7 +20,9 @@ import json
 import math
 import os
 import shutil
+import signal
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -171,12 +173,19 @@ class Trainer:
         if self.world > 1:  # every rank looks before rank 0 writes the run's files
             import torch.distributed as dist
             dist.barrier()
-        if existed and not resume:
+        if existed and not resume and ckpt.exists():
             raise InputError(f"{self.run} already holds a training run; pass --resume to "
                              "continue it or choose another -o")
+        if existed and not resume and self.rank == 0:
+            # it stopped before its first checkpoint: nothing of it can be kept; start over
+            print(f"apcg train: {self.run} stopped before its first checkpoint; starting it "
+                  "over", file=sys.stderr)
+            (self.run / "log.csv").unlink(missing_ok=True)
         if resume:
             if not ckpt.exists():
-                raise InputError(f"nothing to resume in {self.run} (no checkpoint.pt)")
+                raise InputError(f"nothing to resume in {self.run}: it has no checkpoint.pt "
+                                 "(it stopped before its first); start it over with the same "
+                                 "command without --resume")
             self._load(ckpt)
             record = self.run / "train_config.json"
             if self.rank == 0 and record.exists():  # show the budget in force, not the first's
@@ -347,6 +356,14 @@ class Trainer:
         last = {}
         recent_gp: list[float] = []
         budget_s = None if self.cfg.hours is None else budget_seconds(self.cfg.hours)
+        interrupted = _StopOnSignal(enabled=self.world == 1)
+        with interrupted:
+            self._fit_loop(bar, t0, pending, last, recent_gp, budget_s, max_seconds, interrupted)
+        return self._finish(bar, t0, interrupted)
+
+    def _fit_loop(self, bar, t0, pending, last, recent_gp, budget_s, max_seconds,
+                  interrupted) -> None:
+        row = {}
         while self.step < self.total_steps and (budget_s is None
                                                 or self.seconds_before < budget_s):
             row = self.train_step()
@@ -373,20 +390,61 @@ class Trainer:
                     pending = []
                 self.save()
             stop = ((max_seconds is not None and time.perf_counter() - t0 > max_seconds)
-                    or (budget_s is not None and row["seconds"] >= budget_s))
-            if self._any_rank(stop):
+                    or (budget_s is not None and row["seconds"] >= budget_s)
+                    or interrupted.fired is not None)
+            if self._any_rank(bool(stop)):
                 break
         if self.rank == 0 and pending:
             self._write_log_rows(pending)
         self.save()
+        self._last = last
+
+    def _finish(self, bar, t0, interrupted) -> dict:
         if bar is not None:
             bar.close()
         if self._tb:
             self._tb.flush()
-        return {"step": self.step, "total_steps": self.total_steps, "last": last,
-                "seconds": round(time.perf_counter() - t0, 3),
-                "param_checksum": param_checksum(self.G) + param_checksum(self.D)
-                + param_checksum(self.G_ema)}
+        out = {"step": self.step, "total_steps": self.total_steps, "last": self._last,
+               "seconds": round(time.perf_counter() - t0, 3),
+               "param_checksum": param_checksum(self.G) + param_checksum(self.D)
+               + param_checksum(self.G_ema)}
+        if interrupted.fired:
+            out["interrupted"] = interrupted.fired
+        return out
+
+
+class _StopOnSignal:
+    """Ctrl-C (SIGINT) or SIGTERM during training: finish the current step, checkpoint, stop.
+
+    The first signal only sets :attr:`fired` (the loop checks it after each step, so the
+    checkpoint is a whole step); the handlers are then put back, so a second Ctrl-C stops at
+    once. Only in a single process on the main thread (torchrun stops its ranks itself)."""
+
+    SIGNALS = ("SIGINT", "SIGTERM")
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.enabled = enabled and threading.current_thread() is threading.main_thread()
+        self.fired: str | None = None
+        self._old = {}
+
+    def _handle(self, signum, frame) -> None:
+        self.fired = signal.Signals(signum).name
+        self._restore()
+
+    def _restore(self) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old = {}
+
+    def __enter__(self):
+        if self.enabled:
+            for name in self.SIGNALS:
+                sig = getattr(signal, name)
+                self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._restore()
 
 
 def budget_seconds(hours: float) -> float:

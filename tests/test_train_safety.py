@@ -1,0 +1,84 @@
+"""Training runs are safe to interrupt, resume and restart: Ctrl-C saves a whole step, a resume
+refuses settings that differ from the run's, and a run killed before its first checkpoint
+starts over in place."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from training.cli import RESUMABLE
+from training.trainer import Trainer, config_from
+
+APCG = str(Path(sys.executable).parent / "apcg")
+
+
+def _train(data, run, *extra, **kw):
+    return subprocess.run([APCG, "train", "--data", str(data), "-o", str(run), "--preset",
+                           "tiny", "--no-progress", *extra], capture_output=True, text=True,
+                          timeout=300, **kw)
+
+
+def test_ctrl_c_finishes_the_step_saves_and_exits_130(tiny_training_data, tmp_path):
+    run = tmp_path / "run"
+    proc = subprocess.Popen([APCG, "train", "--data", str(tiny_training_data), "-o", str(run),
+                             "--preset", "tiny", "--steps", "100000", "--checkpoint-every",
+                             "100000", "--no-progress"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    log = run / "log.csv"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (log.exists() and len(log.read_text().splitlines())
+                                          > 3):
+        time.sleep(0.2)
+    assert log.exists(), proc.stderr.read() if proc.poll() is not None else "no log"
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "SIGINT" in err and "--resume" in err and "Traceback" not in err
+    state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+    rows = log.read_text().splitlines()[1:]
+    assert state["step"] >= 3 and int(rows[-1].split(",")[0]) == state["step"]
+    more = _train(tiny_training_data, run, "--resume", "--steps", str(state["step"] + 2))
+    assert more.returncode == 0, more.stderr
+    assert json.loads(more.stdout)["step"] == state["step"] + 2
+
+
+def test_resume_refuses_settings_that_differ(tiny_training_data, tmp_path):
+    run = tmp_path / "run"
+    first = _train(tiny_training_data, run, "--steps", "2", "--width", "0.25")
+    assert first.returncode == 0, first.stderr
+    for extra, needle in ((["--width", "0.5"], "--width 0.5 (the run's: 0.25)"),
+                          (["--batch-size", "7"], "--batch-size 7"),
+                          (["--seed", "9"], "--seed 9")):
+        out = _train(tiny_training_data, run, "--resume", "--steps", "3", *extra)
+        assert out.returncode == 2 and needle in out.stderr, out.stderr
+    other = tmp_path / "other_data"
+    other.symlink_to(tiny_training_data)  # resolves to the same: accepted
+    same = _train(other, run, "--resume", "--steps", "3", "--width", "0.25")
+    assert same.returncode == 0, same.stderr
+    elsewhere = tmp_path / "copy"
+    import shutil
+    shutil.copytree(tiny_training_data, elsewhere)
+    out = _train(elsewhere, run, "--resume", "--steps", "4")
+    assert out.returncode == 2 and "--data" in out.stderr and "the run's" in out.stderr
+    assert "steps" in RESUMABLE and "width" not in RESUMABLE
+
+
+def test_a_run_killed_before_its_first_checkpoint_starts_over(tiny_training_data, tmp_path):
+    run = tmp_path / "run"
+    cfg = config_from("tiny", steps=2, seed=0, checkpoint_every=1000)
+    Trainer(tiny_training_data, run, cfg, progress=False).fit()
+    (run / "checkpoint.pt").unlink()  # as if killed before any checkpoint was written
+    again = _train(tiny_training_data, run, "--resume", "--steps", "2")
+    assert again.returncode == 2 and "without --resume" in again.stderr
+    fresh = _train(tiny_training_data, run, "--steps", "2")
+    assert fresh.returncode == 0 and "starting it over" in fresh.stderr, fresh.stderr
+    rows = (run / "log.csv").read_text().splitlines()[1:]
+    assert [int(r.split(",")[0]) for r in rows] == [1, 2]  # the dead run's rows are gone
+    with pytest.raises(Exception, match="already holds a training run"):
+        Trainer(tiny_training_data, run, cfg, progress=False)
