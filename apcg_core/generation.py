@@ -179,9 +179,7 @@ class APCGModel(ModelTypes):
             except ImportError as exc:
                 raise InputError("generation without torch needs onnxruntime: "
                                  "pip install onnxruntime") from exc
-            opts = ort.SessionOptions()
-            self._session = ort.InferenceSession(str(self.onnx_path), opts,
-                                                 providers=["CPUExecutionProvider"])
+            self._session = onnx_session(self.onnx_path, ort.SessionOptions())
         return self._session
 
     def torch_generator(self):
@@ -238,6 +236,20 @@ class APCGModel(ModelTypes):
 register(_CGANFamily())
 
 
+_BROKEN = ("a partial or corrupt file: export the model again (`apcg export`), or copy it "
+           "again from where it came")
+
+
+def onnx_session(path, options):
+    """An onnxruntime session over ``path``; a file it cannot load is named, not a traceback."""
+    import onnxruntime as ort
+
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types for bad files
+        raise InputError(f"{path} cannot be loaded ({type(exc).__name__}): {_BROKEN}") from exc
+
+
 def onnx_weights(path) -> dict:
     """name -> numpy array of every weight in an ONNX file (initializers, through the Identity
     aliases the exporter makes for tensors that happen to be equal)."""
@@ -247,7 +259,11 @@ def onnx_weights(path) -> dict:
     except ImportError as exc:
         raise InputError("reading ONNX weights into torch needs the onnx package: "
                          "pip install 'apcg[train]'") from exc
-    m = onnx.load(str(path))
+    try:
+        m = onnx.load(str(path))
+    except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError and friends
+        raise InputError(f"{path} cannot be read as ONNX ({type(exc).__name__}): "
+                         f"{_BROKEN}") from exc
     w = {i.name: numpy_helper.to_array(i).copy() for i in m.graph.initializer}
     for n in m.graph.node:
         if n.op_type == "Identity" and n.input[0] in w:

@@ -165,8 +165,8 @@ class PlusModel(ModelTypes):
                                  "(or --runtime torch)") from exc
             opts = ort.SessionOptions()
             opts.intra_op_num_threads = 1 if self.workers > 1 else 0  # 0: onnxruntime's own
-            return _Runtime("onnx", session=ort.InferenceSession(
-                str(self.onnx_path), opts, providers=["CPUExecutionProvider"]))
+            from .generation import onnx_session
+            return _Runtime("onnx", session=onnx_session(self.onnx_path, opts))
         import torch
 
         from .generation import onnx_weights

@@ -82,3 +82,35 @@ def test_a_run_killed_before_its_first_checkpoint_starts_over(tiny_training_data
     assert [int(r.split(",")[0]) for r in rows] == [1, 2]  # the dead run's rows are gone
     with pytest.raises(Exception, match="already holds a training run"):
         Trainer(tiny_training_data, run, cfg, progress=False)
+
+
+@pytest.mark.parametrize("family_dir,weights", [("default", "sheets.onnx"),
+                                                ("cgan", "generator.onnx")])
+@pytest.mark.parametrize("runtime", ["onnx", "torch"])
+def test_a_corrupt_model_file_is_named(tmp_path, family_dir, weights, runtime):
+    import shutil
+    src = Path(__file__).resolve().parents[1] / "apcg_core" / "models" / family_dir
+    model = tmp_path / "m"
+    shutil.copytree(src, model)
+    whole = (model / weights).read_bytes()
+    (model / weights).write_bytes(whole[:len(whole) // 3])  # a copy cut short
+    out = subprocess.run([APCG, "generate", "--model", str(model), "--runtime", runtime,
+                          "--type", "A320neo", "--range-m", "3000", "--elevation-deg", "3",
+                          "--pitch-deg", "2", "-o", str(tmp_path / "c.ply")],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert f"{weights}" in out.stderr and "corrupt" in out.stderr
+    assert not (tmp_path / "c.ply").exists()
+
+
+def test_a_corrupt_checkpoint_is_named(tiny_training_data, tmp_path):
+    run = tmp_path / "run"
+    assert _train(tiny_training_data, run, "--steps", "1").returncode == 0
+    whole = (run / "checkpoint.pt").read_bytes()
+    (run / "checkpoint.pt").write_bytes(whole[:len(whole) // 2])
+    for args in (["train", "--data", str(tiny_training_data), "-o", str(run), "--resume"],
+                 ["export", "--run", str(run), "-o", str(tmp_path / "m")]):
+        out = subprocess.run([APCG, *args], capture_output=True, text=True, timeout=300)
+        assert out.returncode == 2 and "not a readable checkpoint" in out.stderr, out.stderr
+        assert "Traceback" not in out.stderr
+    assert not (tmp_path / "m").exists()

@@ -63,7 +63,7 @@ def register_train(sub) -> None:
 
 
 def _run_train(args) -> int:
-    from .trainer import Trainer, config_from
+    from .trainer import Trainer, config_from, read_checkpoint
     over = {"steps": args.steps, "epochs": args.epochs, "seed": args.seed, "width": args.width,
             "n_critic": args.n_critic, "batch_size": args.batch_size,
             "checkpoint_every": args.checkpoint_every, "threads": args.threads,
@@ -83,10 +83,9 @@ def _run_train(args) -> int:
     if args.resume:
         from pathlib import Path
 
-        import torch
         ck = Path(args.output) / "checkpoint.pt"
         if ck.exists():  # a resumed run keeps its own configuration
-            saved = torch.load(ck, map_location="cpu", weights_only=False)["train"]
+            saved = read_checkpoint(ck)["train"]
     family = (saved.get("family", "cgan") if saved is not None  # the run's own, on resume
               else args.family or "cgan")
     _check_family_options(family, args.family, over)

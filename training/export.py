@@ -20,6 +20,7 @@ from apcg_core.nn.models import COND_DIM, NOISE_DIM
 from apcg_core.typetable import TypeTable
 
 from .data import DepthDataset
+from .trainer import read_checkpoint
 
 
 def export_onnx(g: Generator, path: Path) -> None:
@@ -85,7 +86,7 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     ck = Path(checkpoint) if checkpoint else run / "checkpoint.pt"
     if not ck.exists():
         raise InputError(f"{ck} does not exist: nothing to export")
-    st = torch.load(ck, map_location="cpu", weights_only=False)
+    st = read_checkpoint(ck)
     record = json.loads((run / "train_config.json").read_text())
     data = data_dir or record["data"]
     head = read_header(data)

@@ -228,7 +228,7 @@ class Trainer:
             shutil.copyfile(self.run / "checkpoint.pt", keep)
 
     def _load(self, path: Path) -> None:
-        st = torch.load(path, map_location="cpu", weights_only=False)
+        st = read_checkpoint(path)
         if st["net"] != self.net_config.to_dict():
             raise InputError(f"checkpoint {path} has network {st['net']}, not "
                              f"{self.net_config.to_dict()}; resume with the same preset")
@@ -445,6 +445,23 @@ class _StopOnSignal:
 
     def __exit__(self, *exc) -> None:
         self._restore()
+
+
+def read_checkpoint(path) -> dict:
+    """A training checkpoint; one that cannot be read (a partial copy, a full disk, another
+    file under its name) is named, with what to do, instead of a traceback."""
+    path = Path(path)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except FileNotFoundError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - pickle and zip raise many types on bad files
+        raise InputError(f"{path} is not a readable checkpoint ({type(exc).__name__}: {exc}); "
+                         f"the kept copies in {path.parent / 'checkpoints'} (--keep-every) "
+                         "can replace it") from exc
+    if not isinstance(state, dict) or "step" not in state or "train" not in state:
+        raise InputError(f"{path} is not an APCG training checkpoint (no step and settings)")
+    return state
 
 
 def budget_seconds(hours: float) -> float:
