@@ -38,11 +38,12 @@ ANGLE = Rule("a finite angle in degrees from -360 to 360", lo=-360, hi=360)
 # dest (the option's name with "_" for "-") -> Rule.
 RULES: dict[str, Rule] = {
     # sizes and counts
-    "batch_size": COUNT, "count": COUNT, "pairs": COUNT, "steps": COUNT, "samples": COUNT,
+    "batch_size": COUNT, "count": COUNT, "steps": COUNT, "samples": COUNT,
+    "pairs": Rule("an integer >= 0 (0: every held-out pair)", lo=0),
     "workers": COUNT, "threads": COUNT, "columns": COUNT, "n_critic": COUNT,
     "n_points": COUNT, "checkpoint_every": COUNT, "keep_every": COUNT, "log_every": COUNT,
     "sampling_steps": COUNT, "diffusion_steps": COUNT, "max_checkpoints": COUNT,
-    "memory_steps": COUNT, "tasks_per_process": COUNT,
+    "memory_steps": Rule("an integer >= 0 (0: skip)", lo=0), "tasks_per_process": COUNT,
     "dpi": Rule("an integer from 10 to 1200", lo=10, hi=1200),
     "supersample": Rule("an integer from 1 to 16", lo=1, hi=16),
     "voxel_res": Rule("an integer from 4 to 256", lo=4, hi=256),
@@ -54,7 +55,7 @@ RULES: dict[str, Rule] = {
     "width": Rule("a number > 0 and <= 4 (1.0 = the paper's width)", lo=0, hi=4,
                   lo_open=True),
     "ema": Rule("a number from 0 to 1, 1 excluded", lo=0, hi=1, hi_open=True),
-    "diverge_gp": POSITIVE,
+    "diverge_gp": Rule("a finite number >= 0 (0: never)", lo=0),
     "tau": ANY,  # its range is the model's own (Model.check_tau), checked where it is used
     # geometry
     "range_m": Rule("a finite range in metres > 0 and <= 1e6", lo=0, hi=1e6, lo_open=True),

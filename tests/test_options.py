@@ -52,8 +52,13 @@ def test_non_finite_values_are_refused_everywhere(dest, value):
 
 @given(st.integers(min_value=-2**40, max_value=0))
 def test_counts_below_one_are_refused(n):
-    for dest in ("batch_size", "count", "pairs", "workers", "columns", "steps"):
+    for dest in ("batch_size", "count", "workers", "columns", "steps"):
         assert problems({dest: n})
+
+
+def test_zero_is_accepted_where_it_has_a_meaning():
+    for dest in ("pairs", "memory_steps", "diverge_gp"):
+        assert problems({dest: 0}) == [] and problems({dest: -1})
 
 
 @given(st.integers(min_value=0, max_value=2**32 - 1))
