@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 from .cli import add_pose_arguments
 
 
@@ -34,7 +36,6 @@ def register_generate(sub) -> None:
 def _run_generate(args) -> int:
     from .errors import InputError
     from .generation import conditions_from_csv, load_model
-    from .io import write_cloud
     from .lidar import DEG
 
     model = load_model(args.model, runtime=args.runtime)
@@ -52,17 +53,119 @@ def _run_generate(args) -> int:
             raise InputError("give --type, --range-m and --elevation-deg (or --conditions)")
         table = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
                                 args.pitch_deg * DEG, args.yaw_deg * DEG, args.roll_deg * DEG)
-    res = model.generate(table, count=args.count, seed=args.seed)
-    first = res.conditions[:: args.count]
+    total = len(table) * args.count
     meta = {"model": str(model.directory), "family": model.family,
             "runtime": getattr(model, "runtime", None), "seed": args.seed,
-            "count": args.count, "tau": getattr(model, "tau", None),
-            "conditions": [{"type": name, "range_m": float(r[1]), "elevation_rad": float(r[2]),
-                            "pitch_rad": float(r[3]), "yaw_rad": float(r[4]),
-                            "roll_rad": float(r[5])}
-                           for name, r in zip(first.names, first.table, strict=True)]}
-    write_cloud(args.output, res.cloud, meta)
-    print(json.dumps({"output": args.output, "clouds": len(res.table),
-                      "points": len(res.cloud), "family": model.family,
-                      "runtime": getattr(model, "runtime", None)}))
+            "count": args.count, "tau": getattr(model, "tau", None)}
+    if len(table) <= MAX_LISTED_CONDITIONS:
+        meta["conditions"] = [{"type": name, "range_m": float(r[1]),
+                               "elevation_rad": float(r[2]), "pitch_rad": float(r[3]),
+                               "yaw_rad": float(r[4]), "roll_rad": float(r[5])}
+                              for name, r in zip(table.names, table.table, strict=True)]
+    else:  # the file names them instead of repeating a long list in every header
+        meta["conditions_csv"], meta["n_conditions"] = str(args.conditions), len(table)
+    from .io.clouds import CloudWriter
+    progress = _Progress(total, enabled=total > BLOCK_CLOUDS)
+    points = empty = 0
+    with CloudWriter(args.output, meta) as out:
+        for block, (part, count, offset) in enumerate(blocks(table, args.count, BLOCK_CLOUDS)):
+            res = model.generate(part, count=count, seed=block_seed(args.seed, block))
+            cloud = res.cloud
+            cloud.sample = np.asarray(cloud.sample, np.int64) + offset
+            if out.ext == ".npz" and block == 0 and total > BLOCK_CLOUDS:
+                _check_npz_memory(len(cloud) / max(1, len(res.table)), total)
+            out.write(cloud)
+            points += len(cloud)
+            empty += len(res.table) - len(np.unique(cloud.sample))
+            progress.update(len(res.table))
+    progress.close()
+    if empty:
+        import sys
+        print(f"apcg generate: warning: {empty:,} of {total:,} clouds are empty (no cell of "
+              "the lidar's window sees the target: too small or too far for the lidar); "
+              "they are counted in `sample` but hold no points", file=sys.stderr)
+    print(json.dumps({"output": args.output, "clouds": total, "points": points,
+                      "empty_clouds": empty,
+                      "family": model.family, "runtime": getattr(model, "runtime", None)}))
     return 0
+
+
+# Clouds generated per block: large requests are made and written block by block, so memory
+# stays bounded whatever --count is. A request of one block is generated exactly as before.
+BLOCK_CLOUDS = 8192
+MAX_LISTED_CONDITIONS = 10000
+_BYTES_PER_POINT = 48  # xyz, range (float64), two cell indices (int32), sample (int64)
+
+
+def blocks(table, count: int, size: int):
+    """(conditions, count, first sample index) blocks of at most ``size`` clouds covering
+    every row of ``table`` ``count`` times, rows in order (a row's repeats stay together)."""
+    rows_per_block = max(1, size // count)
+    offset = 0
+    for start in range(0, len(table), rows_per_block):
+        part = table[start:start + rows_per_block]
+        if count <= size:
+            yield part, count, offset
+            offset += len(part) * count
+            continue
+        for done in range(0, count, size):  # one row, its repeats in several blocks
+            k = min(size, count - done)
+            yield part, k, offset
+            offset += k
+
+
+def block_seed(seed: int, block: int) -> int:
+    """Block 0 keeps the seed (a one-block request is unchanged); later blocks get seeds
+    drawn from (seed, block), so no two blocks of any two seeds share their noise."""
+    if block == 0:
+        return seed
+    return int(np.random.SeedSequence([seed, block]).generate_state(1)[0])
+
+
+def _check_npz_memory(points_per_cloud: float, clouds: int) -> None:
+    from .errors import InputError
+    need = points_per_cloud * clouds * _BYTES_PER_POINT
+    avail = _available_memory()
+    if avail is not None and need > 0.5 * avail:
+        raise InputError(f"{clouds:,} clouds of about {points_per_cloud:.0f} points need "
+                         f"about {need / 2**30:.1f} GiB held in memory for an .npz file "
+                         f"(available: {avail / 2**30:.1f} GiB); write .ply, .las or .laz, "
+                         "which are written block by block, or ask for fewer clouds")
+
+
+def _available_memory() -> float | None:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+class _Progress:
+    """Clouds done, on stderr: tqdm when installed, else a line every block."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        import sys
+        self.total, self.done, self.enabled, self.bar = total, 0, enabled, None
+        self._err = sys.stderr
+        if enabled:
+            try:
+                from tqdm import tqdm
+                self.bar = tqdm(total=total, unit="cloud", unit_scale=True, file=sys.stderr)
+            except ImportError:
+                self.bar = None
+
+    def update(self, n: int) -> None:
+        self.done += n
+        if self.bar is not None:
+            self.bar.update(n)
+        elif self.enabled:
+            print(f"generated {self.done:,} / {self.total:,} clouds "
+                  f"({100 * self.done / self.total:.0f}%)", file=self._err, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

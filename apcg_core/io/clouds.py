@@ -8,6 +8,7 @@ binary, LAS / LAZ of any point format) are read too, with all their per-point at
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 from pathlib import Path
@@ -71,10 +72,115 @@ def write_cloud(path, cloud: PointCloud, meta: dict | None = None) -> Path:
     return path
 
 
-def _write_las(tmp: Path, cloud: PointCloud, sample, meta: dict, compress: bool) -> None:
-    laspy = _laspy(compress)
+class CloudWriter:
+    """Write a stacked cloud block by block, in bounded memory: PLY and LAS/LAZ stream to disk
+    (the PLY vertex count is patched in at the end; laspy counts LAS points itself); NPZ cannot
+    be appended to, so its blocks are held and written at the end. As with
+    :func:`write_cloud`, the file appears under its final name only when complete.
+
+        with CloudWriter("clouds.ply", meta) as w:
+            for cloud in blocks:
+                w.write(cloud)
+    """
+
+    STREAMING = (".ply", ".las", ".laz")
+    _COUNT_DIGITS = 20  # the PLY vertex count, zero-padded so it can be patched in place
+
+    def __init__(self, path, meta: dict | None = None) -> None:
+        self.path = Path(path)
+        self.ext = _fmt(self.path)
+        self.meta = meta or {}
+        self.tmp = self.path.with_name(self.path.name + ".part")
+        self.n = 0
+        self._held: list[PointCloud] = []
+        self._file = None
+        self._las = None
+        if self.ext == ".ply":
+            comment = json.dumps(self.meta).replace("\n", " ")
+            head = ["ply", "format binary_little_endian 1.0",
+                    "comment APCG standard point cloud: observation frame, metres",
+                    f"comment meta {comment}"]
+            self._file = open(self.tmp, "wb")  # noqa: SIM115 - closed in close()
+            pre = ("\n".join(head) + "\nelement vertex ").encode()
+            self._file.write(pre)
+            self._count_at = len(pre)
+            tail = [f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_PROPS] + ["end_header"]
+            self._file.write(("0" * self._COUNT_DIGITS + "\n" + "\n".join(tail) + "\n")
+                             .encode())
+
+    def write(self, cloud: PointCloud) -> None:
+        sample = cloud.sample if cloud.sample is not None else np.zeros(len(cloud), np.int64)
+        if self.ext == ".npz":
+            self._held.append(cloud)
+        elif self.ext == ".ply":
+            rec = np.empty(len(cloud), dtype=[(n, "<" + t) for n, t in _PLY_PROPS])
+            rec["x"], rec["y"], rec["z"] = cloud.xyz.T
+            rec["range_m"], rec["cell_w"] = cloud.range_m, cloud.cell_w
+            rec["cell_h"], rec["sample"] = cloud.cell_h, sample
+            self._file.write(rec.tobytes())
+        else:
+            laspy = _laspy(self.ext == ".laz")
+            if self._las is None:
+                header = _las_header(laspy, cloud, self.meta)
+                # the writer counts its points in its header: each block starts from a copy
+                self._template = copy.deepcopy(header)
+                self._las = laspy.open(self.tmp, mode="w", header=header,
+                                       do_compress=self.ext == ".laz")
+            las = laspy.LasData(copy.deepcopy(self._template))
+            las.x, las.y, las.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
+            las.range_m = cloud.range_m
+            las.cell_w, las.cell_h = cloud.cell_w, cloud.cell_h
+            las.sample = sample.astype(np.int32)
+            self._las.write_points(las.points)
+        self.n += len(cloud)
+
+    def close(self) -> Path:
+        if self.ext == ".npz":
+            cat = (PointCloud(*(np.concatenate([getattr(c, k) for c in self._held])
+                                for k in ("xyz", "range_m", "cell_w", "cell_h")),
+                              np.concatenate([c.sample if c.sample is not None
+                                              else np.zeros(len(c), np.int64)
+                                              for c in self._held]))
+                   if self._held else PointCloud(np.zeros((0, 3)), [], [], [],
+                                                 np.zeros(0, np.int64)))
+            self._held = []
+            return write_cloud(self.path, cat, self.meta)
+        if self.ext == ".ply":
+            self._file.seek(self._count_at)
+            self._file.write(f"{self.n:0{self._COUNT_DIGITS}d}".encode())
+            self._file.close()
+        elif self._las is not None:
+            self._las.close()
+        else:  # nothing written: an empty LAS, as write_cloud makes it
+            empty = PointCloud(np.zeros((0, 3)), [], [], [], np.zeros(0, np.int64))
+            return write_cloud(self.path, empty, self.meta)
+        _replace(self.tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Drop what was written: nothing is left under either name."""
+        for handle in (self._file, self._las):
+            try:
+                if handle is not None:
+                    handle.close()
+            except Exception:  # noqa: BLE001 - already failing; the .part goes anyway
+                pass
+        self.tmp.unlink(missing_ok=True)
+        self._held = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def _las_header(laspy, cloud: PointCloud, meta: dict):
     header = laspy.LasHeader(point_format=6, version="1.4")
-    # LAS stores scaled int32 coordinates: 0.1 mm steps around the cloud's centre.
+    # LAS stores scaled int32 coordinates: 0.1 mm steps around the (first) cloud's centre.
     centre = cloud.xyz.mean(axis=0) if len(cloud) else np.zeros(3)
     header.offsets = np.round(centre, 3)
     header.scales = np.array([1e-4, 1e-4, 1e-4])
@@ -82,12 +188,17 @@ def _write_las(tmp: Path, cloud: PointCloud, sample, meta: dict, compress: bool)
                            laspy.ExtraBytesParams("cell_w", np.int32),
                            laspy.ExtraBytesParams("cell_h", np.int32),
                            laspy.ExtraBytesParams("sample", np.int32)])
-    las = laspy.LasData(header)
+    header.vlrs.append(laspy.VLR(user_id="APCG", record_id=1, description="meta",
+                                 record_data=json.dumps(meta).encode()))
+    return header
+
+
+def _write_las(tmp: Path, cloud: PointCloud, sample, meta: dict, compress: bool) -> None:
+    laspy = _laspy(compress)
+    las = laspy.LasData(_las_header(laspy, cloud, meta))
     las.x, las.y, las.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
     las.range_m = cloud.range_m
     las.cell_w, las.cell_h, las.sample = cloud.cell_w, cloud.cell_h, sample.astype(np.int32)
-    las.header.vlrs.append(laspy.VLR(user_id="APCG", record_id=1, description="meta",
-                                     record_data=json.dumps(meta).encode()))
     with open(tmp, "wb") as f:
         las.write(f, do_compress=compress)
 
