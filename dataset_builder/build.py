@@ -4,11 +4,17 @@ A shard's file appears under its final name only when complete (written to a ``.
 fsynced, renamed), so a build killed at any point and started again skips the finished shards
 and remakes the rest; since every shard is a pure function of the plan, the result is byte for
 byte the dataset of an uninterrupted run.
+
+Builds of different ``--shard I/N`` parts may run at once into one directory (a job array):
+every temporary file carries its writer's pid, files that several processes write (the plan
+files, the manifest) have the same bytes whoever writes them and appear by atomic rename, and
+a lock file per shard spec refuses a second build of the same part while the first one lives.
 """
 
 from __future__ import annotations
 
 import os
+import socket
 import sys
 import time
 from dataclasses import dataclass
@@ -113,8 +119,7 @@ def compute_shard(task: ShardTask) -> Shard:
     from apcg_core.catalog.catalog import default_catalog
     sim = _simulator(task)
     lidar = sim.lidar
-    res = sim.simulate_type(default_catalog(), task.type_catalog_index, task.table)
-    cl = res.cloud
+    cl = sim.simulate_cells_type(default_catalog(), task.type_catalog_index, task.table)
     n = len(task.rows)
     s = cl.sample
     if len(s) > 1 and (np.diff(s) < 0).any():  # backends return clouds in sample order
@@ -130,9 +135,9 @@ def compute_shard(task: ShardTask) -> Shard:
                  offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
                  pixel=pixel.astype(pix_type), depth=dc.astype(np.float16),
                  delta_range_m=(cl.range_m - r0).astype(np.float32),
-                 clipped=res.clipped.astype(bool),
+                 clipped=cl.clipped.astype(bool),
                  n_clamped=np.bincount(s, weights=(d != dc), minlength=n).astype(np.int32),
-                 n_rays=res.n_rays.astype(np.int32))
+                 n_rays=cl.n_rays.astype(np.int32))
 
 
 def worker_init() -> None:
@@ -143,12 +148,105 @@ def worker_init() -> None:
     sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
 
 
+def _part_suffix() -> str:
+    """Temporary-file suffix unique to this process (concurrent builders share a directory)."""
+    return f".{os.getpid()}.part"
+
+
 def run_task(task: ShardTask) -> tuple[int, int, float]:
     t0 = time.perf_counter()
     shard = compute_shard(task)
     path = Path(task.path)
-    write_atomic(path, shard.to_bytes(), part_suffix=f".{os.getpid()}.part")
+    write_atomic(path, shard.to_bytes(), part_suffix=_part_suffix())
     return task.index, len(task.rows), time.perf_counter() - t0
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+class ShardLock:
+    """``DIR/.build-I-of-N.lock``, created with O_EXCL, holding "pid host": one live build per
+    shard spec and directory. A lock whose process is gone (same host) is taken over."""
+
+    def __init__(self, out: Path, part_i: int, part_n: int) -> None:
+        self.path = out / f".build-{part_i}-of-{part_n}.lock"
+        self.spec = f"{part_i}/{part_n}"
+        self.mine = f"{os.getpid()} {socket.gethostname()}\n"
+        self.held = False
+
+    def acquire(self) -> None:
+        for _ in range(10):
+            try:
+                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                self._take_over_if_stale()
+                continue
+            with os.fdopen(fd, "w") as f:
+                f.write(self.mine)
+            self.held = True
+            return
+        raise InputError(f"could not take the lock {self.path}; delete it if no build of "
+                         f"--shard {self.spec} runs")
+
+    def _take_over_if_stale(self) -> None:
+        try:
+            text = self.path.read_text()
+        except FileNotFoundError:
+            return  # its owner just finished: try again
+        pid, host = _lock_owner(text)
+        if pid is None or host != socket.gethostname() or _pid_alive(pid):
+            who = f"pid {pid} on {host}" if pid is not None else "an unreadable lock"
+            raise InputError(
+                f"another build of --shard {self.spec} into {self.path.parent} is running "
+                f"({who}, lock file {self.path}); wait for it to finish, or stop it, or delete "
+                "the lock file if that process is gone")
+        # Dead owner on this host: move its lock aside atomically (only one taker wins), check
+        # that what we moved is still the dead one's, then create ours on the next round.
+        aside = self.path.with_name(self.path.name + f".stale.{os.getpid()}")
+        try:
+            os.rename(self.path, aside)
+        except FileNotFoundError:
+            return
+        if aside.read_text() != text:  # a live taker replaced it meanwhile: give it back
+            try:
+                os.link(aside, self.path)
+            except FileExistsError:
+                pass
+        aside.unlink()
+
+    def release(self) -> None:
+        if self.held:
+            try:
+                if self.path.read_text() == self.mine:
+                    self.path.unlink()
+            except FileNotFoundError:
+                pass
+            self.held = False
+
+
+def _lock_owner(text: str) -> tuple[int | None, str | None]:
+    parts = text.split()
+    if len(parts) != 2 or not parts[0].isdigit():
+        return None, None
+    return int(parts[0]), parts[1]
+
+
+def _remove_dead_parts(directory: Path) -> None:
+    """Delete ``NAME.PID.part`` files whose writer is gone (or is us); never a live writer's."""
+    for part in directory.glob("*.part"):
+        pid = part.name.rsplit(".", 2)[-2] if part.name.count(".") >= 2 else ""
+        if not pid.isdigit() or int(pid) == os.getpid() or not _pid_alive(int(pid)):
+            try:
+                part.unlink()
+            except FileNotFoundError:
+                pass
 
 
 def parse_shard_spec(spec: str | None) -> tuple[int, int]:
@@ -203,17 +301,31 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
     part_i, part_n = parse_shard_spec(shard_spec)
     out = Path(out_dir)
     (out / "shards").mkdir(parents=True, exist_ok=True)
+    lock = ShardLock(out, part_i, part_n)
+    lock.acquire()
+    try:
+        return _build_locked(plan, catalog, out, workers, part_i, part_n, progress,
+                             tasks_per_process)
+    finally:
+        lock.release()
+
+
+def _build_locked(plan: Plan, catalog, out: Path, workers: int, part_i: int, part_n: int,
+                  progress: bool, tasks_per_process: int | None) -> dict:
     header = json_bytes(header_of(plan, catalog))
     head_path = out / "dataset.json"
+    # Concurrent builders of one plan write the same bytes here, each through its own
+    # temporary file and an atomic rename, so any interleaving leaves complete, equal files.
     if head_path.exists():
         if head_path.read_bytes() != header:
             raise InputError(f"{out} already holds a different dataset (its dataset.json differs "
                              "from this config's); build into a new directory or delete it")
     else:
-        write_atomic(out / "conditions.csv", conditions_csv(plan))
-        write_atomic(head_path, header)  # last: its presence means the plan files are complete
+        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=_part_suffix())
+        # last: its presence means the plan files are complete
+        write_atomic(head_path, header, part_suffix=_part_suffix())
     if not (out / "conditions.csv").exists():
-        write_atomic(out / "conditions.csv", conditions_csv(plan))
+        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=_part_suffix())
 
     mine = [s for s in plan.shards if s.index % part_n == part_i]
     todo = [s for s in mine if not (out / s.file).exists()]
@@ -243,11 +355,11 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
     elapsed = time.perf_counter() - t0
     complete = all((out / s.file).exists() for s in plan.shards)
     if complete:
-        for stale in (out / "shards").glob("*.part"):
-            stale.unlink()
+        _remove_dead_parts(out / "shards")
+        _remove_dead_parts(out)
         manifest = {"complete": True, "shards": [
             {"file": s.file, "sha256": sha256_file(out / s.file)} for s in plan.shards]}
-        write_atomic(out / "manifest.json", json_bytes(manifest))
+        write_atomic(out / "manifest.json", json_bytes(manifest), part_suffix=_part_suffix())
     return {"directory": str(out), "built_shards": len(tasks), "skipped_shards": len(mine) -
             len(tasks), "samples_built": sum(len(t.rows) for t in tasks),
             "seconds": round(elapsed, 3), "complete": complete}

@@ -26,7 +26,7 @@ def register_simulate(sub) -> None:
                    help="K x K rays per cell, nearest hit kept (default 1)")
     p.add_argument("--no-quantize", action="store_true",
                    help="keep exact ranges instead of the time-bin centres")
-    p.add_argument("-o", "--output", required=True, help="cloud file: .ply, .npz or .las")
+    p.add_argument("-o", "--output", required=True, help="cloud file: .ply, .npz, .las or .laz")
     p.add_argument("--depth-image", help="also write the depth image (PC2Im): .npy or .png")
     p.add_argument("--normalized-image", help="also write Norm(depth image): .npy or .png")
     p.set_defaults(func=_run_simulate)

@@ -19,7 +19,14 @@ from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian
 from apcg_core.lidar import LidarParams
 
 from .backends import check_backend, make_caster
-from .rays import angular_boxes, bounding_radius, check_conditions, make_rays, sample_frames
+from .rays import (
+    angular_boxes,
+    bounding_radius,
+    check_conditions,
+    make_rays,
+    ray_blocks,
+    sample_frames,
+)
 
 # Rays per ray-casting call: large enough that per-call overhead vanishes, small enough that
 # the (rays x 3 x 3) temporaries stay around 100 MB.
@@ -44,6 +51,20 @@ class SimResult:
         """PC2Im of every sample (N, H, W) and its statistics."""
         return pc2im(self.cloud.xyz, table[:, 1], table[:, 2], length_m, lidar,
                      sample=self.cloud.sample, n_samples=self.n_samples)
+
+
+@dataclass
+class SimCells:
+    """The standard clouds of N samples as the lidar records them: cell and range per point,
+    no Cartesian points (what a dataset shard stores). Points are grouped by sample."""
+
+    sample: np.ndarray  # (P,) int64
+    cell_w: np.ndarray  # (P,) centred cell indices
+    cell_h: np.ndarray
+    range_m: np.ndarray  # (P,) float64, quantized when the simulator quantizes
+    n_samples: int
+    clipped: np.ndarray
+    n_rays: np.ndarray
 
 
 def _empty_cloud() -> PointCloud:
@@ -95,6 +116,25 @@ class Simulator:
         t = catalog.get(type_key)
         return self.simulate(catalog.mesh(t), conditions, key=("type", t.index))
 
+    def simulate_cells(self, mesh, conditions, key=None) -> SimCells:
+        """:meth:`simulate` without the Cartesian points: the same cells and ranges."""
+        radius = bounding_radius(mesh.vertices)
+        table = check_conditions(conditions, radius)
+        key = id(mesh) if key is None else key
+        if len(table) and self.backend != "points":
+            s, w, h, r, clipped, n_rays = self._ray_cells(mesh, table, key, radius)
+            if self.quantize:
+                r = self.lidar.quantize_range(r)
+            return SimCells(s, w, h, r, len(table), clipped, n_rays)
+        res = self.simulate(mesh, table, key)
+        cl = res.cloud
+        return SimCells(cl.sample, cl.cell_w, cl.cell_h, cl.range_m, res.n_samples, res.clipped,
+                        res.n_rays)
+
+    def simulate_cells_type(self, catalog, type_key, conditions) -> SimCells:
+        t = catalog.get(type_key)
+        return self.simulate_cells(catalog.mesh(t), conditions, key=("type", t.index))
+
     def close(self) -> None:
         """Release the backends' resources (Blender objects and scenes) now."""
         for caster in self._casters.values():
@@ -115,31 +155,47 @@ class Simulator:
         return self._casters[key]
 
     def _simulate_rays(self, mesh, table, key, radius) -> SimResult:
+        s, w, h, r, clipped, n_rays = self._ray_cells(mesh, table, key, radius)
+        cloud = self._cell_cloud(table, s, w, h, r)
+        return SimResult(cloud, len(table), clipped, n_rays, self.backend)
+
+    def _ray_cells(self, mesh, table, key, radius):
+        """(sample, w, h, unquantized range) of every hit cell, clipped, rays per sample."""
         caster = self._caster(mesh, key)
         lidar = self.lidar
         m, c = sample_frames(table)
         boxes = angular_boxes(mesh.vertices, table, lidar, m, c)
         rays_per_sample = boxes.n_cells * self.supersample**2
         parts = []
-        start = 0
-        n = len(table)
-        while start < n:  # chunks of whole samples, about RAYS_PER_CALL rays each
-            stop = start + max(1, int(np.searchsorted(
-                np.cumsum(rays_per_sample[start:]), RAYS_PER_CALL, side="right")))
-            stop = min(stop, n)
-            sl = slice(start, stop)
-            rays = make_rays(table[sl], boxes[sl], lidar, m[sl], c[sl], radius, self.supersample)
-            t = caster.cast(rays.origin, rays.direction, rays.t_max)
-            t = t.reshape(-1, rays.k).min(axis=1)  # nearest of the k x k rays of each cell
-            hit = np.isfinite(t)
-            s = rays.sample[hit]
-            r = rays.t_start[s] + t[hit]
-            parts.append((s + start, rays.w[hit], rays.h[hit], r))
-            start = stop
-        s, w, h, r = (np.concatenate([p[i] for p in parts]) for i in range(4))
-        cloud = self._cell_cloud(table, s, w, h, r)
-        return SimResult(cloud, n, boxes.clipped, rays_per_sample.astype(np.int64),
-                         self.backend)
+        if self.supersample == 1 and hasattr(caster, "cast_hits"):
+            # float32 rays made block by block and only the hits carried on (docs/SCALE.md)
+            for blk in ray_blocks(table, boxes, lidar, m, c, radius):
+                ray, t = caster.cast_hits(blk.origin, blk.direction, blk.t_max)
+                s, w, h = blk.cells(ray)
+                parts.append((s, w, h, blk.t_start[s] + t))
+        else:
+            start = 0
+            n = len(table)
+            while start < n:  # chunks of whole samples, about RAYS_PER_CALL rays each
+                stop = start + max(1, int(np.searchsorted(
+                    np.cumsum(rays_per_sample[start:]), RAYS_PER_CALL, side="right")))
+                stop = min(stop, n)
+                sl = slice(start, stop)
+                rays = make_rays(table[sl], boxes[sl], lidar, m[sl], c[sl], radius,
+                                 self.supersample)
+                t = caster.cast(rays.origin, rays.direction, rays.t_max)
+                t = t.reshape(-1, rays.k).min(axis=1)  # nearest of the k x k rays of each cell
+                hit = np.isfinite(t)
+                s = rays.sample[hit]
+                r = rays.t_start[s] + t[hit]
+                parts.append((s + start, rays.w[hit], rays.h[hit], r))
+                start = stop
+        if parts:
+            s, w, h, r = (np.concatenate([p[i] for p in parts]) for i in range(4))
+        else:
+            s, w, h, r = (np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.int32),
+                          np.zeros(0))
+        return s, w, h, r, boxes.clipped, rays_per_sample.astype(np.int64)
 
     def _cell_cloud(self, table, s, w, h, r) -> PointCloud:
         if self.quantize:
