@@ -6,6 +6,8 @@
     cloud = api.scan(lidar)[0]             # the lidar's view, by Blender's ray casting
     fake = api.generate(jet, seed=0)       # the same condition through the APCG generator
     api.export_cloud(cloud, "/tmp/a320neo.ply")
+    own = api.make_target(lidar, bpy.data.objects["My jet"])  # any mesh; axes guessed
+    api.add_to_catalog(own, "aircraft", "business_jet")     # then `apcg catalog list` has it
 
 Scans equal `apcg simulate --backend blender` for the same condition: each target is cast in its
 own body frame from its double-precision pose (the lidar tracks the target: its window is
@@ -34,7 +36,9 @@ from .objects import (
     TYPE_KEY,
     add_aircraft,
     add_lidar,
+    axes_label,
     body_mesh,
+    guess_axes,
     is_lidar,
     is_target,
     lidar_of,
@@ -43,12 +47,15 @@ from .objects import (
     pose_of,
     set_pose,
     simulator_row,
+    source_of,
     targets_of,
+    world_mesh,
 )
 
-__all__ = ["add_lidar", "add_aircraft", "make_target", "scan", "scan_target", "generate",
-           "import_cloud", "export_cloud", "cloud_from_object", "pose_of", "set_pose",
-           "targets_of", "is_lidar", "is_target", "is_cloud", "set_point_radius", "load_model"]
+__all__ = ["add_lidar", "add_aircraft", "make_target", "add_to_catalog", "scan", "scan_target",
+           "generate", "import_cloud", "export_cloud", "cloud_from_object", "pose_of",
+           "set_pose", "targets_of", "is_lidar", "is_target", "is_cloud", "set_point_radius",
+           "load_model", "world_mesh", "guess_axes", "axes_label", "check_model_knows"]
 
 # Hits this much nearer than a point's range, on other geometry, hide the point.
 OCCLUSION_MARGIN_M = 0.5
@@ -139,6 +146,8 @@ def _unoccluded(lidar, target, xyz_obs: np.ndarray, azimuth: float) -> np.ndarra
     local = observation_to_lidar_local(xyz_obs, azimuth)
     pts = local @ world[:3, :3].T + world[:3, 3]
     origin = Vector(world[:3, 3].tolist())
+    # the object a made target was made from is the same aircraft: it hides nothing of it
+    own = {target, source_of(target)} - {None}
     keep = np.ones(len(pts), bool)
     for i, p in enumerate(pts):
         d = p - world[:3, 3]
@@ -151,7 +160,7 @@ def _unoccluded(lidar, target, xyz_obs: np.ndarray, azimuth: float) -> np.ndarra
                                                        distance=limit)
             if not hit:
                 break
-            if obj is None or obj.original != target:
+            if obj is None or obj.original not in own:
                 keep[i] = False
                 break
             step = (loc - start).length + 1e-3
@@ -178,7 +187,7 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
     if not isinstance(model, ModelTypes):
         model = load_model(model, runtime=runtime)
     pose = pose_of(target)
-    name_of_type = str(target.get(TYPE_KEY, target.name))
+    name_of_type = check_model_knows(model, target)
     cond = model.condition(name_of_type, pose["range_m"], pose["elevation"], pose["pitch"],
                            pose["yaw"], pose["roll"])
     res = model.generate(cond, count=count, seed=seed)
@@ -190,3 +199,45 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
     return cloud_object(res.cloud, name or f"{target.name} APCG", lidar=lidar_of(target),
                         source="generated", r0=pose["range_m"], beta0=pose["elevation"],
                         azimuth=pose["azimuth"], meta=meta)
+
+
+def check_model_knows(model, target) -> str:
+    """The target's type name when ``model`` knows it; else an InputError that names the type
+    and how to teach it to the model."""
+    import shlex
+    name = str(target.get(TYPE_KEY, target.name))
+    if name in model.types or name.strip().isdigit():  # digits: a catalog index
+        return name
+    raise InputError(
+        f"the model {model.directory} does not know the type {name!r} (target "
+        f"{target.name!r}), so it cannot generate it: add the target to the catalog (Add to "
+        f"Catalog), then teach the model the type: apcg teach --model {model.directory} "
+        f"--type {shlex.quote(name)} -o NEW_MODEL_DIR, and generate with NEW_MODEL_DIR; or "
+        "make the target with the name of a catalog type the model knows")
+
+
+def add_to_catalog(target, kind: str = "aircraft", category: str = "other",
+                   name: str | None = None, force: bool = False, catalog=None):
+    """Save a target's body mesh as a new type of the user catalog (``apcg catalog list`` shows
+    it; the command line finds it under the same APCG_DATA_DIR). ``name`` defaults to the
+    target's type name. A size implausible for ``kind`` ("aircraft" or "drone") is refused
+    (InputError, naming the likely unit) unless ``force``. The target then carries the new
+    type's name. Returns the new catalog type (apcg_core.catalog.AircraftType)."""
+    import bpy
+
+    from apcg_core.catalog import default_catalog
+    from apcg_core.catalog.mesh import Mesh
+    if not is_target(target):
+        raise InputError(f"{getattr(target, 'name', target)!r} is not an APCG target: make one "
+                         "with apcg.make_target first")
+    catalog = catalog or default_catalog()
+    name = (name or str(target.get(TYPE_KEY, target.name))).strip()
+    mesh = body_mesh(target)
+    src = source_of(target)
+    where = bpy.data.filepath or "an unsaved .blend"
+    source = f"Blender object {(src or target).name!r} in {where}"
+    t = catalog.add_user_type(name, Mesh(mesh.vertices, mesh.faces), kind, category,
+                              source=source, force=force)
+    target[TYPE_KEY] = t.name
+    target[LENGTH_KEY] = float(catalog.depth_length_m(t))
+    return t

@@ -17,6 +17,7 @@ import numpy as np
 from mathutils import Matrix
 
 from apcg_core.catalog import default_catalog
+from apcg_core.catalog.mesh import Mesh
 from apcg_core.errors import InputError
 from apcg_core.frames import POSE_NAMES, pose_from_lidar_local, target_matrix_lidar_local
 from apcg_core.lidar import LidarParams
@@ -28,6 +29,12 @@ POSE_KEY = "apcg_pose"
 _LEGACY_POSE_ORDER = ("range_m", "elevation", "azimuth", "yaw", "pitch", "roll")
 TYPE_KEY = "apcg_type"  # the type's catalog name (or the name of your own model): its identity
 LENGTH_KEY = "apcg_depth_length_m"
+# A target made from a scene object (make_target): how its body frame was found, as
+# {forward, up, how ("guessed" / "stated" / ...), why, confident, centre}, and the object itself
+# (an ID pointer: the same physical object, so it never occludes its own target's scan).
+AXES_KEY = "apcg_axes"
+SOURCE_KEY = "apcg_source_object"
+AXIS_NAMES = ("X", "-X", "Y", "-Y", "Z", "-Z")
 # The object matrix is float32: it agrees with the doubles to ~1e-7 relative. A larger
 # difference means the user moved the object.
 _MOVED_TOL_M = 1e-3
@@ -212,20 +219,148 @@ def add_aircraft(lidar, type_name: str, range_m: float, elevation_deg: float,
     return obj
 
 
-def make_target(lidar, obj, range_m: float, elevation_deg: float, pitch_deg: float = 0.0,
-                yaw_deg: float = 0.0, roll_deg: float = 0.0, azimuth_deg: float = 0.0,
-                depth_length_m: float | None = None):
-    """Turn an existing mesh object (your own model, local frame = body frame: x nose, y left
-    wing, z up, origin at the centre of mass) into a target of ``lidar``."""
-    if obj.type != "MESH":
-        raise InputError(f"{obj.name!r} is a {obj.type}, not a mesh")
-    v, _ = triangles_of(obj)
-    obj[TYPE_KEY] = obj.get(TYPE_KEY, obj.name)
-    obj[LENGTH_KEY] = float(depth_length_m or (v[:, 0].max() - v[:, 0].min()))
-    obj.parent = lidar
-    set_pose(obj, range_m, *(math.radians(v) for v in (elevation_deg, pitch_deg, yaw_deg,
-                                                        roll_deg, azimuth_deg)))
-    return obj
+def world_mesh(obj, depsgraph=None) -> Mesh:
+    """An object's evaluated mesh (modifiers applied) with its world rotation and scale baked
+    in (its size and orientation as placed in the scene); its location is left out."""
+    if obj is None or obj.type != "MESH":
+        raise InputError(f"{getattr(obj, 'name', obj)!r} is "
+                         f"{'nothing' if obj is None else 'a ' + obj.type}, not a mesh object")
+    depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
+    v, f = triangles_of(obj, depsgraph)
+    if len(f) == 0:
+        raise InputError(f"{obj.name!r} has no faces: a lidar would see nothing of it")
+    m = obj.evaluated_get(depsgraph).matrix_world
+    rot_scale = np.array([list(row)[:3] for row in list(m)[:3]], dtype=np.float64)
+    if abs(np.linalg.det(rot_scale)) < 1e-30:
+        raise InputError(f"{obj.name!r} has a zero scale: it has no size")
+    return Mesh(v, f).transformed(rot_scale)  # faces flip with a mirroring (negative) scale
+
+
+def guess_axes(mesh: Mesh):
+    """The axes a mesh's shape suggests: apcg_core.catalog.checks.guess_axes, an AxesGuess of
+    forward, up, why, confident (it runs without scipy too, as in Blender's own Python)."""
+    from apcg_core.catalog.checks import guess_axes as core_guess
+    return core_guess(mesh)
+
+
+def _axes_for(mesh: Mesh, forward: str | None, up: str | None) -> dict:
+    """Forward and up (file axes of ``mesh``), stated where given, else guessed."""
+    from apcg_core.catalog.importer import AXES
+
+    def axis(a):
+        if a is not None and str(a).upper() not in AXES:
+            raise InputError(f"axis {a!r} unknown; accepted: {', '.join(AXIS_NAMES)}")
+        return None if a is None else str(a).upper()
+
+    forward, up = axis(forward), axis(up)
+    if forward is not None and up is not None:
+        return {"forward": forward, "up": up, "how": "stated", "why": "", "confident": True}
+    g = guess_axes(mesh)
+    if forward is None and up is None:
+        return {"forward": g.forward, "up": g.up, "how": "guessed", "why": g.why,
+                "confident": bool(g.confident)}
+    if up is None:  # forward stated
+        up = g.up if g.up.lstrip("-") != forward.lstrip("-") else (
+            "Z" if forward.lstrip("-") != "Z" else "Y")
+        return {"forward": forward, "up": up, "how": "forward stated, up guessed",
+                "why": g.why, "confident": bool(g.confident)}
+    forward = g.forward if g.forward.lstrip("-") != up.lstrip("-") else (
+        "X" if up.lstrip("-") != "X" else "Y")
+    return {"forward": forward, "up": up, "how": "up stated, forward guessed", "why": g.why,
+            "confident": bool(g.confident)}
+
+
+def body_frame(mesh: Mesh, forward: str, up: str) -> tuple[Mesh, str]:
+    """``mesh`` re-expressed in the body frame (x nose, y left wing, z up) from its
+    ``forward`` / ``up`` axes, centred as the importer centres (SPEC section 2): at the volume
+    centroid when closed, else at the bounding-box centre. Returns (mesh, how centred)."""
+    from apcg_core.catalog.importer import axis_matrix
+    body = mesh.transformed(axis_matrix(forward, up))
+    rep = body.report()
+    if rep.watertight and abs(rep.volume) > 0:
+        body = body.outward()
+        origin, how = body.centroid, "volume centroid"
+    else:
+        origin, how = body.bounds.mean(axis=0), "bounding-box centre"
+    return body.transformed(offset=-origin), how
+
+
+def default_range_m(extents) -> float:
+    """A first range for a made target: the middle of Table 1's band its size suggests."""
+    return 300.0 if float(max(extents[0], extents[1])) < 5.0 else 4500.0
+
+
+def make_target(lidar, obj, range_m: float | None = None, elevation_deg: float = 3.4,
+                pitch_deg: float = 0.0, yaw_deg: float = 0.0, roll_deg: float = 0.0,
+                azimuth_deg: float = 0.0, depth_length_m: float | None = None, *,
+                forward: str | None = None, up: str | None = None,
+                type_name: str | None = None, name: str | None = None, catalog=None,
+                depsgraph=None):
+    """A target of ``lidar`` made from any mesh object, which itself is left as it is.
+
+    The target's body mesh is the object's evaluated mesh (modifiers applied) at its world size
+    and orientation (scale and rotation baked in), re-expressed in the body frame from its
+    ``forward`` / ``up`` axes ("X", "-X", "Y", "-Y", "Z", "-Z", in the object's world
+    orientation; each one not given is guessed from the shape) and centred at its centre of
+    mass. The new object "<name> (target)" goes into the object's collection, parented to
+    ``lidar`` (``None``: the scene's first lidar, or a new one) at the pose (``range_m`` None:
+    4500 m, 300 m for an object under 5 m). Its type is ``type_name`` (default: the object's
+    name); a catalog name lets Generate use a model that knows that type. How the axes were
+    found is kept under AXES_KEY."""
+    if obj is None or obj.type != "MESH":
+        raise InputError(f"{getattr(obj, 'name', obj)!r} is not a mesh object: select the "
+                         "mesh of your model")
+    if is_target(obj) or obj.get("apcg_cloud") is not None:
+        raise InputError(f"{obj.name!r} already is an APCG target or cloud: select the mesh "
+                         "object of your model")
+    if lidar is None:
+        lidar = next((o for o in bpy.context.scene.objects if is_lidar(o)), None) or add_lidar()
+    elif not is_lidar(lidar):
+        raise InputError(f"{getattr(lidar, 'name', lidar)!r} is not an APCG lidar "
+                         "(add one with apcg.add_lidar)")
+    world = world_mesh(obj, depsgraph)
+    axes = _axes_for(world, forward, up)
+    body, centre = body_frame(world, axes["forward"], axes["up"])
+    axes["centre"] = centre
+    axes["extents_m"] = [float(e) for e in body.extents]  # length, span, height
+    catalog = catalog or default_catalog()
+    type_name = (type_name or "").strip() or obj.name
+    known = {n.lower(): n for n in catalog.names()}
+    length = float(body.extents[0])
+    if type_name.lower() in known:
+        type_name = known[type_name.lower()]
+        length = float(catalog.depth_length_m(type_name))
+    if range_m is None:
+        range_m = default_range_m(body.extents)
+    me = mesh_from_arrays(name or f"{obj.name} (target)", body.vertices, body.faces)
+    for mat in getattr(obj.data, "materials", ()):
+        me.materials.append(mat)
+    target = bpy.data.objects.new(name or f"{obj.name} (target)", me)
+    target[TYPE_KEY] = type_name
+    target[LENGTH_KEY] = float(depth_length_m or length)
+    target[AXES_KEY] = axes
+    target[SOURCE_KEY] = obj
+    cols = list(obj.users_collection) or [bpy.context.scene.collection]
+    cols[0].objects.link(target)
+    target.parent = lidar
+    set_pose(target, range_m, *(math.radians(v) for v in (elevation_deg, pitch_deg, yaw_deg,
+                                                           roll_deg, azimuth_deg)))
+    return target
+
+
+def axes_label(obj) -> str:
+    """'forward -Y, up Z (guessed)' for a made target; '' for others."""
+    axes = obj.get(AXES_KEY) if obj is not None else None
+    if not axes:
+        return ""
+    low = "" if axes.get("confident", True) else ", unsure"
+    return f"forward {axes['forward']}, up {axes['up']} ({axes['how']}{low})"
+
+
+def source_of(obj):
+    """The scene object a made target was made from (None for catalog types)."""
+    src = obj.get(SOURCE_KEY) if obj is not None else None
+    return src if isinstance(src, bpy.types.Object) else None
 
 
 def targets_of(lidar, selected_only: bool = False) -> list:

@@ -16,17 +16,24 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 from apcg_core.errors import APCGError
 
 from . import api
-from .objects import is_lidar, lidar_of, targets_of
+from .objects import AXES_KEY, TYPE_KEY, is_lidar, lidar_of, targets_of
 
 _TYPE_ITEMS = []  # kept alive: Blender does not copy enum items returned by a callback
+_OLD_TYPE_ITEMS = []  # earlier lists, kept alive too (a menu may still show them)
 
 
 def _type_items(self, context):
-    if not _TYPE_ITEMS:
-        from apcg_core.catalog import default_catalog
-        for t in default_catalog():
-            _TYPE_ITEMS.append((t.name, t.name, f"{t.kind}, {t.category}, {t.length_m:g} m"))
+    from apcg_core.catalog import default_catalog
+    cat = default_catalog()  # "Add to Catalog" appends to it: the menu follows
+    if [item[0] for item in _TYPE_ITEMS] != cat.names():
+        _OLD_TYPE_ITEMS.append(list(_TYPE_ITEMS))
+        _TYPE_ITEMS[:] = [(t.name, t.name, f"{t.kind}, {t.category}, {t.length_m:g} m")
+                          for t in cat]
     return _TYPE_ITEMS
+
+
+_AXIS_ITEMS = [(a, a, f"The model's {a} axis (in its world orientation)")
+               for a in ("X", "-X", "Y", "-Y", "Z", "-Z")]
 
 
 def _report_error(op, exc: Exception) -> set:
@@ -97,9 +104,9 @@ class APCG_OT_add_aircraft(bpy.types.Operator):
     azimuth_deg: FloatProperty(name="Azimuth (deg)", default=0.0, min=-180.0, max=180.0)
     use_active_mesh: BoolProperty(
         name="Use the active mesh", default=False,
-        description="Make the active mesh object (your own imported model; local frame = body "
-                    "frame: x nose, y left wing, z up, origin at the centre of mass) the target "
-                    "instead of a catalog type")
+        description="Make a target of the active mesh object (your own model, its world x the "
+                    "nose and z up, at its world size) instead of a catalog type; Make Target "
+                    "(apcg.make_target) also guesses or takes other axes")
 
     def execute(self, context):
         try:
@@ -112,7 +119,7 @@ class APCG_OT_add_aircraft(bpy.types.Operator):
                 lidar = lidar or api.add_lidar()
                 obj = api.make_target(lidar, model, self.range_m, self.elevation_deg,
                                       self.pitch_deg, self.yaw_deg, self.roll_deg,
-                                      self.azimuth_deg)
+                                      self.azimuth_deg, forward="X", up="Z")
             else:
                 lidar = _active_lidar(context, create=True)
                 obj = api.add_aircraft(lidar, self.type_name, self.range_m, self.elevation_deg,
@@ -121,6 +128,150 @@ class APCG_OT_add_aircraft(bpy.types.Operator):
         except Exception as exc:  # noqa: BLE001
             return _report_error(self, exc)
         _select_only(context, obj)
+        return {"FINISHED"}
+
+
+def _extents(obj) -> list:
+    """Length, span, height (m) of a target's body mesh."""
+    v = api.body_mesh(obj).vertices
+    return [float(e) for e in v.max(axis=0) - v.min(axis=0)]
+
+
+def _is_plain_mesh(obj) -> bool:
+    return (obj is not None and obj.type == "MESH" and not api.is_target(obj)
+            and not api.is_cloud(obj))
+
+
+class APCG_OT_make_target(bpy.types.Operator):
+    """Make a target of the active mesh object (left as it is): modifiers applied, at its size
+    in the scene, its axes guessed or stated, centred at its centre of mass, placed in front
+    of the active lidar"""
+    bl_idname = "apcg.make_target"
+    bl_label = "Make APCG Target"
+    bl_options = {"REGISTER", "UNDO"}
+
+    guess_axes: BoolProperty(name="Guess axes", default=True,
+                             description="Guess the model's nose and up axes from its shape "
+                                         "(untick to state them)")
+    forward: EnumProperty(name="Forward", items=_AXIS_ITEMS, default="X",
+                          description="The model's nose axis, in its world orientation")
+    up: EnumProperty(name="Up", items=_AXIS_ITEMS, default="Z",
+                     description="The model's up axis, in its world orientation")
+    type_name: StringProperty(
+        name="Type", default="",
+        description="The target's type: a catalog name (e.g. A320neo) lets Generate use a "
+                    "model that knows it; empty: the object's name")
+    range_m: FloatProperty(name="Range (m)", default=0.0, min=0.0, max=100000.0,
+                           description="0: 4500 m, or 300 m for an object under 5 m")
+    elevation_deg: FloatProperty(name="Elevation (deg)", default=3.4, min=-89.9, max=89.9)
+    pitch_deg: FloatProperty(name="Pitch (deg)", default=2.0, min=-90.0, max=90.0)
+    yaw_deg: FloatProperty(name="Yaw (deg)", default=0.0, min=-180.0, max=180.0)
+    roll_deg: FloatProperty(name="Roll (deg)", default=0.0, min=-180.0, max=180.0)
+    azimuth_deg: FloatProperty(name="Azimuth (deg)", default=0.0, min=-180.0, max=180.0)
+    axes_note: StringProperty(options={"HIDDEN", "SKIP_SAVE"})
+
+    @classmethod
+    def poll(cls, context):
+        return _is_plain_mesh(context.active_object)
+
+    def draw(self, context):
+        layout = self.layout
+        layout.prop(self, "guess_axes")
+        row = layout.row(align=True)
+        row.enabled = not self.guess_axes
+        row.prop(self, "forward")
+        row.prop(self, "up")
+        if self.axes_note:
+            layout.label(text=self.axes_note)
+        layout.prop(self, "type_name")
+        col = layout.column(align=True)
+        for name in ("range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg",
+                     "azimuth_deg"):
+            col.prop(self, name)
+
+    def execute(self, context):
+        source = context.active_object
+        try:
+            if not _is_plain_mesh(source):
+                raise APCGError("select the mesh object of your model first (it must not "
+                                "already be a target or a cloud)")
+            lidar = _active_lidar(context, create=True)
+            stated = not self.guess_axes
+            obj = api.make_target(lidar, source, self.range_m or None, self.elevation_deg,
+                                  self.pitch_deg, self.yaw_deg, self.roll_deg,
+                                  self.azimuth_deg, forward=self.forward if stated else None,
+                                  up=self.up if stated else None,
+                                  type_name=self.type_name or None)
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        axes = obj[AXES_KEY]
+        self.forward, self.up = axes["forward"], axes["up"]  # the redo panel shows the guess
+        self.range_m = obj.apcg_target.range_m
+        self.axes_note = f"axes: {api.axes_label(obj)}"
+        _select_only(context, obj)
+        ext = _extents(obj)
+        self.report({"INFO"}, f"{obj.name}: axes {api.axes_label(obj)}; length {ext[0]:.3g} m, "
+                              f"span {ext[1]:.3g} m, height {ext[2]:.3g} m; type "
+                              f"{obj[TYPE_KEY]!r}")
+        if not axes.get("confident", True) and self.guess_axes:
+            self.report({"WARNING"}, "the axes guess is unsure (the shape looks alike from "
+                                     "several sides): check the target, or untick Guess axes "
+                                     "and state Forward and Up")
+        return {"FINISHED"}
+
+
+class APCG_OT_add_to_catalog(bpy.types.Operator):
+    """Save the active target's mesh as a new type of your catalog: the command line
+    (apcg catalog list, simulate, build, teach) then knows it by its name"""
+    bl_idname = "apcg.add_to_catalog"
+    bl_label = "Add to APCG Catalog"
+    bl_options = {"REGISTER", "UNDO"}
+
+    type_name: StringProperty(name="Name", default="",
+                              description="The new type's name (empty: the target's type)")
+    kind: EnumProperty(name="Kind", items=[
+        ("aircraft", "Aircraft", "Largest extent 1-100 m"),
+        ("drone", "Drone", "Largest extent 0.02-10 m")])
+    category: StringProperty(name="Category", default="other",
+                             description="e.g. airliner_narrowbody, business_jet, fighter, "
+                                         "helicopter, light_GA, multirotor_drone, other")
+    force: BoolProperty(name="Force", default=False,
+                        description="Add it even when its size is implausible for its kind")
+
+    @classmethod
+    def poll(cls, context):
+        return api.is_target(context.active_object)
+
+    def invoke(self, context, event):
+        obj = context.active_object
+        if not self.type_name:
+            self.type_name = str(obj.get(TYPE_KEY, obj.name))
+        if not self.properties.is_property_set("kind"):
+            self.kind = "drone" if max(_extents(obj)) < 2.0 else "aircraft"
+        return context.window_manager.invoke_props_dialog(self)
+
+    def execute(self, context):
+        from apcg_core.catalog.checks import size_problem
+        from apcg_core.errors import InputError
+        obj = context.active_object
+        try:
+            t = api.add_to_catalog(obj, self.kind, self.category or "other",
+                                   name=self.type_name or None, force=self.force)
+        except InputError as exc:
+            msg = str(exc)
+            if "implausible" in msg:
+                msg += (" (in Blender: scale the source object by that factor and make the "
+                        "target again, or tick Force)")
+            self.report({"ERROR"}, msg)
+            return {"CANCELLED"}
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        problem = size_problem((t.length_m, t.span_m, t.height_m), t.kind)
+        if problem:
+            self.report({"WARNING"}, f"{t.name!r} added although {problem.split(';')[0]}")
+        self.report({"INFO"}, f"{t.name!r} is in the catalog (index {t.index}, {t.kind}, "
+                              f"{t.length_m:.3g} x {t.span_m:.3g} x {t.height_m:.3g} m): "
+                              "`apcg catalog list` shows it")
         return {"FINISHED"}
 
 
@@ -269,6 +420,8 @@ class APCG_OT_generate(_ChunkedOperator, bpy.types.Operator):
         lidar = _active_lidar(context)
         ts = _targets(context, lidar, self.selected_only)
         model = api.load_model(bpy.path.abspath(self.model_dir) or None, self.runtime)
+        for t in ts:  # a type the model does not know is refused before any work
+            api.check_model_knows(model, t)
         return [(lambda t=t: api.generate(t, model, self.count, self.seed)) for t in ts]
 
 
@@ -315,8 +468,9 @@ class APCG_OT_export_cloud(bpy.types.Operator, ExportHelper):
         return {"FINISHED"}
 
 
-CLASSES = (APCG_OT_add_lidar, APCG_OT_add_aircraft, APCG_OT_scan, APCG_OT_generate,
-           APCG_OT_import_cloud, APCG_OT_export_cloud)
+CLASSES = (APCG_OT_add_lidar, APCG_OT_add_aircraft, APCG_OT_make_target,
+           APCG_OT_add_to_catalog, APCG_OT_scan, APCG_OT_generate, APCG_OT_import_cloud,
+           APCG_OT_export_cloud)
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)
 

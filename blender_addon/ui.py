@@ -3,7 +3,7 @@
 import bpy
 
 from .clouds import cloud_info, is_cloud
-from .objects import TYPE_KEY, is_lidar, is_target, lidar_of
+from .objects import AXES_KEY, TYPE_KEY, axes_label, is_lidar, is_target, lidar_of, source_of
 
 
 class APCG_PT_panel(bpy.types.Panel):
@@ -22,9 +22,8 @@ class APCG_PT_panel(bpy.types.Panel):
         col.operator_menu_enum("apcg.add_aircraft", "type_name", text="Add Aircraft",
                                icon="ADD")
         if obj is not None and obj.type == "MESH" and not is_target(obj) and not is_cloud(obj):
-            op = col.operator("apcg.add_aircraft", text="Make Active Mesh a Target",
-                              icon="OBJECT_DATA")
-            op.use_active_mesh = True
+            col.operator("apcg.make_target", text=f"Make Target of {obj.name}",
+                         icon="OBJECT_DATA")
         if lidar is not None:
             box = layout.box()
             box.label(text=f"Lidar: {lidar.name}", icon="LIGHT_SPOT")
@@ -38,7 +37,21 @@ class APCG_PT_panel(bpy.types.Panel):
             row.prop(p, "height")
         if is_target(obj):
             box = layout.box()
-            box.label(text=f"Target: {obj.get(TYPE_KEY, obj.name)}", icon="OBJECT_DATA")
+            type_name = str(obj.get(TYPE_KEY, obj.name))
+            box.label(text=f"Target: {type_name}", icon="OBJECT_DATA")
+            axes = axes_label(obj)
+            if axes:  # made from a scene object
+                src = source_of(obj)
+                if src is not None:
+                    box.label(text=f"from: {src.name}")
+                head, _, how = axes.partition(" (")  # two short lines for a narrow sidebar
+                box.label(text=f"axes: {head}")
+                box.label(text=f"({how}")
+                ext = obj[AXES_KEY].get("extents_m")
+                if ext is not None:  # length (x), span (y), height (z)
+                    box.label(text=f"size: {ext[0]:.3g} x {ext[1]:.3g} x {ext[2]:.3g} m")
+                if not _in_catalog(type_name):
+                    box.operator("apcg.add_to_catalog", icon="ADD")
             t = obj.apcg_target
             for name in ("range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg",
                          "azimuth_deg"):
@@ -55,6 +68,11 @@ class APCG_PT_panel(bpy.types.Panel):
         row = layout.row(align=True)
         row.operator("apcg.import_cloud", icon="IMPORT", text="Import")
         row.operator("apcg.export_cloud", icon="EXPORT", text="Export")
+
+
+def _in_catalog(name: str) -> bool:
+    from apcg_core.catalog import default_catalog
+    return name.lower() in (n.lower() for n in default_catalog().names())
 
 
 CLASSES = (APCG_PT_panel,)

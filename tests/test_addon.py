@@ -294,8 +294,9 @@ def test_own_model_as_target(scene):
     ball = bpy.context.active_object
     assert bpy.ops.apcg.add_aircraft(use_active_mesh=True, range_m=900.0,
                                      elevation_deg=3.0) == {"FINISHED"}
-    assert api.is_target(ball) and ball.parent == lidar
-    assert ball["apcg_depth_length_m"] == pytest.approx(6.0, rel=0.01)
+    target = bpy.context.active_object  # a new object: the ball itself is left as it was
+    assert api.is_target(target) and target.parent == lidar and not api.is_target(ball)
+    assert target["apcg_depth_length_m"] == pytest.approx(6.0, rel=0.01)
     (cloud,) = api.scan(lidar)
     got, _ = api.cloud_from_object(cloud)
     # a sphere of radius 3 at 900 m: the nearest return is 3 m in front of the centre

@@ -55,22 +55,35 @@ def check_size(extents_m, kind: str, force: bool = False, unit_scale_applied: fl
     return problem
 
 
+def nearest_distance(points: np.ndarray, probe: np.ndarray, chunk: int = 512) -> np.ndarray:
+    """Distance from each probe point to its nearest point: scipy's k-d tree when installed,
+    else numpy by brute force in chunks (Blender's own Python has no scipy); the same values."""
+    try:
+        from scipy.spatial import cKDTree
+    except ImportError:
+        sq = (points * points).sum(axis=1)
+        out = np.empty(len(probe))
+        for i in range(0, len(probe), chunk):
+            q = probe[i:i + chunk]
+            d2 = (q * q).sum(axis=1)[:, None] + sq[None, :] - 2.0 * q @ points.T
+            out[i:i + chunk] = np.sqrt(np.maximum(d2.min(axis=1), 0.0))
+        return out
+    return cKDTree(points).query(probe)[0]
+
+
 def _mirror_error(points: np.ndarray, axis: int, other: np.ndarray | None = None) -> float:
     """How far the points are from being mirror-symmetric across the mid-plane normal to
     ``axis``, as a fraction of the model's size (0 = a perfect mirror). With ``other`` (a
     second sample of the same surface), the part of it that sampling alone gives (the
     distance from ``other`` to ``points``, unmirrored) is taken off."""
-    from scipy.spatial import cKDTree
-
     lo, hi = points.min(axis=0), points.max(axis=0)
     size = np.max(hi - lo) + 1e-30
-    tree = cKDTree(points)
     probe = points if other is None else other
     mirrored = probe.copy()
     mirrored[:, axis] = lo[axis] + hi[axis] - mirrored[:, axis]
-    err = float(np.mean(tree.query(mirrored)[0]) / size)
+    err = float(np.mean(nearest_distance(points, mirrored)) / size)
     if other is not None:
-        err -= float(np.mean(tree.query(other)[0]) / size)
+        err -= float(np.mean(nearest_distance(points, other)) / size)
     return err
 
 
