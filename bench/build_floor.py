@@ -26,15 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from apcg_core.catalog.catalog import default_catalog  # noqa: E402
 from apcg_core.io.dataset import Shard  # noqa: E402
-from dataset_builder.backends.embree import EmbreeCaster  # noqa: E402
 from dataset_builder.build import _task, close_simulators, run_task  # noqa: E402
 from dataset_builder.plan import ShardPlan, load_config, make_plan  # noqa: E402
-from dataset_builder.rays import (  # noqa: E402
-    angular_boxes,
-    bounding_radius,
-    make_rays,
-    sample_frames,
-)
 
 BLOCK = 32_768
 
@@ -59,24 +52,9 @@ def pipeline_seconds(tasks) -> float:
 
 
 def raw_embree_seconds(plan, catalog, tasks) -> tuple[float, int]:
-    """embree's call alone on the pipeline's own float32 rays (made beforehand, untimed)."""
-    total, n_rays = 0.0, 0
-    for t in tasks:
-        mesh = catalog.mesh(t.type_catalog_index)
-        caster = EmbreeCaster(mesh)
-        radius = bounding_radius(mesh.vertices)
-        m, c = sample_frames(t.table)
-        boxes = angular_boxes(mesh.vertices, t.table, plan.lidar, m, c)
-        rays = make_rays(t.table, boxes, plan.lidar, m, c, radius)  # the same rays, float64
-        o = np.ascontiguousarray(rays.origin, np.float32)
-        d = np.ascontiguousarray(rays.direction, np.float32)
-        for i in range(0, len(o), BLOCK):  # in blocks, as the pipeline calls it
-            dist = np.full(len(o[i:i + BLOCK]), np.float32(rays.t_max), np.float32)
-            t0 = time.perf_counter()
-            caster._scene.run(o[i:i + BLOCK], d[i:i + BLOCK], dists=dist, query="DISTANCE")
-            total += time.perf_counter() - t0
-        n_rays += len(o)
-    return total, n_rays
+    """embree's call alone on the pipeline's own float32 rays, in the pipeline's blocks."""
+    from simulate import raw_embree_seconds as seconds_in_blocks  # bench/simulate.py
+    return seconds_in_blocks(plan, catalog, tasks, block=BLOCK)
 
 
 def main() -> int:

@@ -62,8 +62,10 @@ def run_pool(tasks: list[ShardTask], workers: int, per_process: int | None) -> f
     return time.perf_counter() - t0
 
 
-def raw_embree_rate(plan, catalog, tasks) -> tuple[float, int]:
-    """Rays/s of embree's call alone, on the rays the simulator makes for these samples."""
+def raw_embree_seconds(plan, catalog, tasks, block: int | None = None) -> tuple[float, int]:
+    """Seconds of embree's call alone, and the ray count, on the float32 rays the simulator
+    makes for these samples (made beforehand, untimed); in calls of ``block`` rays when given,
+    as the pipeline makes them."""
     from dataset_builder.backends.embree import EmbreeCaster
     from dataset_builder.rays import angular_boxes, bounding_radius, make_rays, sample_frames
     total_t, total_rays = 0.0, 0
@@ -76,12 +78,20 @@ def raw_embree_rate(plan, catalog, tasks) -> tuple[float, int]:
         rays = make_rays(t.table, boxes, plan.lidar, m, c, radius)
         o = np.ascontiguousarray(rays.origin, np.float32)
         d = np.ascontiguousarray(rays.direction, np.float32)
-        dist = np.full(len(o), rays.t_max, np.float32)
-        t0 = time.perf_counter()
-        caster._scene.run(o, d, dists=dist, query="DISTANCE")
-        total_t += time.perf_counter() - t0
+        step = block or max(1, len(o))
+        for i in range(0, len(o), step):
+            dist = np.full(len(o[i:i + step]), rays.t_max, np.float32)
+            t0 = time.perf_counter()
+            caster._scene.run(o[i:i + step], d[i:i + step], dists=dist, query="DISTANCE")
+            total_t += time.perf_counter() - t0
         total_rays += len(o)
-    return total_rays / total_t, total_rays
+    return total_t, total_rays
+
+
+def raw_embree_rate(plan, catalog, tasks) -> tuple[float, int]:
+    """Rays/s of embree's call alone, on the rays the simulator makes for these samples."""
+    seconds, rays = raw_embree_seconds(plan, catalog, tasks)
+    return rays / seconds, rays
 
 
 def agreement(ref_dir: Path, other_dir: Path, backend: str, n_tasks: int) -> dict:

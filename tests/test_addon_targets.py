@@ -5,11 +5,8 @@ Add to Catalog for the command line."""
 
 import json
 import os
-import shutil
 import subprocess
 import sys
-import time
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +25,7 @@ from blender_addon.objects import AXES_KEY, LENGTH_KEY, SOURCE_KEY, TYPE_KEY  # 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "data"))
 import box_aircraft as box  # noqa: E402
+from blender_window import run_in_window, virtual_display  # noqa: E402
 
 APCG = [sys.executable, "-m", "apcg_core.cli"]
 POSE = dict(range_m=1500.0, elevation_deg=3.5, pitch_deg=2.0, yaw_deg=35.0, roll_deg=-3.0)
@@ -290,44 +288,18 @@ def test_add_to_catalog_refuses_an_implausible_size_unless_forced(scene, tmp_pat
 
 @pytest.fixture
 def big_display():
-    xvfb = shutil.which("Xvfb")
-    if xvfb is None or shutil.which("blender") is None:
-        pytest.skip("needs Xvfb and blender (apt-get install xvfb blender python3-numpy)")
-    num = f":{80 + os.getpid() % 9}"
-    proc = subprocess.Popen([xvfb, num, "-screen", "0", "1600x900x24", "+extension", "GLX"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    time.sleep(1.0)
-    yield num
-    proc.terminate()
-    proc.wait(timeout=10)
+    with virtual_display(80, "1600x900") as num:
+        yield num
 
 
 def test_make_target_and_scan_in_a_window(tmp_path, big_display):
     """Make Target (a click on the panel's button) and Scan in a real Blender window (Debian's
     Blender 3.4, the legacy add-on): the redo panel and the APCG panel show the guessed axes.
     With APCG_WRITE_DOCS=1 the screenshot is docs/addon_make_target.png."""
-    dist = tmp_path / "dist"
-    subprocess.run([sys.executable, str(ROOT / "tools" / "build_addon.py"), "--out", str(dist),
-                    "--legacy-only"], check=True, capture_output=True)
-    with zipfile.ZipFile(next(dist.glob("apcg-legacy-*.zip"))) as z:
-        z.extractall(tmp_path / "scripts" / "addons")
-    start = tmp_path / "start.blend"  # opening a file skips the splash screen
-    subprocess.run(["blender", "-b", "--factory-startup", "--python-expr",
-                    f"import bpy; bpy.ops.wm.save_as_mainfile(filepath={str(start)!r})"],
-                   check=True, capture_output=True)
-    report = tmp_path / "report.json"
     png = (ROOT / "docs" / "addon_make_target.png" if os.environ.get("APCG_WRITE_DOCS") == "1"
            else tmp_path / "make_target.png")
-    env = dict(os.environ, DISPLAY=big_display, BLENDER_USER_SCRIPTS=str(tmp_path / "scripts"),
-               APCG_DATA_DIR=str(tmp_path / "data"))
-    env.pop("PYTHONPATH", None)
-    r = subprocess.run(["blender", "--factory-startup", "--enable-event-simulate", str(start),
-                        "-P", str(ROOT / "tests" / "data" / "addon_make_target_script.py"),
-                        "--", str(report), str(png)], env=env, capture_output=True, text=True,
-                       timeout=300)
-    assert report.exists(), (r.stdout[-2000:], r.stderr[-2000:])
-    rep = json.loads(report.read_text())
-    assert rep["error"] is None, rep["error"]
+    rep = run_in_window(tmp_path, big_display, "addon_make_target_script.py", str(png),
+                        env_extra={"APCG_DATA_DIR": str(tmp_path / "data")})
     assert rep["make_target"] == ["FINISHED"] and rep["scan"] == ["FINISHED"]
     assert rep["axes"] == "forward -Y, up Z (guessed)"
     assert rep["extents"] == pytest.approx([box.LENGTH_M, box.SPAN_M, box.HEIGHT_M], abs=1e-3)

@@ -8,23 +8,17 @@ scripts folder, and clicks the APCG sidebar tab with xdotool: Blender 3.4 has no
 for the active sidebar tab). Prints what worked.
 """
 
-import math
 import sys
+from pathlib import Path
 
 import addon_utils
 import bpy
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from window_script import frame, view3d  # noqa: E402
+
 OUT = sys.argv[sys.argv.index("--") + 1] if "--" in sys.argv else "/tmp/apcg_screenshot.png"
 MODULE = "apcg_blender"
-
-
-def _view3d():
-    for window in bpy.context.window_manager.windows:
-        for area in window.screen.areas:
-            if area.type == "VIEW_3D":
-                region = next(r for r in area.regions if r.type == "WINDOW")
-                return window, area, region
-    raise RuntimeError("no 3D viewport")
 
 
 def setup():
@@ -43,24 +37,12 @@ def setup():
     jet.select_set(True)
     bpy.context.view_layer.objects.active = jet
     bpy.context.view_layer.update()
-    window, area, region = _view3d()
-    space = area.spaces.active
-    space.show_region_ui = True
-    space.clip_start, space.clip_end = 0.5, 1e5
-    space.shading.type = "SOLID"
-    space.shading.color_type = "OBJECT"
-    jet.color = (0.6, 0.62, 0.66, 1.0)
-    cloud.color = (1.0, 0.55, 0.1, 1.0)
-    r3d = space.region_3d
-    r3d.view_perspective = "PERSP"
-    r3d.view_location = jet.matrix_world.translation
-    r3d.view_distance = 62.0
-    from mathutils import Euler
-    r3d.view_rotation = Euler((math.radians(68), 0.0, math.radians(-28)), "XYZ").to_quaternion()
+    area = frame(jet, cloud, distance=62.0, pitch_deg=68, yaw_deg=-28)
+    area.spaces.active.show_region_ui = True
     ui = next(r for r in area.regions if r.type == "UI")
     # where the sidebar's tab strip is, for a click from outside (xdotool) where Python can't
     print(f"APCG: sidebar region x={ui.x} y={ui.y} w={ui.width} h={ui.height} "
-          f"window h={window.height}")
+          f"window h={view3d()[0].height}")
     try:
         ui.active_panel_category = "APCG"
         print("APCG: sidebar tab set through Region.active_panel_category")
@@ -70,7 +52,7 @@ def setup():
 
 
 def shoot():
-    window, area, region = _view3d()
+    window, area, region = view3d()
     with bpy.context.temp_override(window=window, area=area, region=region):
         bpy.ops.screen.screenshot(filepath=OUT)
     print(f"APCG: screenshot {OUT}")

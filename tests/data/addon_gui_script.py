@@ -1,23 +1,20 @@
 """Run inside a real Blender window (tests/test_addon_gui.py): the modal scan with its progress,
 undo and redo, and Esc to cancel. Writes a JSON report to the path after `--`."""
 
-import json
 import sys
 import traceback
+from pathlib import Path
 
 import addon_utils
 import bpy
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+from window_script import finish as _finish  # noqa: E402
+from window_script import override  # noqa: E402
+
 OUT = sys.argv[sys.argv.index("--") + 1]
 N_TARGETS = 12
 report = {}
-
-
-def override():
-    win = bpy.context.window_manager.windows[0]
-    area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
-    region = next(r for r in area.regions if r.type == "WINDOW")
-    return bpy.context.temp_override(window=win, area=area, region=region)
 
 
 def clouds() -> int:
@@ -25,11 +22,7 @@ def clouds() -> int:
 
 
 def finish(error=None):
-    report["error"] = error
-    with open(OUT, "w") as f:
-        json.dump(report, f)
-    bpy.ops.wm.quit_blender()
-
+    _finish(report, OUT, error)
 
 def setup():
     for obj in list(bpy.data.objects):

@@ -3,8 +3,6 @@ box_aircraft.py (Mirror modifier, rotated, scaled) made a target with the Make T
 scanned, the APCG sidebar tab opened on the target, and a screenshot taken. Writes a JSON
 report to the first path after `--` and the screenshot to the second."""
 
-import json
-import math
 import sys
 import traceback
 from pathlib import Path
@@ -13,7 +11,10 @@ import addon_utils
 import bpy
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
 import box_aircraft as box  # noqa: E402
+from window_script import finish as _finish  # noqa: E402
+from window_script import frame, override, view3d  # noqa: E402
 
 ARGS = sys.argv[sys.argv.index("--") + 1:]
 OUT, PNG = ARGS[0], ARGS[1]
@@ -21,23 +22,8 @@ report = {}
 state = {}
 
 
-def _view3d():
-    win = bpy.context.window_manager.windows[0]
-    area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
-    region = next(r for r in area.regions if r.type == "WINDOW")
-    return win, area, region
-
-
-def override():
-    win, area, region = _view3d()
-    return bpy.context.temp_override(window=win, area=area, region=region)
-
-
 def finish(error=None):
-    report["error"] = error
-    with open(OUT, "w") as f:
-        json.dump(report, f)
-    bpy.ops.wm.quit_blender()
+    _finish(report, OUT, error)
 
 
 def setup():
@@ -52,14 +38,14 @@ def setup():
         o.select_set(False)
     src.select_set(True)
     bpy.context.view_layer.objects.active = src
-    win, area, region = _view3d()
+    win, area, region = view3d()
     area.spaces.active.show_region_ui = True
 
 
 def click_make_target():
     """Click the panel's "Make Target of Box jet" button (the third row of the APCG tab), as
     a user does: the operator runs from the UI, so its redo panel shows the guessed axes."""
-    win, area, _ = _view3d()
+    win, area, _ = view3d()
     ui = next(r for r in area.regions if r.type == "UI")
     x, y = ui.x + (ui.width - 26) // 2, ui.y + ui.height - 87
     win.event_simulate(type="MOUSEMOVE", value="NOTHING", x=x, y=y)
@@ -102,25 +88,13 @@ def after_make_target():
         o.select_set(False)
     bpy.context.view_layer.objects.active = target  # active, not selected: no outline
     bpy.context.view_layer.update()
-    win, area, region = _view3d()
-    space = area.spaces.active
-    space.clip_start, space.clip_end = 0.5, 1e5
-    space.shading.type = "SOLID"
-    space.shading.color_type = "OBJECT"
-    target.color = (0.6, 0.62, 0.66, 1.0)
-    cloud.color = (1.0, 0.55, 0.1, 1.0)
-    r3d = space.region_3d
-    r3d.view_perspective = "PERSP"
-    r3d.view_location = target.matrix_world.translation
-    r3d.view_distance = 58.0
-    from mathutils import Euler
-    r3d.view_rotation = Euler((math.radians(64), 0.0, math.radians(-30)), "XYZ").to_quaternion()
+    frame(target, cloud, distance=58.0, pitch_deg=64, yaw_deg=-30)
 
 
 def open_tab():
     """Click the sidebar's APCG tab (Blender 3.4 has no Python API for the active tab): the
     tab strip runs down the region's right edge, APCG is the 4th tab (Item, Tool, View)."""
-    win, area, _ = _view3d()
+    win, area, _ = view3d()
     ui = next(r for r in area.regions if r.type == "UI")
     x, y = ui.x + ui.width - 13, ui.y + ui.height - 161
     win.event_simulate(type="MOUSEMOVE", value="NOTHING", x=x, y=y)
@@ -133,7 +107,7 @@ def open_tab():
 
 
 def shoot():
-    win, area, region = _view3d()
+    win, area, region = view3d()
     with bpy.context.temp_override(window=win, area=area, region=region):
         bpy.ops.screen.screenshot(filepath=PNG)
     report["screenshot"] = PNG
