@@ -100,7 +100,7 @@ def _show(args) -> int:
 def _add(args) -> int:
     import sys
 
-    from .checks import check_size, hole_entry_share
+    from .checks import hole_entry_share, size_problem
     from .importer import import_model
 
     mesh, rep = import_model(args.file, forward=args.forward, up=args.up,
@@ -114,7 +114,7 @@ def _add(args) -> int:
     say(f"  unit: {rep.unit} (x{rep.scale:g})")
     say(f"  axes: {rep.axes}")
     g = rep.guess
-    if g and g.confident and (g.forward, g.up) != _axes_used(rep.axes):
+    if g and g.confident and (g.forward, g.up) != (rep.forward.upper(), rep.up.upper()):
         say(f"  the shape suggests --forward {g.forward} --up {g.up} ({g.why}); check with "
             "--preview")
     say(f"  extents: length {rep.extents_m[0]:.4g} m, span {rep.extents_m[1]:.4g} m, "
@@ -124,26 +124,20 @@ def _add(args) -> int:
         print(f"warning: {holes['share']:.1%} of lidar rays enter {args.file} through holes "
               "and return from its inside (open windows, missing panels); the scans will "
               "show inner walls. Close the holes in a modeller, or pick the outer skin with "
-              "--objects (docs: README 'Bring your own aircraft').", file=sys.stderr)
+              "--objects (docs/IMPORT.md).", file=sys.stderr)
     if args.preview:
         from .sheet import three_views
         say(f"wrote {three_views(mesh, args.preview, title=args.name)}")
+    problem = size_problem(mesh.extents, args.kind, rep.scale)
     if args.dry_run:
-        problem = check_size(mesh.extents, args.kind, True, rep.scale)
         if problem:
             print(f"warning: {args.name!r}: {problem}", file=sys.stderr)
         say("dry run: nothing added")
         return 0
-    problem = check_size(mesh.extents, args.kind, args.force, rep.scale, name=repr(args.name))
-    if problem:
-        print(f"warning: {args.name!r}: {problem}; added anyway (--force)", file=sys.stderr)
+    # add_user_type refuses an implausible size unless --force
     t = _catalog().add_user_type(args.name, mesh, args.kind, args.category, source=args.file,
                                  force=args.force, unit_scale=rep.scale)
+    if problem:
+        print(f"warning: {args.name!r}: {problem}; added anyway (--force)", file=sys.stderr)
     say(f"added {t.name!r} as type index {t.index}")
     return 0
-
-
-def _axes_used(axes: str) -> tuple[str, str]:
-    """(forward, up) from an ImportReport's ``axes`` text ("forward X (default), up Z (...)")."""
-    words = dict(part.split()[:2] for part in axes.split(", "))
-    return words["forward"], words["up"]

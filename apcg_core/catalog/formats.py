@@ -259,9 +259,9 @@ def read_model(path, objects: str | None = None) -> RawModel:
     if path.stat().st_size == 0:
         raise InputError(f"{path}: the file is empty")
     patterns = [p.strip() for p in (objects or "").split(",") if p.strip()]
-    raw = fmt.read(path, patterns)
     if fmt.read is read_off and patterns:
         raise InputError(f"{path}: an OFF file holds one object; --objects does not apply")
+    raw = fmt.read(path, patterns)
     m = raw.mesh
     if len(m.faces) == 0 or not np.isfinite(m.vertices).all():
         raise InputError(f"{path}: the mesh is empty or has non-finite coordinates")

@@ -37,6 +37,8 @@ class ImportReport:
     objects: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     guess: object = None  # checks.AxesGuess: the file axes the shape suggests
+    forward: str = "X"  # the file axes used
+    up: str = "Z"
 
 
 def read_mesh(path) -> Mesh:
@@ -140,7 +142,7 @@ def import_model(path, forward: str | None = None, up: str | None = None,
     report = ImportReport(str(path), len(mesh.vertices), len(mesh.faces), rep.n_bodies,
                           rep.watertight, how, scale, tuple(float(e) for e in mesh.extents),
                           unit, ", ".join(reversed(axes_from)), raw.objects, raw.skipped,
-                          guessed)
+                          guessed, forward, up)
     return mesh, report
 
 
