@@ -65,7 +65,8 @@ def _run_generate(args) -> int:
     else:  # the file names them instead of repeating a long list in every header
         meta["conditions_csv"], meta["n_conditions"] = str(args.conditions), len(table)
     from .io.clouds import CloudWriter
-    progress = _Progress(total, enabled=total > BLOCK_CLOUDS)
+    from .progress import Progress
+    progress = Progress(total, "cloud", enabled=total > BLOCK_CLOUDS)
     points = empty = 0
     with CloudWriter(args.output, meta) as out:
         for block, (part, count, offset) in enumerate(blocks(table, args.count, BLOCK_CLOUDS)):
@@ -142,30 +143,3 @@ def _available_memory() -> float | None:
     except OSError:
         return None
     return None
-
-
-class _Progress:
-    """Clouds done, on stderr: tqdm when installed, else a line every block."""
-
-    def __init__(self, total: int, enabled: bool) -> None:
-        import sys
-        self.total, self.done, self.enabled, self.bar = total, 0, enabled, None
-        self._err = sys.stderr
-        if enabled:
-            try:
-                from tqdm import tqdm
-                self.bar = tqdm(total=total, unit="cloud", unit_scale=True, file=sys.stderr)
-            except ImportError:
-                self.bar = None
-
-    def update(self, n: int) -> None:
-        self.done += n
-        if self.bar is not None:
-            self.bar.update(n)
-        elif self.enabled:
-            print(f"generated {self.done:,} / {self.total:,} clouds "
-                  f"({100 * self.done / self.total:.0f}%)", file=self._err, flush=True)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()

@@ -34,6 +34,7 @@ from apcg_core.io.dataset import (
     write_atomic,
 )
 from apcg_core.lidar import DEG
+from apcg_core.progress import Progress
 
 from .backends import check_backend
 from .plan import Plan, ShardPlan, load_config, make_plan
@@ -261,30 +262,6 @@ def parse_shard_spec(spec: str | None) -> tuple[int, int]:
     return i, n
 
 
-class _Progress:
-    def __init__(self, total: int, done: int, enabled: bool) -> None:
-        self.bar = None
-        self.total, self.done, self.enabled = total, done, enabled
-        self.t0 = time.perf_counter()
-        if enabled:
-            try:
-                from tqdm import tqdm
-                self.bar = tqdm(total=total, initial=done, unit="sample", smoothing=0.1)
-            except ImportError:
-                pass
-
-    def update(self, n: int) -> None:
-        self.done += n
-        if self.bar is not None:
-            self.bar.update(n)
-        elif self.enabled:
-            print(f"{self.done}/{self.total} samples", file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
 def build_dataset(config: str | dict, out_dir, backend: str | None = None, workers: int = 1,
                   shard_spec: str | None = None, progress: bool = True,
                   tasks_per_process: int | None = None, catalog=None) -> dict:
@@ -331,7 +308,7 @@ def _build_locked(plan: Plan, catalog, out: Path, workers: int, part_i: int, par
     todo = [s for s in mine if not (out / s.file).exists()]
     done_samples = sum(len(s.rows) for s in mine) - sum(len(s.rows) for s in todo)
     tasks = [_task(plan, catalog, s, out) for s in todo]
-    bar = _Progress(sum(len(s.rows) for s in mine), done_samples, progress)
+    bar = Progress(sum(len(s.rows) for s in mine), "sample", progress, done=done_samples)
     t0 = time.perf_counter()
     try:
         if workers == 1 and not (plan.config["backend"].startswith("blender")
