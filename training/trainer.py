@@ -356,55 +356,45 @@ class Trainer:
         last = {}
         recent_gp: list[float] = []
         budget_s = None if self.cfg.hours is None else budget_seconds(self.cfg.hours)
-        interrupted = _StopOnSignal(enabled=self.world == 1)
-        with interrupted:
-            self._fit_loop(bar, t0, pending, last, recent_gp, budget_s, max_seconds, interrupted)
-        return self._finish(bar, t0, interrupted)
-
-    def _fit_loop(self, bar, t0, pending, last, recent_gp, budget_s, max_seconds,
-                  interrupted) -> None:
-        row = {}
-        while self.step < self.total_steps and (budget_s is None
-                                                or self.seconds_before < budget_s):
-            row = self.train_step()
-            recent_gp = (recent_gp + [row["gp"]])[-50:]
-            self._check_divergence(row, recent_gp)
-            row["seconds"] = round(self.seconds_before + time.perf_counter() - t0, 3)
-            last = row
-            if self.rank == 0:
-                pending.append(row)
-                if self.step % self.cfg.log_every == 0 or self.step == self.total_steps:
-                    self._write_log_rows(pending)
-                    for r in pending:
-                        self._tensorboard(r)
-                    pending = []
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(L_D=f"{row['loss_d']:.3f}", L_G=f"{row['loss_g']:.3f}")
-                elif self.progress and self.step % 50 == 0:
-                    print(f"step {self.step}/{self.total_steps} L_D {row['loss_d']:.4f} "
-                          f"L_G {row['loss_g']:.4f}", file=sys.stderr, flush=True)
-            if self.step % self.cfg.checkpoint_every == 0:
+        with _StopOnSignal(enabled=self.world == 1) as interrupted:
+            while self.step < self.total_steps and (budget_s is None
+                                                    or self.seconds_before < budget_s):
+                row = self.train_step()
+                recent_gp = (recent_gp + [row["gp"]])[-50:]
+                self._check_divergence(row, recent_gp)
+                row["seconds"] = round(self.seconds_before + time.perf_counter() - t0, 3)
+                last = row
                 if self.rank == 0:
-                    self._write_log_rows(pending)
-                    pending = []
-                self.save()
-            stop = ((max_seconds is not None and time.perf_counter() - t0 > max_seconds)
-                    or (budget_s is not None and row["seconds"] >= budget_s)
-                    or interrupted.fired is not None)
-            if self._any_rank(bool(stop)):
-                break
-        if self.rank == 0 and pending:
-            self._write_log_rows(pending)
-        self.save()
-        self._last = last
-
-    def _finish(self, bar, t0, interrupted) -> dict:
+                    pending.append(row)
+                    if self.step % self.cfg.log_every == 0 or self.step == self.total_steps:
+                        self._write_log_rows(pending)
+                        for r in pending:
+                            self._tensorboard(r)
+                        pending = []
+                    if bar is not None:
+                        bar.update(1)
+                        bar.set_postfix(L_D=f"{row['loss_d']:.3f}", L_G=f"{row['loss_g']:.3f}")
+                    elif self.progress and self.step % 50 == 0:
+                        print(f"step {self.step}/{self.total_steps} L_D {row['loss_d']:.4f} "
+                              f"L_G {row['loss_g']:.4f}", file=sys.stderr, flush=True)
+                if self.step % self.cfg.checkpoint_every == 0:
+                    if self.rank == 0:
+                        self._write_log_rows(pending)
+                        pending = []
+                    self.save()
+                stop = ((max_seconds is not None and time.perf_counter() - t0 > max_seconds)
+                        or (budget_s is not None and row["seconds"] >= budget_s)
+                        or interrupted.fired is not None)
+                if self._any_rank(bool(stop)):
+                    break
+            if self.rank == 0 and pending:
+                self._write_log_rows(pending)
+            self.save()
         if bar is not None:
             bar.close()
         if self._tb:
             self._tb.flush()
-        out = {"step": self.step, "total_steps": self.total_steps, "last": self._last,
+        out = {"step": self.step, "total_steps": self.total_steps, "last": last,
                "seconds": round(time.perf_counter() - t0, 3),
                "param_checksum": param_checksum(self.G) + param_checksum(self.D)
                + param_checksum(self.G_ema)}
