@@ -142,9 +142,9 @@ def files(tmp_path_factory) -> Path:
     return out
 
 
-def _is_test_aircraft(mesh: Mesh, height: float = HEIGHT) -> None:
+def _is_test_aircraft(mesh: Mesh) -> None:
     """Length 10 m along x, span 12 m along y, fin aft and on top: nose +x, up +z."""
-    np.testing.assert_allclose(mesh.extents, [LENGTH, SPAN, height], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(mesh.extents, [LENGTH, SPAN, HEIGHT], rtol=1e-5, atol=1e-5)
     v = mesh.vertices
     top = v[v[:, 2] > v[:, 2].max() - 0.1]
     assert top[:, 0].mean() < mesh.bounds[:, 0].mean() - 3.0  # the fin is at the tail
