@@ -7,6 +7,7 @@ count or interruption; the shards are then pure functions of the plan.
 from __future__ import annotations
 
 import itertools
+import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,14 +18,15 @@ from apcg_core.condition import ConditionSpace
 from apcg_core.errors import InputError
 from apcg_core.lidar import DEG, LidarParams
 
+from .schema import check_config
+
 CONFIG_DIR = Path(__file__).with_name("configs")
 # The nesting order of a grid's product: it decides which sample gets which id, so it stays as
 # it is. It is not an angle order (that is ATTITUDE, SPEC section 3).
 GRID_FIELDS = ("elevation", "range_m", "yaw", "pitch", "roll")
 _DEFAULT_COUNTS = {"elevation": 5, "range_m": 10, "yaw": 10, "pitch": 5, "roll": 5}
-_KNOWN_TOP = {"name", "description", "seed", "backend", "shard_size", "test_fraction",
-              "quantize", "supersample", "sampling", "samples_per_type", "types", "lidar",
-              "ranges", "counts", "fine_cloud_points"}
+# One config is planned in memory (48 bytes a sample); beyond this, split it into several.
+MAX_SAMPLES = 10**8
 
 
 def builtin_configs() -> list[str]:
@@ -34,19 +36,18 @@ def builtin_configs() -> list[str]:
 def load_config(ref: str) -> dict:
     """A config by file path or by the name of a committed one (``demo``, ``paper-table1``...)."""
     path = Path(ref)
-    if not path.exists():
+    if not path.is_file():  # a folder called "demo" in the working directory is not a config
         path = CONFIG_DIR / f"{ref}.toml"
-    if not path.exists():
+    if not path.is_file():
         raise InputError(f"no dataset config {ref!r}: give a TOML file or one of "
                          f"{', '.join(builtin_configs())}")
     try:
-        cfg = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
+        cfg = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"dataset config {path} is not valid TOML: {exc}") from exc
-    unknown = set(cfg) - _KNOWN_TOP
-    if unknown:
-        raise InputError(f"dataset config {path}: unknown keys {sorted(unknown)}; accepted: "
-                         f"{sorted(_KNOWN_TOP)}")
+    except OSError as exc:
+        raise InputError(f"dataset config {path} cannot be read: {exc.strerror}") from exc
+    check_config(cfg, f"dataset config {path}")
     cfg.setdefault("name", path.stem)
     return cfg
 
@@ -80,18 +81,14 @@ class Plan:
 
 
 def _pair(cfg: dict, key: str, default) -> tuple[float, float]:
-    v = cfg.get(key, default)
-    if not (isinstance(v, list | tuple) and len(v) == 2):
-        raise InputError(f"ranges.{key} must be [lo, hi], got {v!r}")
+    v = cfg.get(key, default)  # shape checked by the schema
     return float(v[0]), float(v[1])
 
 
 def _resolve_types(cfg: dict, catalog) -> list:
-    spec = cfg.get("types", "all")
+    spec = cfg["types"]  # "all" or a list of names (the schema)
     if spec == "all":
         return [t for t in catalog if t.source == "builtin"]
-    if isinstance(spec, str) or not isinstance(spec, list):
-        raise InputError(f"types must be \"all\" or a list of catalog names, got {spec!r}")
     types = [catalog.get(name) for name in spec]
     dup = {t.name for t in types if sum(u.index == t.index for u in types) > 1}
     if dup:
@@ -99,11 +96,16 @@ def _resolve_types(cfg: dict, catalog) -> list:
     return types
 
 
+def _check_size(n: int, what: str) -> None:
+    if n > MAX_SAMPLES:
+        raise InputError(f"{what} makes {n:,} samples; one config plans at most "
+                         f"{MAX_SAMPLES:,}: split it into several configs (other seeds)")
+
+
 def make_plan(cfg: dict, catalog, backend: str | None = None) -> Plan:
-    """The plan of a config (see the committed configs for every key)."""
+    """The plan of a config (see the committed configs for every key, and ``schema``)."""
+    check_config(cfg)
     seed = cfg.get("seed", 0)
-    if not isinstance(seed, int) or seed < 0:
-        raise InputError(f"seed must be an integer >= 0, got {seed!r}")
     lidar = LidarParams.from_dict(cfg["lidar"]) if "lidar" in cfg else LidarParams()
     types = _resolve_types(cfg, catalog)
     ranges = cfg.get("ranges", {})
@@ -126,9 +128,7 @@ def make_plan(cfg: dict, catalog, backend: str | None = None) -> Plan:
     if sampling == "grid":
         # Table 1: each parameter's values drawn uniformly in its range, then the full grid.
         counts = space.counts
-        for f in GRID_FIELDS:
-            if not isinstance(counts.get(f), int) or counts[f] < 1:
-                raise InputError(f"counts.{f} must be an integer >= 1, got {counts.get(f)!r}")
+        _check_size(len(types) * math.prod(counts[f] for f in GRID_FIELDS), "the grid")
         draws = {}
         for f in GRID_FIELDS:
             if f == "range_m":
@@ -149,24 +149,19 @@ def make_plan(cfg: dict, catalog, backend: str | None = None) -> Plan:
                   "yaw_deg": (draws["yaw"] / DEG).tolist(),
                   "pitch_deg": (draws["pitch"] / DEG).tolist(),
                   "roll_deg": (draws["roll"] / DEG).tolist()}
-    elif sampling == "random":
-        per = cfg.get("samples_per_type")
-        if not isinstance(per, int) or per < 1:
-            raise InputError(f"sampling = \"random\" needs samples_per_type >= 1, got {per!r}")
+    else:  # "random", the schema's only other sampling
+        per = cfg["samples_per_type"]
         n = per * len(types)
+        _check_size(n, "samples_per_type x types")
         code = np.repeat(np.arange(len(types)), per)
         lo, hi = space.range_bounds(code)
         table = np.stack([code, rng.uniform(lo, hi), rng.uniform(*space.elevation, n),
                           rng.uniform(*space.pitch, n), rng.uniform(*space.yaw, n),
                           rng.uniform(*space.roll, n)], axis=1)
-    else:
-        raise InputError(f"sampling must be \"grid\" or \"random\", got {sampling!r}")
     space.check(table)
 
     # Split 4 : 1 by condition, stratified by type: every type has the same test fraction.
     frac = float(cfg.get("test_fraction", 0.2))
-    if not 0.0 <= frac < 1.0:
-        raise InputError(f"test_fraction must be in [0, 1), got {frac}")
     split = np.full(len(table), "train", dtype="<U5")
     split_rng = np.random.default_rng([seed, 1])
     codes = table[:, 0].astype(np.int64)
@@ -176,8 +171,6 @@ def make_plan(cfg: dict, catalog, backend: str | None = None) -> Plan:
         split[split_rng.permutation(rows_t)[:n_test]] = "test"
 
     shard_size = cfg.get("shard_size", 2500)
-    if not isinstance(shard_size, int) or shard_size < 1:
-        raise InputError(f"shard_size must be an integer >= 1, got {shard_size!r}")
     shards = []
     for name in ("train", "test"):
         for code in range(len(types)):
