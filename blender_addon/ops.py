@@ -300,7 +300,7 @@ class _ChunkedOperator:
             return _report_error(self, exc)
         finally:
             self._close()
-        self.report({"INFO"}, f"{self.bl_label}: {len(self._made)} point cloud(s)")
+        self._report_made()
         return {"FINISHED"}
 
     def invoke(self, context, event):
@@ -341,7 +341,7 @@ class _ChunkedOperator:
         if self._done < len(self._jobs):
             return {"RUNNING_MODAL"}
         self._finish(context)
-        self.report({"INFO"}, f"{self.bl_label}: {len(self._made)} point cloud(s)")
+        self._report_made()
         return {"FINISHED"}
 
     def _finish(self, context) -> None:
@@ -353,6 +353,14 @@ class _ChunkedOperator:
         wm.progress_end()
         if context.area is not None:
             context.area.header_text_set(None)
+
+    def _report_made(self) -> None:
+        from apcg_core.plausibility import sparse_cloud_warning
+        self.report({"INFO"}, f"{self.bl_label}: {len(self._made)} point cloud(s)")
+        for obj in filter(None, self._made):
+            warning = sparse_cloud_warning(len(obj.data.vertices), f"the cloud {obj.name!r}")
+            if warning:
+                self.report({"WARNING"}, warning)
 
     def _cleanup(self) -> None:
         for obj in getattr(self, "_made", []):

@@ -39,6 +39,7 @@ def _run_simulate(args) -> int:
     from apcg_core.condition import Condition
     from apcg_core.depth import norm
     from apcg_core.io import write_cloud, write_depth_image
+    from apcg_core.plausibility import range_band_warning, sparse_cloud_warning
 
     from .simulate import Simulator
 
@@ -69,9 +70,13 @@ def _run_simulate(args) -> int:
                "range_m": [float(np.min(cloud.range_m)), float(np.max(cloud.range_m))]
                if len(cloud) else None}
     print(json.dumps(summary))
+    warnings = [range_band_warning(t, args.range_m),
+                sparse_cloud_warning(len(cloud), f"the cloud of {t.name} at {args.range_m:g} m")]
     if res.clipped[0]:
-        print("warning: the target is larger than the lidar window; its cloud is cut at the "
-              "window's edge", file=sys.stderr)
+        warnings.append("the target is larger than the lidar window; its cloud is cut at the "
+                        "window's edge")
+    for w in filter(None, warnings):
+        print(f"apcg simulate: warning: {w}", file=sys.stderr)
     return 0
 
 

@@ -1,0 +1,35 @@
+"""Results a user would not expect, said as warnings (stderr, exit 0): the job is still done.
+
+The simulator accepts any range and pose (it is exact anywhere), but a drone at 17 km or a
+cloud of one point is rarely what was meant. Each check returns its message or None, so every
+command words the same case the same way.
+"""
+
+from __future__ import annotations
+
+from .condition import ConditionSpace
+
+# Fewer points than this is a cloud few detectors or metrics can use.
+SPARSE_POINTS = 10
+
+
+def range_band_warning(t, range_m: float) -> str | None:
+    """``range_m`` outside the Table 1 band of the type ``t`` (far: 3-18 km, near: 100-600 m,
+    SPEC section 3): the trained models and the committed datasets never saw it."""
+    space = ConditionSpace()
+    lo, hi = space.drone_range_m if t.range_band == "near" else space.aircraft_range_m
+    if lo <= range_m <= hi:
+        return None
+    return (f"{t.name} is a {t.range_band}-band type ({t.kind}): its Table 1 range is "
+            f"{lo:g}-{hi:g} m, and {range_m:g} m lies outside it")
+
+
+def sparse_cloud_warning(n_points: int, what: str) -> str | None:
+    """An empty or near-empty cloud: the target covers too few lidar cells."""
+    if n_points == 0:
+        return (f"{what} is empty: no cell of the lidar's window sees the target (too small "
+                "or too far for the lidar's resolution)")
+    if n_points < SPARSE_POINTS:
+        return (f"{what} has only {n_points} point{'s' * (n_points > 1)}: the target covers "
+                f"fewer than {SPARSE_POINTS} lidar cells at this range")
+    return None
