@@ -13,7 +13,7 @@ import sys
 from importlib.metadata import entry_points
 
 from . import __version__
-from .errors import APCGError
+from .errors import APCGError, os_error_message
 
 
 def build_parser(registrars=None) -> argparse.ArgumentParser:
@@ -60,7 +60,8 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
         parser.print_help()
         return 0
     from .options import problems
-    refused = problems(vars(args))
+    from .outputs import output_problems
+    refused = problems(vars(args)) + output_problems(args)
     for message in refused:
         print(f"apcg {args.command}: error: {message}", file=sys.stderr)
     if refused:
@@ -73,6 +74,14 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
     except APCGError as exc:  # a clear message, not a traceback, for the user's own mistakes
         print(f"apcg {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: every output is written through a temporary name
+        print(f"apcg {args.command}: interrupted; nothing half-written is left under a final "
+              "name. Run the same command again: a dataset build continues where it stopped "
+              "(a training run: add --resume).", file=sys.stderr)
+        return 130
+    except OSError as exc:  # the file system said no (full disk, permissions): name the file
+        print(f"apcg {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
+        return 1
 
 
 def print_mapping(mapping: dict, as_json: bool, key_width: int = 24) -> None:

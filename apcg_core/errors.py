@@ -52,3 +52,19 @@ def check_range(name: str, value: float, lo: float, hi: float, unit: str = "",
             f"{br[0]}{lo * scale:.6g}{unit}, {hi * scale:.6g}{unit}{br[1]}"
         )
     return v
+
+
+def os_error_message(exc: OSError) -> str:
+    """A file-system failure as one line: the file (its final name, not the temporary one
+    being written), what the system said, and what to do for the usual cases."""
+    import errno
+    import re
+
+    name = re.sub(r"\.part(\.\w+|\.\d+)*$", "", str(exc.filename)) if exc.filename else None
+    what = exc.strerror or str(exc)
+    hint = {errno.ENOSPC: "free some space and run the same command again: finished work is "
+                          "kept and nothing half-written is left under a final name",
+            errno.EDQUOT: "free some space (over the disk quota) and run the same command again",
+            errno.EACCES: "check the permissions of the file and its directory",
+            errno.EROFS: "the file system is read-only; write somewhere else"}.get(exc.errno)
+    return ": ".join(filter(None, [f"cannot write or read {name}" if name else None, what, hint]))

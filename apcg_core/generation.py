@@ -280,14 +280,19 @@ def conditions_from_csv(path, model: ModelTypes) -> Conditions:
     from .lidar import DEG
     need = ["type", "range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg"]
     known: dict = {}
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        fields = reader.fieldnames or []
-        type_col = "type" if "type" in fields else "type_name"
-        if any(k not in fields for k in [type_col, *need[1:]]):
-            raise InputError(f"{path}: a conditions CSV needs the header {','.join(need)} "
-                             "(or a dataset's conditions.csv)")
-        rows = list(reader)
+    if not Path(path).is_file():
+        raise InputError(f"conditions CSV {path} does not exist (or is not a file)")
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            fields = reader.fieldnames or []
+            type_col = "type" if "type" in fields else "type_name"
+            if any(k not in fields for k in [type_col, *need[1:]]):
+                raise InputError(f"{path}: a conditions CSV needs the header {','.join(need)} "
+                                 "(or a dataset's conditions.csv)")
+            rows = list(reader)
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{path} is not a readable CSV text file ({exc})") from exc
     if not rows:
         raise InputError(f"{path} has no conditions")
     names = []

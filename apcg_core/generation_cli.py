@@ -7,6 +7,8 @@ import json
 import numpy as np
 
 from .cli import add_pose_arguments
+from .io.clouds import FORMATS as CLOUD_FORMATS
+from .outputs import FILE, add_output
 
 
 def register_generate(sub) -> None:
@@ -27,7 +29,7 @@ def register_generate(sub) -> None:
                         "torch; the same images either way")
     p.add_argument("--tau", type=float, help="output threshold (default: the model's): the "
                                              "cGAN's Im2PC tau, APCG+'s hit logit")
-    p.add_argument("-o", "--output", required=True,
+    add_output(p, "-o", "--output", kind=FILE, suffixes=CLOUD_FORMATS, required=True,
                    help=".ply / .npz / .las / .laz; several clouds go in one file, told apart by "
                         "their `sample` attribute")
     p.set_defaults(func=_run_generate)

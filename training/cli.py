@@ -6,6 +6,8 @@ import json
 import os
 import sys
 
+from apcg_core.outputs import DIRECTORY, FILE, PICTURE_SUFFIXES, add_output
+
 
 def register_train(sub) -> None:
     from apcg_core.families import family_names
@@ -16,7 +18,7 @@ def register_train(sub) -> None:
                                    "RUN/log.csv and RUN/tensorboard. For several processes: "
                                    "torchrun --nproc_per_node N -m apcg_core.cli train ...")
     p.add_argument("--data", required=True, help="dataset directory")
-    p.add_argument("-o", "--output", required=True, help="run directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="run directory")
     p.add_argument("--preset", default="cpu", choices=["paper", "cpu", "tiny"],
                    help="paper: full width for a GPU; cpu: quarter width, bf16 (default); "
                         "tiny: for tests")
@@ -135,13 +137,15 @@ def _check_resume_matches(args, saved: dict, over: dict) -> None:
 
     from apcg_core.errors import InputError
 
+    from .trainer import read_run_record
+
     differ = [f"--{k.replace('_', '-')} {v} (the run's: {saved.get(k)})"
               for k, v in over.items()
               if v is not None and k not in RESUMABLE and k != "family" and k in saved
               and saved[k] != v]
-    record = Path(args.output) / "train_config.json"
-    if record.exists():
-        ran_on = json.loads(record.read_text()).get("data")
+    record = read_run_record(args.output)
+    if record is not None:
+        ran_on = record.get("data")
         if ran_on and Path(ran_on).resolve() != Path(args.data).resolve():
             differ.append(f"--data {args.data} (the run's: {ran_on})")
     if differ:
@@ -181,7 +185,7 @@ def register_export(sub) -> None:
                                    "generator.onnx), with the run's config and log beside "
                                    "them.")
     p.add_argument("--run", required=True, help="training run directory")
-    p.add_argument("-o", "--output", required=True, help="model directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="model directory")
     p.add_argument("--tau", type=float, default=None,
                    help="output threshold to record (the cGAN's Im2PC tau, default -0.95; "
                         "APCG+'s hit logit, default 0); `apcg choose-tau` chooses it")
@@ -248,7 +252,7 @@ def register_evaluate(sub) -> None:
                                    "metrics.json, report.md and fig17.png.")
     add_model_argument(p)
     p.add_argument("--data", required=True, help="dataset directory (its test split is used)")
-    p.add_argument("-o", "--output", required=True, help="report directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="report directory")
     add_protocol_arguments(p)
     add_runtime_argument(p)
     p.add_argument("--jsd-bins-study", action="store_true",
@@ -307,7 +311,8 @@ def register_choose_tau(sub) -> None:
     add_runtime_argument(p)
     p.add_argument("--apply", action="store_true",
                    help="write the chosen tau into the model's model.json")
-    p.add_argument("-o", "--output", help="also write the sweep as JSON here")
+    add_output(p, "-o", "--output", kind=FILE, suffixes=(".json",),
+               help="also write the sweep as JSON here")
     p.set_defaults(func=_run_choose_tau)
 
 
@@ -361,7 +366,8 @@ def register_figure(sub) -> None:
     p.add_argument("--max-checkpoints", type=int, metavar="K",
                    help="figure 14: score at most K kept checkpoints per run, evenly spaced, "
                         "the last always (default: all)")
-    p.add_argument("-o", "--output", required=True, help="PNG path (the data goes beside it)")
+    add_output(p, "-o", "--output", kind=FILE, suffixes=PICTURE_SUFFIXES, required=True,
+               help="PNG path (the data goes beside it, as .json)")
     p.set_defaults(func=_run_figure)
 
 
@@ -410,7 +416,7 @@ def register_fd_depth(sub) -> None:
     s = p.add_subparsers(dest="fd_cmd", required=True)
     t = s.add_parser("train", help="train the encoder on a dataset's train split")
     t.add_argument("--data", required=True)
-    t.add_argument("-o", "--output", required=True, help="encoder directory")
+    add_output(t, "-o", "--output", kind=DIRECTORY, required=True, help="encoder directory")
     t.add_argument("--epochs", type=float, default=4.0)
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_run_fd_train)
@@ -447,7 +453,8 @@ def register_ablation(sub) -> None:
                                    "same steps, plus the full network without Norm, then "
                                    "writes table3.md and table3.json.")
     p.add_argument("--data", required=True)
-    p.add_argument("-o", "--output", required=True, help="directory for the 9 runs + table")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True,
+               help="directory for the 9 runs + table")
     p.add_argument("--steps", type=int, default=500,
                    help="generator steps per variant (default 500, the documented Table 3)")
     p.add_argument("--width", type=float, default=0.25)
@@ -479,7 +486,7 @@ def register_compare(sub) -> None:
                                    "generation time; writes compare.json, compare.md and "
                                    "compare.png.")
     p.add_argument("--data", required=True, help="dataset directory (its test split is used)")
-    p.add_argument("-o", "--output", required=True, help="report directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="report directory")
     add_model_argument(p, many=True)
     add_protocol_arguments(p)
     add_runtime_argument(p)

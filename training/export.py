@@ -14,28 +14,27 @@ import torch
 from apcg_core.depth import TAU_DEFAULT
 from apcg_core.errors import InputError
 from apcg_core.families import get_family
+from apcg_core.io.atomic import atomic_path
 from apcg_core.io.dataset import read_header
 from apcg_core.nn import Generator
 from apcg_core.nn.models import COND_DIM, NOISE_DIM
 from apcg_core.typetable import TypeTable
 
 from .data import DepthDataset
-from .trainer import read_checkpoint
+from .trainer import read_checkpoint, read_run_record
 
 
 def export_onnx(g: Generator, path: Path) -> None:
     g = g.eval()
     z = torch.zeros(2, NOISE_DIM)
     nu = torch.zeros(2, COND_DIM)
-    tmp = path.with_name(path.name + ".part")
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), atomic_path(path) as tmp:
         warnings.simplefilter("ignore")
         torch.onnx.export(g, (z, nu), str(tmp), input_names=["noise", "nu"],
                           output_names=["image"], opset_version=17, dynamo=False,
                           do_constant_folding=False,
                           dynamic_axes={"noise": {0: "batch"}, "nu": {0: "batch"},
                                         "image": {0: "batch"}})
-    os.replace(tmp, path)
 
 
 def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
@@ -87,7 +86,9 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     if not ck.exists():
         raise InputError(f"{ck} does not exist: nothing to export")
     st = read_checkpoint(ck)
-    record = json.loads((run / "train_config.json").read_text())
+    record = read_run_record(run)
+    if record is None and data_dir is None:
+        raise InputError(f"{run} has no train_config.json to say which dataset it trained on")
     data = data_dir or record["data"]
     head = read_header(data)
     family = get_family(st["train"].get("family", "cgan"), need="export")

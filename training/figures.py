@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from apcg_core.errors import InputError
+from apcg_core.io.atomic import atomic_path
+from apcg_core.io.dataset import write_atomic
 
 
 def read_log(run) -> dict:
@@ -222,7 +224,7 @@ def fig19(model, data_dir, out, n_pairs: int = 600, seed: int = 0, n_bins: int =
             ax.grid(alpha=0.3)
             ax.legend()
     fig.suptitle("Generated clouds against standard and cell-jittered clouds (paper Fig. 19)")
-    _save(fig, out, data)
+    _save(fig, out, data, dpi=100)
     return data
 
 
@@ -253,13 +255,13 @@ def _rel(path) -> str:
     return os.path.relpath(p) if p.startswith(os.getcwd() + os.sep) else str(path)
 
 
-def _save(fig, out, data) -> None:
+def _save(fig, out, data, dpi: int = 110) -> None:
     import matplotlib.pyplot as plt
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    with atomic_path(out, ".part" + out.suffix) as tmp:  # matplotlib reads the format there
+        fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
-    out.with_suffix(".json").write_text(json.dumps(data, indent=1) + "\n")
+    write_atomic(out.with_suffix(".json"), (json.dumps(data, indent=1) + "\n").encode())
 
 
 FIG16_TYPES = ("A320neo", "777-300ER", "F-16C Fighting Falcon", "UH-60 Black Hawk",
@@ -317,9 +319,5 @@ def fig16(model, out, types=FIG16_TYPES, pose_deg=None) -> dict:
                                "points_generated": len(gen)})
     fig.suptitle(f"Standard (black) and generated (red) clouds, pose (deg) {pose} "
                  f"(paper Fig. 16): {Path(model.directory).name}", fontsize=9)
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    out.with_suffix(".json").write_text(json.dumps(data, indent=1) + "\n")
+    _save(fig, out, data)
     return data

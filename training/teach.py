@@ -20,6 +20,7 @@ from pathlib import Path
 
 from apcg_core.errors import InputError, check_int
 from apcg_core.families import get_family
+from apcg_core.outputs import DIRECTORY, add_output
 
 TEST_FRACTION = 0.25
 
@@ -111,7 +112,7 @@ def register_teach(sub) -> None:
                                    "and scores it on the dataset's held-out conditions.")
     p.add_argument("--model", required=True, metavar="DIR", help="the trained model")
     p.add_argument("--type", required=True, help="catalog name of the type to teach")
-    p.add_argument("-o", "--output", required=True, help="the new model directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="the new model directory")
     p.add_argument("--samples", type=int, default=400,
                    help="conditions of the type to simulate (default 400, a quarter held out)")
     p.add_argument("--minutes", type=float, default=10.0,

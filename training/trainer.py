@@ -188,8 +188,8 @@ class Trainer:
                                  "command without --resume")
             self._load(ckpt)
             record = self.run / "train_config.json"
-            if self.rank == 0 and record.exists():  # show the budget in force, not the first's
-                rec = json.loads(record.read_text())
+            rec = read_run_record(self.run) if self.rank == 0 else None
+            if rec is not None:  # show the budget in force, not the first's
                 rec["train"] = asdict(cfg)
                 tmp = record.with_suffix(".json.tmp")
                 tmp.write_text(json.dumps(rec, indent=1))
@@ -452,6 +452,21 @@ def read_checkpoint(path) -> dict:
     if not isinstance(state, dict) or "step" not in state or "train" not in state:
         raise InputError(f"{path} is not an APCG training checkpoint (no step and settings)")
     return state
+
+
+def read_run_record(run) -> dict | None:
+    """A run's ``train_config.json`` (None when the run has none); a damaged one is named."""
+    path = Path(run) / "train_config.json"
+    if not path.exists():
+        return None
+    try:
+        rec = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path} is corrupt ({exc}); it is written by `apcg train`") from exc
+    if not isinstance(rec, dict) or not isinstance(rec.get("train"), dict) or "data" not in rec:
+        raise InputError(f"{path} is not an APCG run record (needs 'train' and 'data'); it is "
+                         "written by `apcg train`")
+    return rec
 
 
 def budget_seconds(hours: float) -> float:

@@ -180,6 +180,16 @@ class Catalog:
                              ) from exc
         return [AircraftType(**e) for e in entries]
 
+    def check_new_type(self, name: str, kind: str) -> None:
+        """Refuse a name or kind a new user type cannot have (before any file is read)."""
+        if name.lower() in self._by_name:
+            raise InputError(f"a type named {name!r} already exists; choose another --name")
+        if kind not in ("aircraft", "drone"):
+            raise InputError(f"kind must be 'aircraft' or 'drone', got {kind!r}")
+        if not name.strip() or name.strip().isdigit() or any(c in name for c in "/\\\0"):
+            raise InputError(f"type name {name!r} not accepted: it must be non-empty, not a "
+                             "number (numbers are catalog indices) and have no '/' or '\\'")
+
     def add_user_type(self, name: str, mesh: Mesh, kind: str, category: str,
                       source: str, force: bool = False,
                       unit_scale: float = 1.0) -> AircraftType:
@@ -189,13 +199,7 @@ class Catalog:
         (``unit_scale``: the metres per file unit the mesh was scaled by), unless ``force``."""
         from .checks import check_size
 
-        if name.lower() in self._by_name:
-            raise InputError(f"a type named {name!r} already exists; choose another --name")
-        if kind not in ("aircraft", "drone"):
-            raise InputError(f"kind must be 'aircraft' or 'drone', got {kind!r}")
-        if not name.strip() or name.strip().isdigit() or any(c in name for c in "/\\\0"):
-            raise InputError(f"type name {name!r} not accepted: it must be non-empty, not a "
-                             "number (numbers are catalog indices) and have no '/' or '\\'")
+        self.check_new_type(name, kind)
         check_size(mesh.extents, kind, force, unit_scale, name=repr(name))
         users = [t for t in self.types if t.source != "builtin"]
         index = max([USER_INDEX_START - 1] + [t.index for t in users]) + 1

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 
+from ..outputs import FILE, PICTURE_SUFFIXES, add_output
+from .importer import EXPORT_SUFFIXES
+
 
 def register(sub) -> None:
     p = sub.add_parser("catalog", help="list, draw, export and add aircraft types",
@@ -17,12 +20,14 @@ def register(sub) -> None:
 
     ex = cs.add_parser("export", help="write a type's mesh (body frame, metres)")
     ex.add_argument("name", help="type name or index")
-    ex.add_argument("-o", "--output", required=True, help="FILE.{ply,obj,stl,glb}")
+    add_output(ex, "-o", "--output", kind=FILE, suffixes=EXPORT_SUFFIXES, required=True,
+               help="FILE.{ply,obj,stl,glb}")
     ex.set_defaults(func=_export)
 
     sh = cs.add_parser("show", help="draw top / side / front views into a PNG")
     sh.add_argument("names", nargs="*", help="types to draw (default: all)")
-    sh.add_argument("-o", "--output", required=True, help="sheet.png")
+    add_output(sh, "-o", "--output", kind=FILE, suffixes=PICTURE_SUFFIXES, required=True,
+               help="sheet.png (or .pdf, .svg)")
     sh.add_argument("--columns", type=int, default=6)
     sh.add_argument("--dpi", type=int, default=70)
     sh.set_defaults(func=_show)
@@ -103,6 +108,7 @@ def _add(args) -> int:
     from .checks import hole_entry_share, size_problem
     from .importer import import_model
 
+    _catalog().check_new_type(args.name, args.kind)
     mesh, rep = import_model(args.file, forward=args.forward, up=args.up,
                              unit_scale=args.unit_scale, length_m=args.length_m,
                              objects=args.objects, guess=args.forward is None or args.up is None)

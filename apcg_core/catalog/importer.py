@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.atomic import atomic_path
 from .formats import SUFFIXES, _trimesh, read_model
 from .mesh import Mesh
 
@@ -150,14 +151,15 @@ def export_mesh(mesh: Mesh, path) -> Path:
     """Write the mesh (body frame, metres) as PLY, OBJ, STL or GLB, by the file's suffix."""
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in (".ply", ".obj", ".stl", ".glb"):
-        raise InputError(f"{path}: unsupported export format {suffix!r}; accepted: .ply, .obj, "
-                         ".stl, .glb")
+    if suffix not in EXPORT_SUFFIXES:
+        raise InputError(f"{path}: unsupported export format {suffix!r}; accepted: "
+                         f"{', '.join(EXPORT_SUFFIXES)}")
     trimesh = _trimesh()
     tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
     data = tm.export(file_type=suffix[1:])
-    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
-    tmp.replace(path)  # never a half-written file under the final name
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data.encode() if isinstance(data, str) else data)
     return path
+
+
+EXPORT_SUFFIXES = (".ply", ".obj", ".stl", ".glb")

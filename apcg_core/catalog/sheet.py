@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.atomic import atomic_path
 from .mesh import Mesh
 
 # (name, horizontal axis, vertical axis, depth axis toward the viewer, sign of depth)
@@ -53,12 +54,13 @@ def _save(fig, out, dpi: int) -> Path:
     import matplotlib.pyplot as plt
 
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".part.png")
-    fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+    with atomic_path(out, ".part" + out.suffix) as tmp:  # matplotlib reads the format there
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
     plt.close(fig)
-    tmp.replace(out)
     return out
+
+
+SHEET_SUFFIXES = (".png", ".pdf", ".svg")
 
 
 PREVIEW_LABELS = ("top: nose right, left wing up", "side: nose right, top up",

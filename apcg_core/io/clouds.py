@@ -17,6 +17,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import InputError
+from .atomic import atomic_path, name_the_file
 
 FORMATS = (".ply", ".npz", ".las", ".laz")
 _OWN = ("range_m", "cell_w", "cell_h", "sample")
@@ -47,28 +48,28 @@ def write_cloud(path, cloud: PointCloud, meta: dict | None = None) -> Path:
     path = Path(path)
     ext = _fmt(path)
     meta = meta or {}
-    tmp = path.with_name(path.name + ".part")
     sample = cloud.sample if cloud.sample is not None else np.zeros(len(cloud), np.int64)
-    if ext == ".npz":
-        with open(tmp, "wb") as f:
-            np.savez(f, xyz=cloud.xyz, range_m=cloud.range_m, cell_w=cloud.cell_w,
-                     cell_h=cloud.cell_h, sample=sample, meta=np.array(json.dumps(meta)))
-    elif ext == ".ply":
-        rec = np.empty(len(cloud), dtype=[(n, "<" + t) for n, t in _PLY_PROPS])
-        rec["x"], rec["y"], rec["z"] = cloud.xyz.T
-        rec["range_m"], rec["cell_w"], rec["cell_h"] = cloud.range_m, cloud.cell_w, cloud.cell_h
-        rec["sample"] = sample
-        comment = json.dumps(meta).replace("\n", " ")
-        head = ["ply", "format binary_little_endian 1.0",
-                "comment APCG standard point cloud: observation frame, metres",
-                f"comment meta {comment}", f"element vertex {len(cloud)}"]
-        head += [f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_PROPS] + ["end_header"]
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(head) + "\n").encode())
-            f.write(rec.tobytes())
-    else:
-        _write_las(tmp, cloud, sample, meta, compress=ext == ".laz")
-    _replace(tmp, path)
+    with atomic_path(path) as tmp:
+        if ext == ".npz":
+            with open(tmp, "wb") as f:
+                np.savez(f, xyz=cloud.xyz, range_m=cloud.range_m, cell_w=cloud.cell_w,
+                         cell_h=cloud.cell_h, sample=sample, meta=np.array(json.dumps(meta)))
+        elif ext == ".ply":
+            rec = np.empty(len(cloud), dtype=[(n, "<" + t) for n, t in _PLY_PROPS])
+            rec["x"], rec["y"], rec["z"] = cloud.xyz.T
+            rec["range_m"], rec["cell_w"] = cloud.range_m, cloud.cell_w
+            rec["cell_h"] = cloud.cell_h
+            rec["sample"] = sample
+            comment = json.dumps(meta).replace("\n", " ")
+            head = ["ply", "format binary_little_endian 1.0",
+                    "comment APCG standard point cloud: observation frame, metres",
+                    f"comment meta {comment}", f"element vertex {len(cloud)}"]
+            head += [f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_PROPS] + ["end_header"]
+            with open(tmp, "wb") as f:
+                f.write(("\n".join(head) + "\n").encode())
+                f.write(rec.tobytes())
+        else:
+            _write_las(tmp, cloud, sample, meta, compress=ext == ".laz")
     return path
 
 
@@ -90,6 +91,7 @@ class CloudWriter:
         self.path = Path(path)
         self.ext = _fmt(self.path)
         self.meta = meta or {}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = self.path.with_name(self.path.name + ".part")
         self.n = 0
         self._held: list[PointCloud] = []
@@ -173,9 +175,15 @@ class CloudWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
-            self.close()
+            try:
+                self.close()
+            except BaseException as failed:
+                self.abort()
+                name_the_file(failed, self.path)
+                raise
         else:
             self.abort()
+            name_the_file(exc, self.path)
 
 
 def _las_header(laspy, cloud: PointCloud, meta: dict):

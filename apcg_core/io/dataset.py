@@ -19,6 +19,7 @@ import numpy as np
 
 from ..depth import BACKGROUND, norm
 from ..errors import InputError
+from .atomic import atomic_path
 
 FORMAT_VERSION = 1
 SHARD_KEYS = ("sample_id", "conditions", "nu", "offsets", "pixel", "depth", "delta_range_m",
@@ -40,12 +41,10 @@ def _fsync_dir(path: Path) -> None:
 def write_atomic(path: Path, data: bytes, part_suffix: str = ".part") -> None:
     """Write ``data`` to ``path`` through ``path`` + ``part_suffix`` + fsync + rename."""
     path = Path(path)
-    tmp = path.with_name(path.name + part_suffix)
-    with open(tmp, "wb") as f:
+    with atomic_path(path, part_suffix) as tmp, open(tmp, "wb") as f:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
-    os.replace(tmp, path)
     _fsync_dir(path.parent)
 
 
@@ -158,6 +157,34 @@ def read_header(directory) -> dict:
         raise InputError(f"{directory} is not an APCG dataset (no dataset.json); build one with "
                          "`apcg dataset build --config CFG -o DIR`")
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
+        head = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"{path} is corrupt ({exc})") from exc
+    missing = [k for k in HEADER_KEYS if k not in head] if isinstance(head, dict) else HEADER_KEYS
+    if missing or head.get("format") != "apcg-dataset":
+        raise InputError(f"{path} is not an APCG dataset header (missing or wrong: "
+                         f"{', '.join(missing) or 'format'}); rebuild the dataset with "
+                         "`apcg dataset build`")
+    return head
+
+
+def read_manifest(directory) -> dict:
+    """A finished dataset's manifest.json (each shard's size and hash); ``{"shards": []}``
+    while the build has not finished. A damaged one is named."""
+    path = Path(directory) / "manifest.json"
+    if not path.exists():
+        return {"shards": []}
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path} is corrupt ({exc}); delete it and run the same "
+                         "`apcg dataset build` again to remake it") from exc
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("shards"), list):
+        raise InputError(f"{path} is not an APCG manifest (no shard list); delete it and run "
+                         "the same `apcg dataset build` again to remake it")
+    return manifest
+
+
+# What every reader of a dataset header relies on (dataset_builder.build.header_of writes it).
+HEADER_KEYS = ["format", "format_version", "config", "lidar", "condition_space", "types",
+               "n_samples", "shards"]

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import os
 import struct
 import zlib
 from pathlib import Path
@@ -11,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .atomic import atomic_path
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:
@@ -34,14 +34,17 @@ def write_depth_image(path, img: np.ndarray) -> Path:
     img = np.asarray(img)
     if img.ndim != 2:
         raise InputError(f"a depth image has shape (H, W), got {img.shape}")
-    tmp = path.with_name(path.name + ".part")
     ext = path.suffix.lower()
-    if ext == ".npy":
-        with open(tmp, "wb") as f:
-            np.save(f, img.astype(np.float32))
-    elif ext == ".png":
-        tmp.write_bytes(png16_bytes(img))
-    else:
-        raise InputError(f"unsupported depth image format {ext!r}; accepted: .npy, .png")
-    os.replace(tmp, path)
+    if ext not in DEPTH_IMAGE_SUFFIXES:
+        raise InputError(f"unsupported depth image format {ext!r}; accepted: "
+                         f"{', '.join(DEPTH_IMAGE_SUFFIXES)}")
+    with atomic_path(path) as tmp:
+        if ext == ".npy":
+            with open(tmp, "wb") as f:
+                np.save(f, img.astype(np.float32))
+        else:
+            tmp.write_bytes(png16_bytes(img))
     return path
+
+
+DEPTH_IMAGE_SUFFIXES = (".npy", ".png")
