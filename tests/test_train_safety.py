@@ -114,3 +114,26 @@ def test_a_corrupt_checkpoint_is_named(tiny_training_data, tmp_path):
         assert out.returncode == 2 and "not a readable checkpoint" in out.stderr, out.stderr
         assert "Traceback" not in out.stderr
     assert not (tmp_path / "m").exists()
+
+
+def test_a_second_process_on_a_live_run_is_refused_and_a_dead_ones_lock_is_taken(
+        tiny_training_data, tmp_path):
+    run = tmp_path / "run"
+    first = subprocess.Popen([APCG, "train", "--data", str(tiny_training_data), "-o", str(run),
+                              "--preset", "tiny", "--steps", "100000", "--checkpoint-every",
+                              "2", "--no-progress"], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (run / "checkpoint.pt").exists():
+        time.sleep(0.2)
+    assert (run / ".train.lock").read_text().split()[0] == str(first.pid)
+    second = _train(tiny_training_data, run, "--resume", "--steps", "100000")
+    assert second.returncode == 2, second.stderr
+    assert f"pid {first.pid}" in second.stderr and "Traceback" not in second.stderr
+    first.kill()  # SIGKILL: the lock stays behind, owned by a dead process
+    first.communicate(timeout=60)
+    step = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)["step"]
+    again = _train(tiny_training_data, run, "--resume", "--steps", str(step + 1))
+    assert again.returncode == 0, again.stderr
+    assert json.loads(again.stdout)["step"] == step + 1
+    assert not (run / ".train.lock").exists()

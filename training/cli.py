@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from pathlib import Path
 
 from apcg_core.outputs import DIRECTORY, FILE, PICTURE_SUFFIXES, add_output
 
@@ -65,6 +66,16 @@ def register_train(sub) -> None:
 
 
 def _run_train(args) -> int:
+    """One training process per run: a second one (another resume, a second torchrun) is
+    refused while the first lives; torchrun's rank 0 holds the lock for all ranks."""
+    if os.environ.get("RANK", "0") != "0":
+        return _train(args)
+    from apcg_core.lock import ProcessLock
+    with ProcessLock(Path(args.output) / ".train.lock", f"training run in {args.output}"):
+        return _train(args)
+
+
+def _train(args) -> int:
     from .trainer import Trainer, config_from, read_checkpoint
     over = {"steps": args.steps, "epochs": args.epochs, "seed": args.seed, "width": args.width,
             "n_critic": args.n_critic, "batch_size": args.batch_size,
@@ -93,9 +104,7 @@ def _run_train(args) -> int:
     _check_family_options(family, args.family, over)
     if saved is not None:
         _check_resume_matches(args, saved, over)
-        saved.update({k: v for k, v in over.items() if v is not None and k in
-                      ("steps", "epochs", "checkpoint_every", "threads", "keep_every",
-                       "diverge_gp", "ema", "hours")})
+        saved.update({k: v for k, v in over.items() if v is not None and k in RESUMABLE})
         from .trainer import TrainConfig
         cfg = TrainConfig.from_dict(saved)
     else:

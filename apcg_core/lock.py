@@ -1,0 +1,96 @@
+"""One live process per job: a lock file created with O_EXCL, holding "pid host".
+
+A second build of the same shard, or a second training process on the same run, is refused
+with a message naming the process that holds the job. A lock whose process is gone (a kill,
+a crash, on this host) is taken over, so a killed job can always be run again.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+
+from .errors import InputError
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def lock_owner(text: str) -> tuple[int | None, str | None]:
+    parts = text.split()
+    if len(parts) != 2 or not parts[0].isdigit():
+        return None, None
+    return int(parts[0]), parts[1]
+
+
+class ProcessLock:
+    """``path``, held by this process while the job runs; ``job`` names the job in messages
+    ("a build of --shard 0/2 into data/x")."""
+
+    def __init__(self, path, job: str) -> None:
+        self.path = Path(path)
+        self.job = job
+        self.mine = f"{os.getpid()} {socket.gethostname()}\n"
+        self.held = False
+
+    def acquire(self) -> ProcessLock:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(10):
+            try:
+                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                self._take_over_if_stale()
+                continue
+            with os.fdopen(fd, "w") as f:
+                f.write(self.mine)
+            self.held = True
+            return self
+        raise InputError(f"could not take the lock {self.path}; delete it if no {self.job} runs")
+
+    def _take_over_if_stale(self) -> None:
+        try:
+            text = self.path.read_text()
+        except FileNotFoundError:
+            return  # its owner just finished: try again
+        pid, host = lock_owner(text)
+        if pid is None or host != socket.gethostname() or pid_alive(pid):
+            who = f"pid {pid} on {host}" if pid is not None else "an unreadable lock"
+            raise InputError(
+                f"another {self.job} is running ({who}, lock file {self.path}); wait for it to "
+                "finish, or stop it, or delete the lock file if that process is gone")
+        # Dead owner on this host: move its lock aside atomically (only one taker wins), check
+        # that what we moved is still the dead one's, then create ours on the next round.
+        aside = self.path.with_name(self.path.name + f".stale.{os.getpid()}")
+        try:
+            os.rename(self.path, aside)
+        except FileNotFoundError:
+            return
+        if aside.read_text() != text:  # a live taker replaced it meanwhile: give it back
+            try:
+                os.link(aside, self.path)
+            except FileExistsError:
+                pass
+        aside.unlink()
+
+    def release(self) -> None:
+        if self.held:
+            try:
+                if self.path.read_text() == self.mine:
+                    self.path.unlink()
+            except FileNotFoundError:
+                pass
+            self.held = False
+
+    def __enter__(self) -> ProcessLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
