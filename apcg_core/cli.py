@@ -53,12 +53,33 @@ def join_signed_values(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None, registrars=None) -> int:
+    command = ["apcg"]  # grows to "apcg COMMAND" once parsed, for the messages
+    try:
+        return _run(argv, registrars, command)
+    except BrokenPipeError:  # e.g. `apcg catalog list | head`
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - silence the flush at exit
+        return 0
+    except APCGError as exc:  # a clear message, not a traceback, for the user's own mistakes
+        print(f"{' '.join(command)}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:  # Ctrl-C, even while starting: outputs go through temporary names
+        print(f"{' '.join(command)}: interrupted; nothing half-written is left under a final "
+              "name. Run the same command again: a dataset build continues where it stopped "
+              "(a training run: add --resume).", file=sys.stderr)
+        return 130
+    except OSError as exc:  # the file system said no (full disk, permissions): name the file
+        print(f"{' '.join(command)}: error: {os_error_message(exc)}", file=sys.stderr)
+        return 1
+
+
+def _run(argv, registrars, command: list) -> int:
     parser = build_parser(registrars)
     argv = join_signed_values(list(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    command.append(args.command)
     from .options import problems
     from .outputs import output_problems
     refused = problems(vars(args)) + output_problems(args)
@@ -66,22 +87,7 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
         print(f"apcg {args.command}: error: {message}", file=sys.stderr)
     if refused:
         return 2
-    try:
-        return int(args.func(args) or 0)
-    except BrokenPipeError:  # e.g. `apcg catalog list | head`
-        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - silence the flush at exit
-        return 0
-    except APCGError as exc:  # a clear message, not a traceback, for the user's own mistakes
-        print(f"apcg {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:  # Ctrl-C: every output is written through a temporary name
-        print(f"apcg {args.command}: interrupted; nothing half-written is left under a final "
-              "name. Run the same command again: a dataset build continues where it stopped "
-              "(a training run: add --resume).", file=sys.stderr)
-        return 130
-    except OSError as exc:  # the file system said no (full disk, permissions): name the file
-        print(f"apcg {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
-        return 1
+    return int(args.func(args) or 0)
 
 
 def print_mapping(mapping: dict, as_json: bool, key_width: int = 24) -> None:
