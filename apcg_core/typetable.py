@@ -74,14 +74,14 @@ class TypeTable:
         return [r["name"] for r in self.records]
 
     def __contains__(self, name) -> bool:
-        return isinstance(name, str) and name.lower() in self._code
+        return isinstance(name, str) and name.strip().lower() in self._code
 
     def code(self, name: str) -> int:
         """The code of type ``name`` (case-insensitive); refuses a type this table lacks."""
         if not isinstance(name, str):
             raise InputError(f"a type is given by its catalog name, got {name!r}; "
                              f"{self.owner} knows: {_listing(self.names)}")
-        code = self._code.get(name.lower())
+        code = self._code.get(name.strip().lower())
         if code is None:
             raise InputError(f"type {name!r} is not one {self.owner} knows; it knows: "
                              f"{_listing(self.names)}")

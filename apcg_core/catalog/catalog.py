@@ -112,16 +112,19 @@ class Catalog:
         return [t.name for t in self.types]
 
     def get(self, key) -> AircraftType:
-        """A type by name (case-insensitive) or index; unknown keys name close matches."""
+        """A type by name (case-insensitive, outer spaces ignored) or index (an int, or a
+        string of digits: no type is named by a number); unknown keys name close matches."""
         if isinstance(key, AircraftType):
             return key
+        if isinstance(key, str) and key.strip().isdigit():
+            key = int(key.strip())
         if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
             if int(key) in self._by_index:
                 return self._by_index[int(key)]
             raise InputError(f"unknown type index {key}; accepted: 0 .. "
                              f"{max(t.index for t in self.types if t.source == 'builtin')} "
                              "(built-in) and the user types listed by `apcg catalog list`")
-        t = self._by_name.get(str(key).lower())
+        t = self._by_name.get(str(key).strip().lower())
         if t is None:
             close = difflib.get_close_matches(str(key), self.names(), n=4, cutoff=0.5)
             hint = f"; did you mean {', '.join(close)}?" if close else ""

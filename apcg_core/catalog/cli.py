@@ -89,8 +89,7 @@ def _list(args) -> int:
 def _export(args) -> int:
     from .importer import export_mesh
     cat = _catalog()
-    key = int(args.name) if args.name.isdigit() else args.name
-    path = export_mesh(cat.mesh(key), args.output)
+    path = export_mesh(cat.mesh(args.name), args.output)
     print(f"wrote {path}")
     return 0
 
