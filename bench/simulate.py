@@ -66,9 +66,15 @@ def raw_embree_seconds(plan, catalog, tasks, block: int | None = None) -> tuple[
     """Seconds of embree's call alone, and the ray count, on the float32 rays the simulator
     makes for these samples (made beforehand, untimed); in calls of ``block`` rays when given,
     as the pipeline makes them."""
+    wall, _, rays = raw_embree_times(plan, catalog, tasks, block)
+    return wall, rays
+
+
+def raw_embree_times(plan, catalog, tasks, block: int | None = None) -> tuple[float, float, int]:
+    """:func:`raw_embree_seconds` as (wall seconds, CPU seconds of this process, rays)."""
     from dataset_builder.backends.embree import EmbreeCaster
     from dataset_builder.rays import angular_boxes, bounding_radius, make_rays, sample_frames
-    total_t, total_rays = 0.0, 0
+    total_t, total_cpu, total_rays = 0.0, 0.0, 0
     for t in tasks:
         mesh = catalog.mesh(t.type_catalog_index)
         caster = EmbreeCaster(mesh)
@@ -81,11 +87,12 @@ def raw_embree_seconds(plan, catalog, tasks, block: int | None = None) -> tuple[
         step = block or max(1, len(o))
         for i in range(0, len(o), step):
             dist = np.full(len(o[i:i + step]), rays.t_max, np.float32)
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             caster._scene.run(o[i:i + step], d[i:i + step], dists=dist, query="DISTANCE")
             total_t += time.perf_counter() - t0
+            total_cpu += time.process_time() - c0
         total_rays += len(o)
-    return total_t, total_rays
+    return total_t, total_cpu, total_rays
 
 
 def raw_embree_rate(plan, catalog, tasks) -> tuple[float, int]:

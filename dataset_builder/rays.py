@@ -19,6 +19,8 @@ from apcg_core.errors import InputError
 from apcg_core.frames import body_to_observation_matrices, target_centres
 from apcg_core.lidar import LidarParams
 
+from . import kernels
+
 # Cells added on each side of the box found from the mesh vertices. The extreme elevation of a
 # triangle can lie inside an edge (a horizontal edge across the line of sight is highest in its
 # middle); at the paper's ranges that shifts the box by < 0.1 cell, so one cell covers it.
@@ -89,9 +91,12 @@ def sample_frames(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def angular_boxes(vertices: np.ndarray, table: np.ndarray, lidar: LidarParams,
-                  m: np.ndarray, c: np.ndarray) -> AngularBoxes:
-    """The window cells that can see the target, from its vertices' directions (+ padding)."""
-    a_lo, a_hi, b_lo, b_hi = _angle_extremes(np.asarray(vertices, dtype=np.float64), m, c)
+                  m: np.ndarray, c: np.ndarray, compiled: bool | None = None) -> AngularBoxes:
+    """The window cells that can see the target, from its vertices' directions (+ padding).
+    ``compiled``: screen the vertices with the compiled kernel (default: when this process has
+    loaded the kernels, :func:`kernels.use_for`); the boxes are the same either way."""
+    a_lo, a_hi, b_lo, b_hi = _angle_extremes(np.asarray(vertices, dtype=np.float64), m, c,
+                                             compiled)
     w_lo, h_lo = lidar.cell_of_angles(a_lo, b_lo, table[:, 2])
     w_hi, h_hi = lidar.cell_of_angles(a_hi, b_hi, table[:, 2])
     w_lo, h_lo = w_lo - BOX_PAD_CELLS, h_lo - BOX_PAD_CELLS
@@ -115,7 +120,7 @@ def _exact_angles(m, vertices, c):
 _SCREEN_TOL = 1e-5
 
 
-def _angle_extremes(vertices, m, c):
+def _angle_extremes(vertices, m, c, compiled=None):
     """Per sample min / max of the vertices' azimuth and elevation, as :func:`_exact_angles` of
     every vertex gives them.
 
@@ -134,6 +139,24 @@ def _angle_extremes(vertices, m, c):
         # near-zenith or tiny meshes: no screen, every vertex exactly
         alpha, beta = _exact_angles(m, vertices, c)
         return alpha.min(axis=1), alpha.max(axis=1), beta.min(axis=1), beta.max(axis=1)
+    if kernels.use_for(0) if compiled is None else compiled:  # once the kernels are loaded
+        ns, vs = _screen_compiled(vertices, m, c, radius, z_floor)
+    else:
+        ns, vs = np.nonzero(_screen_numpy(vertices, m, c, radius, z_floor))
+    # (ns, vs) row-major: grouped by sample, each sample present
+    # The same float64 arithmetic as _exact_angles, pair by pair (einsum sums the three
+    # products in the same order for any operand shape).
+    obs = np.einsum("nij,nj->ni", m[ns], vertices[vs]) + c[ns]
+    alpha = np.arctan2(obs[:, 0], obs[:, 2])
+    beta = np.arctan2(obs[:, 1], np.hypot(obs[:, 0], obs[:, 2]))
+    start = np.searchsorted(ns, np.arange(n))
+    return (np.minimum.reduceat(alpha, start), np.maximum.reduceat(alpha, start),
+            np.minimum.reduceat(beta, start), np.maximum.reduceat(beta, start))
+
+
+def _screen_numpy(vertices, m, c, radius, z_floor):
+    """keep[s, v]: the vertices within the band of sample s's extreme ratios (float32)."""
+    n = len(m)
     v32 = np.ascontiguousarray(vertices.T, dtype=np.float32)
     u = (m.reshape(-1, 3).astype(np.float32) @ v32).reshape(n, 3, -1)  # M v, small: ~radius
     c32 = c.astype(np.float32)
@@ -154,15 +177,24 @@ def _angle_extremes(vertices, m, c):
     keep |= ta <= ta.min(axis=1, keepdims=True) + tol_a
     keep |= tb >= tb.max(axis=1, keepdims=True) - tol_b
     keep |= tb <= tb.min(axis=1, keepdims=True) + tol_b
-    ns, vs = np.nonzero(keep)  # row-major: grouped by sample, each sample present
-    # The same float64 arithmetic as _exact_angles, pair by pair (einsum sums the three
-    # products in the same order for any operand shape).
-    obs = np.einsum("nij,nj->ni", m[ns], vertices[vs]) + c[ns]
-    alpha = np.arctan2(obs[:, 0], obs[:, 2])
-    beta = np.arctan2(obs[:, 1], np.hypot(obs[:, 0], obs[:, 2]))
-    start = np.searchsorted(ns, np.arange(n))
-    return (np.minimum.reduceat(alpha, start), np.maximum.reduceat(alpha, start),
-            np.minimum.reduceat(beta, start), np.maximum.reduceat(beta, start))
+    return keep
+
+
+def _screen_compiled(vertices, m, c, radius, z_floor):
+    """np.nonzero(:func:`_screen_numpy`) in one compiled pass per sample. Its float32
+    arithmetic is not numpy's (order, no BLAS), which only moves the band's edges by an ulp;
+    the band is ~20 times wider than either's error, so both keep every vertex that can be an
+    extreme (tests/test_ray_kernel.py compares the boxes)."""
+    k = kernels.require()
+    n, nv = len(m), len(vertices)
+    ns = np.empty(n * nv, np.int64)  # pages past the few kept pairs are never touched
+    vs = np.empty(n * nv, np.int64)
+    n_kept = k.screen(np.ascontiguousarray(vertices.T, dtype=np.float32),
+                      np.ascontiguousarray(m, dtype=np.float32),
+                      np.ascontiguousarray(c, dtype=np.float32),
+                      (radius / z_floor).astype(np.float32), np.float32(_SCREEN_TOL), ns, vs,
+                      np.empty(nv, np.float32), np.empty(nv, np.float32))
+    return ns[:n_kept], vs[:n_kept]
 
 
 @dataclass
@@ -272,6 +304,38 @@ class RayBlock:
         return s, self.w_lo[s] + (ray - self.row_start[row]), self.row_h[row]
 
 
+def _block_plan(table, boxes, lidar, radius):
+    """What every block of one table shares: box sizes, column sines, start ranges, t_max."""
+    nw = np.maximum(boxes.w_hi - boxes.w_lo + 1, 0)
+    nh = np.maximum(boxes.h_hi - boxes.h_lo + 1, 0)
+    g = (np.arange(lidar.width) + lidar.w_min) * lidar.r_alpha
+    margin = start_margin_m(radius)
+    t_start = table[:, 1] - radius - margin
+    t_max = 2.0 * (radius + 2.0 * margin)
+    return nw, nh, np.sin(g), np.cos(g), t_start, t_max
+
+
+def _block_spans(n_cells, block_rays):
+    """(start, stop, first ray, rays) of each block of samples [start, stop): whole samples,
+    about ``block_rays`` rays (more when one sample has more)."""
+    n = len(n_cells)
+    ends = np.cumsum(n_cells)
+    start = 0
+    while start < n:
+        first = int(ends[start - 1]) if start else 0
+        stop = int(np.searchsorted(ends, first + block_rays, side="right"))
+        stop = min(max(stop, start + 1), n)
+        yield start, stop, first, int(ends[stop - 1]) - first
+        start = stop
+
+
+def _block_elevations(table, lidar, start, stop):
+    """sin and cos of every window row's elevation for samples [start, stop), (n, H)."""
+    rows = np.arange(lidar.height) + lidar.h_min
+    beta = table[start:stop, 2, None] + rows[None, :] * lidar.r_beta  # (n, H), as make_rays
+    return np.sin(beta), np.cos(beta)
+
+
 def ray_blocks(table: np.ndarray, boxes: AngularBoxes, lidar: LidarParams, m: np.ndarray,
                c: np.ndarray, radius: float, block_rays: int = BLOCK_RAYS):
     """:func:`make_rays` for k = 1 in blocks of whole samples, written straight to float32.
@@ -280,32 +344,109 @@ def ray_blocks(table: np.ndarray, boxes: AngularBoxes, lidar: LidarParams, m: np
     (the float32 rays, hence embree's answers, must not change by a bit); what changes is that
     the factors that depend on the sample and column, or on the sample and row, are made once
     per column or row instead of once per ray, and per-ray gathers become row repeats."""
-    n = len(table)
-    nw = np.maximum(boxes.w_hi - boxes.w_lo + 1, 0)
-    nh = np.maximum(boxes.h_hi - boxes.h_lo + 1, 0)
-    n_cells = nw * nh
-    g = (np.arange(lidar.width) + lidar.w_min) * lidar.r_alpha
-    sin_a, cos_a = np.sin(g), np.cos(g)
-    margin = start_margin_m(radius)
-    t_start = table[:, 1] - radius - margin
-    t_max = 2.0 * (radius + 2.0 * margin)
-    ends = np.cumsum(n_cells)
-    start = 0
-    while start < n:
-        stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + block_rays,
-                                   side="right"))
-        stop = min(max(stop, start + 1), n)
+    nw, nh, sin_a, cos_a, t_start, t_max = _block_plan(table, boxes, lidar, radius)
+    for start, stop, _, _ in _block_spans(nw * nh, block_rays):
         yield _block(table, boxes, lidar, m, c, start, stop, nw, nh, sin_a, cos_a, t_start,
                      t_max)
-        start = stop
+
+
+def cast_cells(caster, table: np.ndarray, boxes: AngularBoxes, lidar: LidarParams,
+               m: np.ndarray, c: np.ndarray, radius: float, compiled: bool | None = None,
+               block_rays: int = BLOCK_RAYS):
+    """(sample, w, h, float64 range) of every hit cell, one ray per cell, for a caster with
+    ``cast_hits`` (and ``distances32`` for the compiled path): the build's hot loop.
+
+    ``compiled`` (default: :func:`kernels.use_for` these rays) makes each block's rays and
+    reads its hits in compiled loops (:mod:`dataset_builder.kernels`); otherwise
+    :func:`ray_blocks` and the caster's ``cast_hits`` do it in numpy. Both give the same
+    bytes."""
+    if compiled is None:
+        compiled = (hasattr(caster, "distances32")
+                    and kernels.use_for(int(boxes.n_cells.sum())))
+    if compiled:
+        return _cast_cells_compiled(caster, table, boxes, lidar, m, c, radius, block_rays)
+    parts = []
+    for blk in ray_blocks(table, boxes, lidar, m, c, radius, block_rays):
+        ray, t = caster.cast_hits(blk.origin, blk.direction, blk.t_max)
+        s, w, h = blk.cells(ray)
+        parts.append((s, w.astype(np.int32), h.astype(np.int32), blk.t_start[s] + t))
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0)
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
+
+
+def _cast_cells_compiled(caster, table, boxes, lidar, m, c, radius, block_rays):
+    k = kernels.require()
+    blocks = compiled_ray_blocks(table, boxes, lidar, m, c, radius, block_rays)
+    plan = next(blocks)
+    limit = np.float32(plan.t_max)
+    hit_limit = float(limit) * (1.0 - 1e-6)  # backends.is_hit, in the kernel
+    # Hits land here in ray order; pages never written (the misses' share) are never touched.
+    out_s = np.empty(plan.n_rays, np.int64)
+    out_w = np.empty(plan.n_rays, np.int32)
+    out_h = np.empty(plan.n_rays, np.int32)
+    out_r = np.empty(plan.n_rays)
+    t_buf = np.empty(plan.biggest, np.float32)
+    n_hits = 0
+    for start, stop, o, d in blocks:
+        t32 = caster.distances32(o, d, limit, out=t_buf[:len(o)])
+        n_hits = k.hits(start, stop, plan.nw, plan.nh, plan.w_lo, plan.h_lo, plan.t_start, t32,
+                        d, limit, hit_limit, out_s, out_w, out_h, out_r, n_hits)
+    return out_s[:n_hits], out_w[:n_hits], out_h[:n_hits], out_r[:n_hits]
+
+
+@dataclass
+class CompiledPlan:
+    """What the compiled blocks of one table share (first item of compiled_ray_blocks)."""
+
+    nw: np.ndarray  # (N,) int64 box columns and rows of each sample
+    nh: np.ndarray
+    w_lo: np.ndarray  # (N,) int64
+    h_lo: np.ndarray
+    t_start: np.ndarray  # (N,) float64
+    t_max: float
+    n_rays: int
+    biggest: int  # rays in the largest block
+
+
+def compiled_ray_blocks(table: np.ndarray, boxes: AngularBoxes, lidar: LidarParams,
+                        m: np.ndarray, c: np.ndarray, radius: float,
+                        block_rays: int = BLOCK_RAYS):
+    """:func:`ray_blocks`' rays made by the compiled kernel: first a :class:`CompiledPlan`,
+    then (start, stop, origin, direction) per block of samples [start, stop). The float32
+    arrays are one buffer reused by every block: use (or copy) them before the next."""
+    k = kernels.require()
+    nw, nh, sin_a, cos_a, t_start, t_max = _block_plan(table, boxes, lidar, radius)
+    i64 = np.int64
+    nw, nh = nw.astype(i64), nh.astype(i64)
+    w_lo, h_lo = boxes.w_lo.astype(i64), boxes.h_lo.astype(i64)
+    m = np.ascontiguousarray(m, dtype=np.float64)
+    n_cells = nw * nh
+    spans = list(_block_spans(n_cells, block_rays))
+    biggest = max((sp[3] for sp in spans), default=0)
+    yield CompiledPlan(nw, nh, w_lo, h_lo, t_start, t_max, int(n_cells.sum()), biggest)
+    # sin and cos of the elevation of every box row, once per table: the numbers rays._block
+    # takes from its (n, H) tables, numpy's sin and cos being elementwise (the same number for
+    # the same input in any array; tests/test_ray_kernel.py compares the rays); M^T C too
+    row_ends = np.cumsum(nh)
+    beta = np.empty(int(row_ends[-1]) if len(row_ends) else 0)
+    k.row_elevations(nh, h_lo, np.ascontiguousarray(table[:, 2]), float(lidar.r_beta), beta)
+    sin_b, cos_b = np.sin(beta), np.cos(beta)
+    lidar_body = np.einsum("nji,nj->ni", m, c)  # as make_rays (the same for any block)
+    origin = np.empty((biggest, 3), np.float32)
+    direction = np.empty((biggest, 3), np.float32)
+    u = np.empty((lidar.width, 3))
+    for start, stop, _, n_rays in spans:
+        o, d = origin[:n_rays], direction[:n_rays]
+        k.rays(start, stop, int(row_ends[start - 1]) if start else 0, nw, nh, w_lo,
+               lidar.w_min, sin_a, cos_a, sin_b, cos_b, m, t_start, lidar_body, u, o, d)
+        yield start, stop, o, d
 
 
 def _block(table, boxes, lidar, m, c, start, stop, nw, nh, sin_a, cos_a, t_start, t_max):
     sl = slice(start, stop)
     samples = np.arange(start, stop)
-    rows = np.arange(lidar.height) + lidar.h_min
-    beta = table[sl, 2, None] + rows[None, :] * lidar.r_beta  # (n, H), as make_rays
-    sin_b, cos_b = np.sin(beta), np.cos(beta)
+    sin_b, cos_b = _block_elevations(table, lidar, start, stop)
     # per box row: its sample, h, cos/sin of its elevation
     row_sample = np.repeat(samples, nh[sl])
     first_row = np.concatenate([[0], np.cumsum(nh[sl])[:-1]])

@@ -22,9 +22,9 @@ from .backends import check_backend, make_caster
 from .rays import (
     angular_boxes,
     bounding_radius,
+    cast_cells,
     check_conditions,
     make_rays,
-    ray_blocks,
     sample_frames,
 )
 
@@ -166,30 +166,27 @@ class Simulator:
         m, c = sample_frames(table)
         boxes = angular_boxes(mesh.vertices, table, lidar, m, c)
         rays_per_sample = boxes.n_cells * self.supersample**2
-        parts = []
         if self.supersample == 1 and hasattr(caster, "cast_hits"):
-            # float32 rays made block by block and only the hits carried on (docs/SCALE.md)
-            for blk in ray_blocks(table, boxes, lidar, m, c, radius):
-                ray, t = caster.cast_hits(blk.origin, blk.direction, blk.t_max)
-                s, w, h = blk.cells(ray)
-                parts.append((s, w, h, blk.t_start[s] + t))
-        else:
-            start = 0
-            n = len(table)
-            while start < n:  # chunks of whole samples, about RAYS_PER_CALL rays each
-                stop = start + max(1, int(np.searchsorted(
-                    np.cumsum(rays_per_sample[start:]), RAYS_PER_CALL, side="right")))
-                stop = min(stop, n)
-                sl = slice(start, stop)
-                rays = make_rays(table[sl], boxes[sl], lidar, m[sl], c[sl], radius,
-                                 self.supersample)
-                t = caster.cast(rays.origin, rays.direction, rays.t_max)
-                t = t.reshape(-1, rays.k).min(axis=1)  # nearest of the k x k rays of each cell
-                hit = np.isfinite(t)
-                s = rays.sample[hit]
-                r = rays.t_start[s] + t[hit]
-                parts.append((s + start, rays.w[hit], rays.h[hit], r))
-                start = stop
+            # float32 rays made block by block and only the hits carried on, in compiled loops
+            # where numba is installed (docs/SCALE.md)
+            s, w, h, r = cast_cells(caster, table, boxes, lidar, m, c, radius)
+            return s, w, h, r, boxes.clipped, rays_per_sample.astype(np.int64)
+        parts = []
+        start = 0
+        n = len(table)
+        while start < n:  # chunks of whole samples, about RAYS_PER_CALL rays each
+            stop = start + max(1, int(np.searchsorted(
+                np.cumsum(rays_per_sample[start:]), RAYS_PER_CALL, side="right")))
+            stop = min(stop, n)
+            sl = slice(start, stop)
+            rays = make_rays(table[sl], boxes[sl], lidar, m[sl], c[sl], radius, self.supersample)
+            t = caster.cast(rays.origin, rays.direction, rays.t_max)
+            t = t.reshape(-1, rays.k).min(axis=1)  # nearest of the k x k rays of each cell
+            hit = np.isfinite(t)
+            s = rays.sample[hit]
+            r = rays.t_start[s] + t[hit]
+            parts.append((s + start, rays.w[hit], rays.h[hit], r))
+            start = stop
         if parts:
             s, w, h, r = (np.concatenate([p[i] for p in parts]) for i in range(4))
         else:

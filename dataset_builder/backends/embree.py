@@ -6,6 +6,8 @@ import numpy as np
 
 from apcg_core.errors import InputError
 
+from . import hits_of, is_hit
+
 
 def _import_embreex():
     try:
@@ -41,7 +43,7 @@ class EmbreeCaster:
         t = t.astype(np.float64)
         # Embree measures t in units of the float32 direction's length.
         t *= np.sqrt((d.astype(np.float64) ** 2).sum(axis=1))
-        t[~(self._hit(t, limit))] = np.inf
+        t[~is_hit(t, limit)] = np.inf
         return t
 
     def cast_hits(self, origin: np.ndarray, direction: np.ndarray,
@@ -51,18 +53,16 @@ class EmbreeCaster:
         The same numbers as ``cast`` gives at its finite entries; misses (three rays in four)
         come back from embree with t = t_max exactly, so they are dropped before the float64
         work instead of after it."""
-        if len(origin) == 0:
-            return np.zeros(0, np.int64), np.zeros(0)
-        limit = np.float32(t_max)
-        t32 = self._scene.run(origin, direction, dists=np.full(len(origin), limit, np.float32),
-                              query="DISTANCE")
-        # A hit has t * |d| < limit (1 - 1e-6) with |d| within 1e-7 of 1, so t < limit.
-        ray = np.flatnonzero(t32 < limit)
-        t = t32[ray].astype(np.float64)
-        t *= np.sqrt((direction[ray].astype(np.float64) ** 2).sum(axis=1))
-        hit = self._hit(t, limit)
-        return ray[hit], t[hit]
+        return hits_of(self.distances32, origin, direction, t_max)
 
-    @staticmethod
-    def _hit(t: np.ndarray, limit) -> np.ndarray:
-        return t < float(limit) * (1.0 - 1e-6)
+    def distances32(self, origin: np.ndarray, direction: np.ndarray, limit: np.float32,
+                    out: np.ndarray | None = None) -> np.ndarray:
+        """embree's own answer for float32 rays (C-contiguous (n, 3)): t in units of each
+        direction's length, float32, exactly ``limit`` where nothing is hit before it; written
+        to ``out`` (float32, n) when given, which saves an allocation per call."""
+        if len(origin) == 0:
+            return np.zeros(0, np.float32)
+        if out is None:
+            out = np.empty(len(origin), np.float32)
+        out.fill(limit)
+        return self._scene.run(origin, direction, dists=out, query="DISTANCE")
