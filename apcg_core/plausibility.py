@@ -24,6 +24,17 @@ def range_band_warning(t, range_m: float) -> str | None:
             f"{lo:g}-{hi:g} m, and {range_m:g} m lies outside it")
 
 
+def band_share_warning(n_outside: int, n_total: int) -> str | None:
+    """Samples of a dataset whose range lies outside their type's Table 1 band."""
+    if not n_outside:
+        return None
+    space = ConditionSpace()
+    return (f"{n_outside:,} of {n_total:,} samples lie outside their type's Table 1 range band "
+            f"(far types {space.aircraft_range_m[0]:g}-{space.aircraft_range_m[1]:g} m, near "
+            f"types {space.drone_range_m[0]:g}-{space.drone_range_m[1]:g} m): the shipped "
+            "models never saw such ranges, and far-off small targets give empty clouds")
+
+
 def sparse_cloud_warning(n_points: int, what: str) -> str | None:
     """An empty or near-empty cloud: the target covers too few lidar cells."""
     if n_points == 0:

@@ -9,13 +9,16 @@ Builds of different ``--shard I/N`` parts may run at once into one directory (a 
 every temporary file carries its writer's pid, files that several processes write (the plan
 files, the manifest) have the same bytes whoever writes them and appear by atomic rename, and
 a lock file per shard spec refuses a second build of the same part while the first one lives.
+
+Where the shards are computed (this process, a local pool, a Dask cluster) is the engine's
+business (``engine.py``); every engine runs the same ``run_task`` on the same tasks. Ctrl-C
+stops the workers, drops their temporary files and raises ``BuildInterrupted`` saying how many
+shards are done: the same command resumes.
 """
 
 from __future__ import annotations
 
 import os
-import socket
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,13 +33,16 @@ from apcg_core.io.dataset import (
     Shard,
     json_bytes,
     read_header,
+    read_manifest,
     sha256_file,
     write_atomic,
 )
 from apcg_core.lidar import DEG
+from apcg_core.lock import ProcessLock, pid_alive
 from apcg_core.progress import Progress
 
 from .backends import check_backend
+from .engine import RunSettings, get_engine, worker_init  # noqa: F401 (benches import it here)
 from .plan import Plan, ShardPlan, load_config, make_plan
 from .rays import bounding_radius
 
@@ -141,14 +147,6 @@ def compute_shard(task: ShardTask) -> Shard:
                  n_rays=cl.n_rays.astype(np.int32))
 
 
-def worker_init() -> None:
-    """Pool initializer. A spawned child inherits its parent's sys.path; once the parent has
-    imported the bpy module that includes Blender's own scripts/modules folder, whose ``bpy``
-    package would then shadow the bpy extension module in the child. Drop those entries."""
-    marker = f"{os.sep}bpy{os.sep}"
-    sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
-
-
 def _part_suffix() -> str:
     """Temporary-file suffix unique to this process (concurrent builders share a directory)."""
     return f".{os.getpid()}.part"
@@ -162,88 +160,11 @@ def run_task(task: ShardTask) -> tuple[int, int, float]:
     return task.index, len(task.rows), time.perf_counter() - t0
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
-
-
-class ShardLock:
-    """``DIR/.build-I-of-N.lock``, created with O_EXCL, holding "pid host": one live build per
-    shard spec and directory. A lock whose process is gone (same host) is taken over."""
-
-    def __init__(self, out: Path, part_i: int, part_n: int) -> None:
-        self.path = out / f".build-{part_i}-of-{part_n}.lock"
-        self.spec = f"{part_i}/{part_n}"
-        self.mine = f"{os.getpid()} {socket.gethostname()}\n"
-        self.held = False
-
-    def acquire(self) -> None:
-        for _ in range(10):
-            try:
-                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            except FileExistsError:
-                self._take_over_if_stale()
-                continue
-            with os.fdopen(fd, "w") as f:
-                f.write(self.mine)
-            self.held = True
-            return
-        raise InputError(f"could not take the lock {self.path}; delete it if no build of "
-                         f"--shard {self.spec} runs")
-
-    def _take_over_if_stale(self) -> None:
-        try:
-            text = self.path.read_text()
-        except FileNotFoundError:
-            return  # its owner just finished: try again
-        pid, host = _lock_owner(text)
-        if pid is None or host != socket.gethostname() or _pid_alive(pid):
-            who = f"pid {pid} on {host}" if pid is not None else "an unreadable lock"
-            raise InputError(
-                f"another build of --shard {self.spec} into {self.path.parent} is running "
-                f"({who}, lock file {self.path}); wait for it to finish, or stop it, or delete "
-                "the lock file if that process is gone")
-        # Dead owner on this host: move its lock aside atomically (only one taker wins), check
-        # that what we moved is still the dead one's, then create ours on the next round.
-        aside = self.path.with_name(self.path.name + f".stale.{os.getpid()}")
-        try:
-            os.rename(self.path, aside)
-        except FileNotFoundError:
-            return
-        if aside.read_text() != text:  # a live taker replaced it meanwhile: give it back
-            try:
-                os.link(aside, self.path)
-            except FileExistsError:
-                pass
-        aside.unlink()
-
-    def release(self) -> None:
-        if self.held:
-            try:
-                if self.path.read_text() == self.mine:
-                    self.path.unlink()
-            except FileNotFoundError:
-                pass
-            self.held = False
-
-
-def _lock_owner(text: str) -> tuple[int | None, str | None]:
-    parts = text.split()
-    if len(parts) != 2 or not parts[0].isdigit():
-        return None, None
-    return int(parts[0]), parts[1]
-
-
 def _remove_dead_parts(directory: Path) -> None:
     """Delete ``NAME.PID.part`` files whose writer is gone (or is us); never a live writer's."""
     for part in directory.glob("*.part"):
         pid = part.name.rsplit(".", 2)[-2] if part.name.count(".") >= 2 else ""
-        if not pid.isdigit() or int(pid) == os.getpid() or not _pid_alive(int(pid)):
+        if not pid.isdigit() or int(pid) == os.getpid() or not pid_alive(int(pid)):
             try:
                 part.unlink()
             except FileNotFoundError:
@@ -262,10 +183,19 @@ def parse_shard_spec(spec: str | None) -> tuple[int, int]:
     return i, n
 
 
+class BuildInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped a build; the message says how far it got and how to resume. Still a
+    KeyboardInterrupt, so a caller that does not handle it stops as on any Ctrl-C."""
+
+
 def build_dataset(config: str | dict, out_dir, backend: str | None = None, workers: int = 1,
                   shard_spec: str | None = None, progress: bool = True,
-                  tasks_per_process: int | None = None, catalog=None) -> dict:
-    """Build (or resume) the dataset of ``config`` in ``out_dir``; returns a summary."""
+                  tasks_per_process: int | None = None, catalog=None, engine: str = "local",
+                  address: str | None = None) -> dict:
+    """Build (or resume) the dataset of ``config`` in ``out_dir``; returns a summary.
+
+    ``engine`` says where the shards are computed (``engine.ENGINES``: this machine, or a
+    Dask cluster at ``address``); the bytes written do not depend on it."""
     from apcg_core.catalog.catalog import default_catalog
     catalog = catalog or default_catalog()
     cfg = load_config(config) if isinstance(config, str) else dict(config)
@@ -277,18 +207,27 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
         raise InputError(f"--workers must be an integer >= 1, got {workers!r}")
     part_i, part_n = parse_shard_spec(shard_spec)
     out = Path(out_dir)
+    runner = get_engine(engine)
+    settings = RunSettings(workers=workers, address=address, tasks_per_process=tasks_per_process,
+                           leaky_backend=plan.config["backend"].startswith("blender"),
+                           output=str(out.resolve()))
+    runner.check(settings)  # before anything is written: a bad address costs nothing
     (out / "shards").mkdir(parents=True, exist_ok=True)
-    lock = ShardLock(out, part_i, part_n)
+    # One live build per shard spec and directory; parts of one build run side by side.
+    lock = ProcessLock(out / f".build-{part_i}-of-{part_n}.lock",
+                       f"build of --shard {part_i}/{part_n} into {out}")
     lock.acquire()
     try:
-        return _build_locked(plan, catalog, out, workers, part_i, part_n, progress,
-                             tasks_per_process)
+        summary = _build_locked(plan, catalog, out, runner, settings, part_i, part_n, progress)
     finally:
         lock.release()
+    summary["n_samples"] = plan.n_samples
+    summary["samples_outside_table1_bands"] = plan.n_outside_table1_bands()
+    return summary
 
 
-def _build_locked(plan: Plan, catalog, out: Path, workers: int, part_i: int, part_n: int,
-                  progress: bool, tasks_per_process: int | None) -> dict:
+def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings, part_i: int,
+                  part_n: int, progress: bool) -> dict:
     header = json_bytes(header_of(plan, catalog))
     head_path = out / "dataset.json"
     # Concurrent builders of one plan write the same bytes here, each through its own
@@ -307,25 +246,17 @@ def _build_locked(plan: Plan, catalog, out: Path, workers: int, part_i: int, par
     mine = [s for s in plan.shards if s.index % part_n == part_i]
     todo = [s for s in mine if not (out / s.file).exists()]
     done_samples = sum(len(s.rows) for s in mine) - sum(len(s.rows) for s in todo)
-    tasks = [_task(plan, catalog, s, out) for s in todo]
+    # absolute: a cluster's workers do not share this process's working directory
+    tasks = [_task(plan, catalog, s, Path(settings.output)) for s in todo]
     bar = Progress(sum(len(s.rows) for s in mine), "sample", progress, done=done_samples)
     t0 = time.perf_counter()
     try:
-        if workers == 1 and not (plan.config["backend"].startswith("blender")
-                                 and tasks_per_process):
-            for task in tasks:
-                bar.update(run_task(task)[1])
-        else:
-            per = tasks_per_process
-            if per is None and plan.config["backend"].startswith("blender"):
-                per = 1  # one process per shard: Blender's memory grows across long loops
-            # Imported only here: Debian's Blender 3.4 crashes at exit once multiprocessing has
-            # been imported, and inside a Blender binary builds run with one worker.
-            import multiprocessing as mp
-            ctx = mp.get_context("spawn")
-            with ctx.Pool(workers, initializer=worker_init, maxtasksperchild=per) as pool:
-                for _, n, _ in pool.imap_unordered(run_task, tasks):
+        if tasks:  # a finished part starts no cluster
+            with runner.start(settings) as run:
+                for _, n, _ in run(run_task, tasks):
                     bar.update(n)
+    except KeyboardInterrupt:
+        raise _interrupted(out, mine, part_i, part_n, settings) from None
     finally:
         close_simulators()
         bar.close()
@@ -340,6 +271,20 @@ def _build_locked(plan: Plan, catalog, out: Path, workers: int, part_i: int, par
     return {"directory": str(out), "built_shards": len(tasks), "skipped_shards": len(mine) -
             len(tasks), "samples_built": sum(len(t.rows) for t in tasks),
             "seconds": round(elapsed, 3), "complete": complete}
+
+
+def _interrupted(out: Path, mine: list[ShardPlan], part_i: int, part_n: int,
+                 settings: RunSettings) -> BuildInterrupted:
+    """After Ctrl-C, once the workers are stopped: drop the temporary files of this build's
+    dead writers (a half-written shard never has its final name anyway) and say where the
+    build stands. A cluster's shards still running finish on their own: theirs are left."""
+    if settings.writers_are_local:
+        _remove_dead_parts(out / "shards")
+        _remove_dead_parts(out)
+    done = sum((out / s.file).exists() for s in mine)
+    of = f" of --shard {part_i}/{part_n}" if part_n > 1 else ""
+    return BuildInterrupted(f"interrupted: {done} of {len(mine)} shards{of} are done in {out}; "
+                            "run the same command again to resume (finished shards are kept)")
 
 
 def _task(plan: Plan, catalog, s: ShardPlan, out: Path) -> ShardTask:
@@ -374,10 +319,9 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
     n_done = sum(s["n_samples"] for s in present)
     info["samples_present"] = n_done
     if verify:
-        import json
-        manifest = (json.loads((out / "manifest.json").read_text())
-                    if (out / "manifest.json").exists() else {"shards": []})
-        sums = {m["file"]: m["sha256"] for m in manifest["shards"]}
+        from apcg_core.catalog.catalog import default_catalog
+        sums = {m.get("file"): m.get("sha256") for m in read_manifest(out)["shards"]
+                if isinstance(m, dict)}
         n_points = clipped = clamped = empty = 0
         bad = []
         for s in present:
@@ -393,9 +337,12 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
             clipped += int(sh.clipped.sum())
             clamped += int(sh.n_clamped.sum())
             empty += int((np.diff(sh.offsets) == 0).sum())
+        if (out / "conditions.csv").exists() and (out / "conditions.csv").read_bytes() != \
+                conditions_csv(make_plan(head["config"], default_catalog())):
+            bad.append("conditions.csv")  # a pure function of the config: made again, compared
         if bad:
-            raise InputError(f"corrupt shards in {out}: {bad}; delete them and run the build "
-                             "again to remake them")
+            raise InputError(f"corrupt files in {out}: {bad}; delete them and run the same "
+                             "build again to remake them")
         info.update({"points": n_points, "mean_points_per_sample": n_points / max(n_done, 1),
                      "clipped_samples": clipped, "clamped_pixels": clamped,
                      "empty_samples": empty, "verified": True})

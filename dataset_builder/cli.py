@@ -6,8 +6,12 @@ import json
 import sys
 
 from apcg_core.cli import add_pose_arguments, print_mapping
+from apcg_core.io.clouds import FORMATS as CLOUD_FORMATS
+from apcg_core.io.images import DEPTH_IMAGE_SUFFIXES
+from apcg_core.outputs import DIRECTORY, FILE, add_output
 
 from .backends import BACKENDS
+from .engine import ENGINES
 
 
 def register_simulate(sub) -> None:
@@ -26,9 +30,12 @@ def register_simulate(sub) -> None:
                    help="K x K rays per cell, nearest hit kept (default 1)")
     p.add_argument("--no-quantize", action="store_true",
                    help="keep exact ranges instead of the time-bin centres")
-    p.add_argument("-o", "--output", required=True, help="cloud file: .ply, .npz, .las or .laz")
-    p.add_argument("--depth-image", help="also write the depth image (PC2Im): .npy or .png")
-    p.add_argument("--normalized-image", help="also write Norm(depth image): .npy or .png")
+    add_output(p, "-o", "--output", kind=FILE, suffixes=CLOUD_FORMATS, required=True,
+               help="cloud file: .ply, .npz, .las or .laz")
+    add_output(p, "--depth-image", kind=FILE, suffixes=DEPTH_IMAGE_SUFFIXES,
+               help="also write the depth image (PC2Im): .npy or .png")
+    add_output(p, "--normalized-image", kind=FILE, suffixes=DEPTH_IMAGE_SUFFIXES,
+               help="also write Norm(depth image): .npy or .png")
     p.set_defaults(func=_run_simulate)
 
 
@@ -44,8 +51,7 @@ def _run_simulate(args) -> int:
     from .simulate import Simulator
 
     cat = default_catalog()
-    key = int(args.type) if args.type.isdigit() else args.type
-    t = cat.get(key)
+    t = cat.get(args.type)
     cond = Condition.from_degrees(t.index, args.range_m, args.elevation_deg, args.pitch_deg,
                                   args.yaw_deg, args.roll_deg)
     with Simulator(args.backend, quantize=not args.no_quantize,
@@ -90,13 +96,21 @@ def register_dataset(sub) -> None:
                                     "and run again, it finishes the same dataset byte for byte.")
     b.add_argument("--config", required=True,
                    help="TOML file, or a committed config name (see `apcg dataset configs`)")
-    b.add_argument("-o", "--output", required=True, help="dataset directory")
+    add_output(b, "-o", "--output", kind=DIRECTORY, required=True, help="dataset directory")
     b.add_argument("--backend", choices=BACKENDS, help="override the config's backend")
     b.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     b.add_argument("--shard", metavar="I/N",
                    help="build only shards with index %% N == I (0 <= I < N), for job arrays")
     b.add_argument("--tasks-per-process", type=int, default=None,
-                   help="shards a worker builds before it is replaced (blender default: 1)")
+                   help="shards a local pool's worker builds before it is replaced "
+                        "(blender default: 1)")
+    b.add_argument("--engine", default="local", metavar="NAME",
+                   help="where the shards are computed: " + "; ".join(
+                       f"{name}: {engine.summary}" for name, engine in ENGINES.items()))
+    b.add_argument("--address", metavar="ADDR",
+                   help="a running cluster's scheduler (e.g. tcp://head-node:8786) for "
+                        "--engine dask; the output directory must be shared storage, mounted "
+                        "at the same path on every machine")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     b.set_defaults(func=_run_build)
     i = dsub.add_parser("info", help="describe a dataset directory")
@@ -110,12 +124,21 @@ def register_dataset(sub) -> None:
 
 
 def _run_build(args) -> int:
-    from .build import build_dataset
-    summary = build_dataset(args.config, args.output, backend=args.backend,
-                            workers=args.workers, shard_spec=args.shard,
-                            progress=not args.no_progress,
-                            tasks_per_process=args.tasks_per_process)
+    from .build import BuildInterrupted, build_dataset
+    try:
+        summary = build_dataset(args.config, args.output, backend=args.backend,
+                                workers=args.workers, shard_spec=args.shard,
+                                progress=not args.no_progress,
+                                tasks_per_process=args.tasks_per_process, engine=args.engine,
+                                address=args.address)
+    except BuildInterrupted as stop:  # Ctrl-C among the shards: say how far it got
+        print(f"apcg dataset: {stop}", file=sys.stderr)
+        return 130  # as shells do; main() answers a Ctrl-C before the shards alike
     print(json.dumps(summary))
+    from apcg_core.plausibility import band_share_warning
+    warning = band_share_warning(summary["samples_outside_table1_bands"], summary["n_samples"])
+    if warning:
+        print(f"apcg dataset: warning: {warning}", file=sys.stderr)
     return 0
 
 

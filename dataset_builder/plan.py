@@ -79,6 +79,17 @@ class Plan:
     def n_samples(self) -> int:
         return len(self.table)
 
+    def n_outside_table1_bands(self) -> int:
+        """Rows whose range lies outside their type's Table 1 band (a config may widen the
+        ranges; the plausibility warning counts them)."""
+        table1 = ConditionSpace()
+        codes = self.table[:, 0].astype(np.int64)
+        near = self.space.is_drone(codes)
+        lo = np.where(near, table1.drone_range_m[0], table1.aircraft_range_m[0])
+        hi = np.where(near, table1.drone_range_m[1], table1.aircraft_range_m[1])
+        r = self.table[:, 1]
+        return int(((r < lo) | (r > hi)).sum())
+
 
 def _pair(cfg: dict, key: str, default) -> tuple[float, float]:
     v = cfg.get(key, default)  # shape checked by the schema

@@ -1,0 +1,308 @@
+"""Where a build's shard tasks run: in this process, in a local process pool, or on a Dask
+cluster (``apcg dataset build --engine dask [--address ADDR]``), one task per shard.
+
+Every engine is handed the same small, picklable ``ShardTask``s and the same pure function
+(``build.run_task``), which computes one shard and writes it atomically itself; an engine only
+decides where that happens and yields each finished task's result in completion order. So where
+a shard was computed never shows in its bytes, and a task whose worker dies (a crash, a kill)
+is simply run again: the rerun writes the same bytes under the same name.
+
+Engines are found by name in ``ENGINES``. A cluster library is imported only when its engine
+is used, so the project installs and builds without it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from apcg_core.errors import APCGError, InputError
+
+# fn(tasks) -> results as they finish
+Runner = Callable[[Callable, Iterable], Iterator]
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """How the user asked the shards to be run (the command line's --workers and friends)."""
+
+    workers: int = 1
+    address: str | None = None  # a running cluster's scheduler; None: start one here
+    tasks_per_process: int | None = None  # as given; None: the engine's default
+    # Blender's memory grows across long loops: a local pool replaces each worker after a shard
+    leaky_backend: bool = False
+    output: str = ""  # the dataset directory, which a cluster's workers must see too
+
+    @property
+    def writers_are_local(self) -> bool:
+        """Every shard is written by a process of this machine, so the pid in a temporary
+        file's name can be checked here (a cluster's workers are processes of other hosts)."""
+        return self.address is None
+
+
+def worker_init() -> None:
+    """Set-up of every worker process this machine starts.
+
+    Ctrl-C reaches the whole foreground process group; the workers ignore it (they are also
+    started with it blocked, see _sigint_held), so that only the build's own process reacts
+    (stops the workers, reports, exits 130) and no worker prints a traceback of its own.
+
+    A spawned child inherits its parent's sys.path; once the parent has imported the bpy
+    module that includes Blender's own scripts/modules folder, whose ``bpy`` package would
+    then shadow the bpy extension module in the child. Drop those entries."""
+    with contextlib.suppress(ValueError):  # not the main thread: nothing to ignore there
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    marker = f"{os.sep}bpy{os.sep}"
+    sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
+
+
+class LocalEngine:
+    """This process (``--workers 1``), or a pool of ``--workers`` spawned processes."""
+
+    name = "local"
+    summary = "this machine: one process, or a process pool with --workers N (default)"
+
+    def check(self, settings: RunSettings) -> None:
+        if settings.address:
+            raise InputError(f"--address needs a cluster engine: --engine "
+                             f"{' or '.join(n for n in ENGINES if n != self.name)}")
+
+    @contextlib.contextmanager
+    def start(self, settings: RunSettings) -> Iterator[Runner]:
+        if settings.workers == 1 and not (settings.leaky_backend and settings.tasks_per_process):
+            yield map
+            return
+        per = settings.tasks_per_process or (1 if settings.leaky_backend else None)
+        # Imported only here: Debian's Blender 3.4 crashes at exit once multiprocessing has
+        # been imported, and inside a Blender binary builds run with one worker.
+        import multiprocessing as mp
+        ctx = mp.get_context("spawn")
+        # Leaving the stack terminates the pool (on Ctrl-C too) and waits for its workers.
+        with contextlib.ExitStack() as stack:
+            with _sigint_held():
+                pool = stack.enter_context(ctx.Pool(settings.workers, initializer=worker_init,
+                                                    maxtasksperchild=per))
+            yield pool.imap_unordered
+
+
+DASK_PIP = "pip install 'apcg[engine]' (or: pip install 'dask[distributed]')"
+DASK_PORT = 8786  # the port `dask scheduler` listens on by default
+CONNECT_TIMEOUT_S = 10
+
+
+class DaskEngine:
+    """A Dask cluster: the one at ``--address``, or a local one of ``--workers`` processes.
+
+    Retries: when a worker dies, its scheduler gives the worker's tasks to another worker, up
+    to ``distributed.scheduler.allowed-failures`` times (3 by default) per task."""
+
+    name = "dask"
+    summary = ("a Dask cluster: the scheduler at --address, or a local cluster of --workers "
+               "processes")
+
+    def check(self, settings: RunSettings) -> None:
+        _import_distributed()
+        if settings.tasks_per_process:
+            raise InputError("--tasks-per-process applies to the local engine only (a cluster's "
+                             "workers are long-lived)")
+        if settings.address and settings.workers > 1:
+            raise InputError("--workers sets the size of a local cluster; with --address the "
+                             "cluster's own workers build the shards: leave --workers out")
+        if settings.address:
+            _check_reachable(settings.address)
+
+    @contextlib.contextmanager
+    def start(self, settings: RunSettings) -> Iterator[Runner]:
+        distributed = _import_distributed()
+        with _dask_client(distributed, settings) as client:
+            yield lambda fn, tasks: _dask_results(distributed, client, fn, tasks)
+            if settings.address:  # a long-lived cluster: free the workers' cached meshes
+                from .build import close_simulators
+                with contextlib.suppress(Exception):
+                    client.run(close_simulators)
+
+
+ENGINES = {e.name: e for e in (LocalEngine(), DaskEngine())}
+
+
+def get_engine(name: str):
+    """The engine called ``name``, or a one-line error listing the known ones."""
+    try:
+        return ENGINES[name]
+    except KeyError:
+        known = "; ".join(f"{n}: {e.summary}" for n, e in ENGINES.items())
+        raise InputError(f"unknown engine {name!r}; known engines: {known}") from None
+
+
+def _import_distributed():
+    try:
+        import distributed
+    except ImportError as exc:
+        raise InputError(f"--engine dask needs Dask's distributed scheduler, which is not "
+                         f"installed ({exc}); install it with: {DASK_PIP}") from None
+    return distributed
+
+
+def _host_port(address: str) -> tuple[str, int]:
+    from distributed.comm import parse_address, parse_host_port
+    try:
+        scheme, location = parse_address(address, strict=False)
+        host, port = parse_host_port(location, default_port=DASK_PORT)
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"--address {address!r} is not a scheduler address (e.g. "
+                         f"tcp://head-node:{DASK_PORT} or head-node:{DASK_PORT}): {exc}") from None
+    if scheme not in ("tcp", "tls"):
+        raise InputError(f"--address {address!r}: only tcp:// and tls:// schedulers are "
+                         f"supported, got {scheme}://")
+    return host, int(port)
+
+
+def _check_reachable(address: str) -> None:
+    """Fail in seconds, before anything is written, when nothing listens at ``address``."""
+    host, port = _host_port(address)
+    try:
+        socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as exc:
+        raise InputError(f"cannot reach a Dask scheduler at --address {address} ({exc}); "
+                         f"start one with `dask scheduler` on that machine, or leave out "
+                         f"--address to start a local cluster") from None
+
+
+@contextlib.contextmanager
+def _dask_client(distributed, settings: RunSettings):
+    if settings.address:
+        with distributed.Client(settings.address, timeout=f"{CONNECT_TIMEOUT_S}s",
+                                set_as_default=False) as client:
+            _check_workers(client, settings)
+            yield client
+        return
+    with contextlib.ExitStack() as stack:
+        with _sigint_held():
+            cluster = stack.enter_context(distributed.LocalCluster(
+                n_workers=settings.workers, threads_per_worker=1, processes=True,
+                dashboard_address=None, silence_logs=logging.ERROR))
+        client = stack.enter_context(distributed.Client(cluster, set_as_default=False))
+        client.register_worker_callbacks(setup=worker_init)
+        yield client
+
+
+@contextlib.contextmanager
+def _sigint_held():
+    """Block SIGINT in this thread while it starts worker processes, and the threads that will
+    start more (a pool's, a cluster's event loop): a blocked signal stays blocked in every
+    thread and process made meanwhile, so no worker ever sees Ctrl-C, not even while it boots
+    (before worker_init), and only this process answers it. A Ctrl-C that came meanwhile is
+    not lost: it is delivered here when the block is lifted."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signals are the main thread's business
+        return
+    # multiprocessing starts its resource tracker at the first spawn and then unblocks SIGINT
+    # in the spawning thread: start it before blocking.
+    from multiprocessing import resource_tracker
+    resource_tracker.ensure_running()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+WORKERS_WAIT_S = 60
+
+
+def _check_workers(client, settings: RunSettings) -> None:
+    """A cluster's workers must run this apcg and see the dataset directory (shared storage):
+    refuse otherwise, naming the workers, rather than fail shard by shard."""
+    try:
+        client.wait_for_workers(1, timeout=WORKERS_WAIT_S)
+    except TimeoutError:
+        raise InputError(f"no worker joined the scheduler at {settings.address} within "
+                         f"{WORKERS_WAIT_S} s; start workers with `dask worker "
+                         f"{settings.address}`") from None
+    from apcg_core import __version__
+    want = (__version__, _file_digest(Path(settings.output) / "dataset.json"))
+    try:
+        seen = client.run(worker_view, settings.output)
+    except ImportError as exc:
+        raise InputError(f"the workers at {settings.address} cannot import apcg ({exc}); "
+                         "install the same apcg (with its sim extra) on every worker") from None
+    wrong_version = sorted(w for w, (version, _) in seen.items() if version != want[0])
+    if wrong_version:
+        raise InputError(f"workers {wrong_version} run another apcg version than {want[0]}; "
+                         "install the same one everywhere")
+    blind = sorted(w for w, (_, digest) in seen.items() if digest != want[1])
+    if blind:
+        raise InputError(f"workers {blind} do not see the dataset directory {settings.output} "
+                         "as this machine does; it must be shared storage mounted at the same "
+                         "path on every machine")
+
+
+def worker_view(output: str) -> tuple[str, str | None]:
+    """Run on each worker: its apcg version and the digest of the dataset.json it sees."""
+    from apcg_core import __version__
+    return __version__, _file_digest(Path(output) / "dataset.json")
+
+
+def _file_digest(path: Path) -> str | None:
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+def _dask_results(distributed, client, fn: Callable, tasks: list) -> Iterator:
+    # Named keys: the dashboard shows which shard runs where; the token keeps two builds on
+    # one cluster apart. pure=False: a rerun after a crash must run, not be looked up.
+    token = uuid.uuid4().hex[:8]
+    futures = client.map(fn, tasks, pure=False,
+                         key=[f"apcg-shard-{t.index:05d}-{token}" for t in tasks])
+    try:
+        for future in distributed.as_completed(futures, loop=client.loop):
+            try:
+                yield future.result()
+            except distributed.KilledWorker:
+                raise APCGError(f"every worker that ran shard task {future.key} died "
+                                "(distributed.scheduler.allowed-failures + 1 times): out of "
+                                "memory? See the workers' logs. Finished shards are kept: run "
+                                "the same command again to resume") from None
+    finally:
+        # Stopped early (Ctrl-C, an error): unstarted tasks must not run on a shared cluster.
+        client.cancel(futures)
+
+
+def time_engine_build(config, engine: str = "dask", workers: int = 2, out_dir=None,
+                      shard_spec: str | None = None) -> dict:
+    """Build ``config`` with ``engine`` and ``workers`` into ``out_dir`` (a fresh temporary
+    directory when None) and time it, cluster start-up included: for benches.
+
+    Returns ``seconds`` (wall, whole build), ``rays`` (rays cast in the built shards, 0 for
+    the points backend), ``samples`` and ``shards`` built."""
+    import tempfile
+
+    import numpy as np
+
+    from apcg_core.io.dataset import Shard
+
+    from .build import build_dataset
+    with contextlib.ExitStack() as stack:
+        if out_dir is None:
+            out_dir = Path(stack.enter_context(tempfile.TemporaryDirectory())) / "ds"
+        t0 = time.perf_counter()
+        summary = build_dataset(config, out_dir, workers=workers, engine=engine,
+                                shard_spec=shard_spec, progress=False)
+        seconds = time.perf_counter() - t0
+        rays = sum(int(np.sum(Shard.load(p).n_rays, dtype=np.int64))
+                   for p in sorted((Path(out_dir) / "shards").glob("*.npz")))
+    return {"engine": engine, "workers": workers, "seconds": round(seconds, 3), "rays": rays,
+            "samples": summary["samples_built"], "shards": summary["built_shards"]}
