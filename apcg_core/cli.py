@@ -54,6 +54,7 @@ def join_signed_values(argv: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None, registrars=None) -> int:
     command = ["apcg"]  # grows to "apcg COMMAND" once parsed, for the messages
+    restore = _terminate_as_interrupt()
     try:
         return _run(argv, registrars, command)
     except BrokenPipeError:  # e.g. `apcg catalog list | head`
@@ -70,6 +71,24 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
     except OSError as exc:  # the file system said no (full disk, permissions): name the file
         print(f"{' '.join(command)}: error: {os_error_message(exc)}", file=sys.stderr)
         return 1
+    finally:
+        restore()
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _terminate_as_interrupt():
+    """SIGTERM (a job scheduler's time limit, `kill`) stops a command as Ctrl-C does: outputs
+    finished or absent, locks released, exit 130. Returns what puts the old handler back."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        return lambda: None
+    signal.signal(signal.SIGTERM, _interrupt)
+    return lambda: signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _run(argv, registrars, command: list) -> int:

@@ -40,8 +40,11 @@ class ProcessLock:
         self.job = job
         self.mine = f"{os.getpid()} {socket.gethostname()}\n"
         self.held = False
+        self.made_parent = False
 
     def acquire(self) -> ProcessLock:
+        # A job refused later leaves no empty directory made only to hold its lock.
+        self.made_parent = not self.path.parent.exists()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         for _ in range(10):
             try:
@@ -88,6 +91,11 @@ class ProcessLock:
             except FileNotFoundError:
                 pass
             self.held = False
+            if self.made_parent:
+                try:
+                    self.path.parent.rmdir()  # only when nothing else was written there
+                except OSError:
+                    pass
 
     def __enter__(self) -> ProcessLock:
         return self.acquire()

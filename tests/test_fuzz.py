@@ -494,8 +494,9 @@ def test_ctrl_c_while_generating_leaves_nothing_and_exits_130(tmp_path):
     _record("interrupt", "generate Ctrl-C", "handled")
 
 
-@fuzz(4)
-@given(delay=st.floats(0.3, 2.5), sig=st.sampled_from([signal.SIGKILL, signal.SIGINT]))
+@fuzz(5)
+@given(delay=st.floats(0.3, 2.5),
+       sig=st.sampled_from([signal.SIGKILL, signal.SIGINT, signal.SIGTERM]))
 def test_a_build_killed_at_any_moment_resumes_byte_for_byte(demo_dataset, tmp_path_factory,
                                                             delay, sig):
     out = tmp_path_factory.mktemp("killed") / "ds"

@@ -1,0 +1,50 @@
+"""Results a user would not expect are said (stderr, exit 0), and only those."""
+
+import csv
+import json
+
+from apcg_core.cli import main
+
+WIDE = """types = ["Mavic 3", "A320neo"]
+sampling = "random"
+samples_per_type = 20
+shard_size = 50
+[ranges]
+drone_range_m = [100.0, 17000.0]
+"""
+
+
+def test_a_drone_far_beyond_its_band_is_simulated_with_warnings(tmp_path, capsys):
+    rc = main(["simulate", "--type", "Mavic 3", "--range-m", "17000", "--elevation-deg", "3",
+               "-o", str(tmp_path / "far.ply")])
+    out, err = capsys.readouterr()
+    assert rc == 0 and (tmp_path / "far.ply").exists()
+    points = json.loads(out)["points"]
+    assert points < 10
+    assert "Mavic 3 is a near-band type" in err and "100-600 m" in err
+    assert ("is empty" in err) if points == 0 else (f"only {points} point" in err)
+
+
+def test_an_ordinary_scan_says_nothing(tmp_path, capsys):
+    rc = main(["simulate", "--type", "Mavic 3", "--range-m", "300", "--elevation-deg", "3",
+               "--pitch-deg", "2", "-o", str(tmp_path / "near.ply")])
+    out, err = capsys.readouterr()
+    assert rc == 0 and json.loads(out)["points"] >= 10 and err == ""
+
+
+def test_a_dataset_with_ranges_beyond_table1_counts_them(tmp_path, capsys):
+    (tmp_path / "wide.toml").write_text(WIDE)
+    rc = main(["dataset", "build", "--config", str(tmp_path / "wide.toml"), "-o",
+               str(tmp_path / "ds"), "--no-progress"])
+    out, err = capsys.readouterr()
+    assert rc == 0
+    with open(tmp_path / "ds" / "conditions.csv") as f:
+        rows = list(csv.DictReader(f))
+    drones = [float(r["range_m"]) for r in rows if r["type_name"] == "Mavic 3"]
+    outside = sum(r > 600.0 for r in drones)
+    assert 0 < outside < len(drones)  # the config's draws straddle the band's end
+    assert json.loads(out)["samples_outside_table1_bands"] == outside
+    assert f"{outside:,} of {len(rows):,} samples lie outside" in err
+    rc = main(["dataset", "build", "--config", "demo", "-o", str(tmp_path / "demo"),
+               "--no-progress"])
+    assert rc == 0 and "warning" not in capsys.readouterr().err
