@@ -56,8 +56,10 @@ def training_memory(train_cfg: dict, data_dir, steps: int = 5) -> dict:
     """Peak resident memory (MB) and seconds per step while training ``steps`` steps of a
     configuration (TrainConfig as a dict), in a fresh process."""
     with tempfile.TemporaryDirectory() as tmp:
+        # the child runs in the repository root: a path relative to the caller's directory
+        # would name another place there
         r = subprocess.run([sys.executable, "-c", MEMORY_CHILD, json.dumps(train_cfg),
-                            str(data_dir), str(Path(tmp) / "run"), str(steps)],
+                            str(Path(data_dir).resolve()), str(Path(tmp) / "run"), str(steps)],
                            cwd=Path(__file__).resolve().parents[1], capture_output=True,
                            text=True)
     if r.returncode:
