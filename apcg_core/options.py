@@ -38,9 +38,13 @@ ANGLE = Rule("a finite angle in degrees from -360 to 360", lo=-360, hi=360)
 # dest (the option's name with "_" for "-") -> Rule.
 RULES: dict[str, Rule] = {
     # sizes and counts
-    "batch_size": COUNT, "count": COUNT, "steps": COUNT, "samples": COUNT,
+    "count": COUNT, "steps": COUNT, "samples": COUNT,
+    # beyond these a request only exhausts the machine (processes, memory) before failing
+    "batch_size": Rule("an integer from 1 to 65536", lo=1, hi=65536),
     "pairs": Rule("an integer >= 0 (0: every held-out pair)", lo=0),
-    "workers": COUNT, "threads": COUNT, "columns": COUNT, "n_critic": COUNT,
+    "workers": Rule("an integer from 1 to 1024", lo=1, hi=1024),
+    "threads": Rule("an integer from 1 to 1024", lo=1, hi=1024),
+    "columns": Rule("an integer from 1 to 64", lo=1, hi=64), "n_critic": COUNT,
     "n_points": COUNT, "checkpoint_every": COUNT, "keep_every": COUNT, "log_every": COUNT,
     "sampling_steps": COUNT, "diffusion_steps": COUNT, "max_checkpoints": COUNT,
     "memory_steps": Rule("an integer >= 0 (0: skip)", lo=0), "tasks_per_process": COUNT,
