@@ -202,26 +202,34 @@ def test_without_retries_the_killed_shard_fails_the_build_in_one_line(cluster_wi
     assert not (tmp_path / "ds" / "manifest.json").exists()
 
 
-@pytest.mark.parametrize("how", [[], ["--workers", "2"], ["--engine", "dask", "--workers", "2"]],
-                         ids=["one-process", "local-pool", "dask"])
-def test_ctrl_c_stops_cleanly_and_the_same_command_resumes(cpu_reference, tmp_path, how):
-    out = tmp_path / "ds"
-    cmd = _build_cmd(out, *how)
-    # Its own process group, as a shell's foreground job: Ctrl-C reaches every process in it.
+def _ctrl_c_when(cmd, ready, settle: float = 0.0) -> tuple[int, str]:
+    """Run ``cmd`` in its own process group (a shell's foreground job, which Ctrl-C reaches
+    whole), send SIGINT to the group once ``ready()`` is true (and ``settle`` s more):
+    (exit code, stderr)."""
     build = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              start_new_session=True)
     try:
         deadline = time.monotonic() + 120
-        while not list((out / "shards").glob("*.npz")) and build.poll() is None:
-            assert time.monotonic() < deadline, "no shard was written in 120 s"
-            time.sleep(0.005)
+        while not ready() and build.poll() is None:
+            assert time.monotonic() < deadline, "not ready in 120 s"
+            time.sleep(0.002)
+        time.sleep(settle)
         os.killpg(build.pid, signal.SIGINT)
         _, err = build.communicate(timeout=120)
     finally:
         if build.poll() is None:
             os.killpg(build.pid, signal.SIGKILL)
             build.wait()
-    assert build.returncode == 130, err
+    return build.returncode, err
+
+
+@pytest.mark.parametrize("how", [[], ["--workers", "2"], ["--engine", "dask", "--workers", "2"]],
+                         ids=["one-process", "local-pool", "dask"])
+def test_ctrl_c_stops_cleanly_and_the_same_command_resumes(cpu_reference, tmp_path, how):
+    out = tmp_path / "ds"
+    cmd = _build_cmd(out, *how)
+    rc, err = _ctrl_c_when(cmd, lambda: list((out / "shards").glob("*.npz")))
+    assert rc == 130, err
     assert "Traceback" not in err
     done = len(list((out / "shards").glob("*.npz")))
     assert 1 <= done < 33
@@ -243,21 +251,9 @@ def test_ctrl_c_while_the_workers_start_is_not_lost(tmp_path, how):
     # they boot, when a worker that saw it would print a traceback and a build that ignored
     # it would run on to the end.
     out = tmp_path / "ds"
-    build = subprocess.Popen(_build_cmd(out, *how), stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 120
-        while not (out / "dataset.json").exists() and build.poll() is None:
-            assert time.monotonic() < deadline, "no dataset.json in 120 s"
-            time.sleep(0.002)
-        time.sleep(0.2)  # the workers are being spawned: importing, not yet set up
-        os.killpg(build.pid, signal.SIGINT)
-        _, err = build.communicate(timeout=120)
-    finally:
-        if build.poll() is None:
-            os.killpg(build.pid, signal.SIGKILL)
-            build.wait()
-    assert build.returncode == 130, err
+    # 0.2 s after dataset.json: the workers are being spawned, importing, not yet set up
+    rc, err = _ctrl_c_when(_build_cmd(out, *how), (out / "dataset.json").exists, settle=0.2)
+    assert rc == 130, err
     assert "Traceback" not in err and "run the same command again" in err.lower(), err
     assert [p.name for p in out.rglob("*") if ".part" in p.name or ".lock" in p.name] == []
 
