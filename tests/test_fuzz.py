@@ -34,7 +34,6 @@ from apcg_core.cli import build_parser, main
 from apcg_core.options import RULES
 
 APCG = str(Path(sys.executable).parent / "apcg")
-SHARED_MESH = Path(__file__).resolve().parents[2] / "shared/reference/meshes/pyvista_airplane.ply"
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "apcg_core/models/default"
 CGAN_MODEL = Path(__file__).resolve().parents[1] / "apcg_core/models/cgan"
 POSE = ["--type", "A320neo", "--range-m", "5000", "--elevation-deg", "3", "--pitch-deg", "2"]
@@ -46,6 +45,22 @@ def fuzz(examples: int):
                     suppress_health_check=list(HealthCheck))
 
 TALLY: list[dict] = []
+
+
+def _own_mesh() -> Path:
+    """A real aircraft mesh file to import (the catalog's A320neo as PLY, in metres), made
+    once per session: the suite needs nothing outside the repository."""
+    import tempfile
+
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.catalog.importer import export_mesh
+    path = Path(tempfile.gettempdir()) / f"apcg-fuzz-{os.getpid()}" / "a320neo.ply"
+    if not path.exists():
+        export_mesh(default_catalog().mesh("A320neo"), path)
+    return path
+
+
+MESH = _own_mesh()
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -115,7 +130,7 @@ def _placeholder(action, tmp: Path) -> list[str]:
         return [str(next(iter(action.choices)))]
     if action.type in (int, float):
         return ["3000" if "range" in action.dest else "3"]
-    value = {"type": "A320neo", "name": "fuzz-type", "file": str(SHARED_MESH),
+    value = {"type": "A320neo", "name": "fuzz-type", "file": str(MESH),
              "names": "A320neo"}.get(action.dest, str(tmp / "nowhere"))
     return [value]
 
@@ -217,7 +232,7 @@ def test_a_new_type_name_that_could_be_misread_is_refused(tmp_path_factory, caps
     misread = (not name.strip() or name.strip().isdigit() or "/" in name or "\\" in name
                or name.lower() in {"a320neo", "mavic 3"})
     tmp = tmp_path_factory.mktemp("newname")
-    rc, out, err = run(["catalog", "add", SHARED_MESH, f"--name={name}", "--unit-scale", "0.01",
+    rc, out, err = run(["catalog", "add", MESH, f"--name={name}",
                         "--dry-run"], capsys, cwd=tmp)
     if misread:
         clear_error("new type name", f"catalog add --name {name!r}", rc, err, repr(name))
@@ -406,9 +421,8 @@ MESH_SUFFIXES = [".ply", ".obj", ".stl", ".off", ".glb", ".dae"]
 def test_a_broken_mesh_file_is_named(tmp_path_factory, capsys, junk, suffix, damage):
     tmp = tmp_path_factory.mktemp("mesh")
     f = tmp / f"broken{suffix}"
-    f.write_bytes(_damage(SHARED_MESH.read_bytes(), *damage) if suffix == ".ply" else junk)
-    rc, out, err = run(["catalog", "add", f, "--name", "fuzzed", "--unit-scale", "0.01",
-                        "--dry-run"], capsys)
+    f.write_bytes(_damage(MESH.read_bytes(), *damage) if suffix == ".ply" else junk)
+    rc, out, err = run(["catalog", "add", f, "--name", "fuzzed", "--dry-run"], capsys)
     if rc == 0:  # a flipped byte in a vertex is still a mesh: it is read as one
         assert "dry run" in out
         _record("corrupt file", f"mesh {suffix} {damage[0]}", "handled")
