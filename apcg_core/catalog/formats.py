@@ -261,7 +261,12 @@ def read_model(path, objects: str | None = None) -> RawModel:
     patterns = [p.strip() for p in (objects or "").split(",") if p.strip()]
     if fmt.read is read_off and patterns:
         raise InputError(f"{path}: an OFF file holds one object; --objects does not apply")
-    raw = fmt.read(path, patterns)
+    try:
+        raw = fmt.read(path, patterns)
+    except InputError as exc:  # a reader's check that does not know the file (Mesh's own)
+        if str(path) in str(exc):
+            raise
+        raise InputError(f"{path}: {exc}") from exc
     m = raw.mesh
     if len(m.faces) == 0 or not np.isfinite(m.vertices).all():
         raise InputError(f"{path}: the mesh is empty or has non-finite coordinates")

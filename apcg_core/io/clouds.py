@@ -48,29 +48,49 @@ def write_cloud(path, cloud: PointCloud, meta: dict | None = None) -> Path:
     path = Path(path)
     ext = _fmt(path)
     meta = meta or {}
-    sample = cloud.sample if cloud.sample is not None else np.zeros(len(cloud), np.int64)
     with atomic_path(path) as tmp:
         if ext == ".npz":
             with open(tmp, "wb") as f:
                 np.savez(f, xyz=cloud.xyz, range_m=cloud.range_m, cell_w=cloud.cell_w,
-                         cell_h=cloud.cell_h, sample=sample, meta=np.array(json.dumps(meta)))
+                         cell_h=cloud.cell_h, sample=_sample_of(cloud),
+                         meta=np.array(json.dumps(meta)))
         elif ext == ".ply":
-            rec = np.empty(len(cloud), dtype=[(n, "<" + t) for n, t in _PLY_PROPS])
-            rec["x"], rec["y"], rec["z"] = cloud.xyz.T
-            rec["range_m"], rec["cell_w"] = cloud.range_m, cloud.cell_w
-            rec["cell_h"] = cloud.cell_h
-            rec["sample"] = sample
-            comment = json.dumps(meta).replace("\n", " ")
-            head = ["ply", "format binary_little_endian 1.0",
-                    "comment APCG standard point cloud: observation frame, metres",
-                    f"comment meta {comment}", f"element vertex {len(cloud)}"]
-            head += [f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_PROPS] + ["end_header"]
             with open(tmp, "wb") as f:
-                f.write(("\n".join(head) + "\n").encode())
-                f.write(rec.tobytes())
+                f.write(_own_ply_header(meta, str(len(cloud))))
+                f.write(_ply_records(cloud))
         else:
-            _write_las(tmp, cloud, sample, meta, compress=ext == ".laz")
+            _write_las(tmp, cloud, meta, compress=ext == ".laz")
     return path
+
+
+def _sample_of(cloud: PointCloud) -> np.ndarray:
+    """Each point's cloud index (0 for a single cloud)."""
+    return cloud.sample if cloud.sample is not None else np.zeros(len(cloud), np.int64)
+
+
+def _own_ply_header(meta: dict, count: str) -> bytes:
+    comment = json.dumps(meta).replace("\n", " ")
+    head = ["ply", "format binary_little_endian 1.0",
+            "comment APCG standard point cloud: observation frame, metres",
+            f"comment meta {comment}", f"element vertex {count}"]
+    head += [f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_PROPS] + ["end_header"]
+    return ("\n".join(head) + "\n").encode()
+
+
+def _ply_records(cloud: PointCloud) -> bytes:
+    rec = np.empty(len(cloud), dtype=[(n, "<" + t) for n, t in _PLY_PROPS])
+    rec["x"], rec["y"], rec["z"] = cloud.xyz.T
+    rec["range_m"], rec["cell_w"] = cloud.range_m, cloud.cell_w
+    rec["cell_h"], rec["sample"] = cloud.cell_h, _sample_of(cloud)
+    return rec.tobytes()
+
+
+def _fill_las(las, cloud: PointCloud):
+    las.x, las.y, las.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
+    las.range_m = cloud.range_m
+    las.cell_w, las.cell_h = cloud.cell_w, cloud.cell_h
+    las.sample = _sample_of(cloud).astype(np.int32)
+    return las
 
 
 class CloudWriter:
@@ -98,28 +118,16 @@ class CloudWriter:
         self._file = None
         self._las = None
         if self.ext == ".ply":
-            comment = json.dumps(self.meta).replace("\n", " ")
-            head = ["ply", "format binary_little_endian 1.0",
-                    "comment APCG standard point cloud: observation frame, metres",
-                    f"comment meta {comment}"]
             self._file = open(self.tmp, "wb")  # noqa: SIM115 - closed in close()
-            pre = ("\n".join(head) + "\nelement vertex ").encode()
-            self._file.write(pre)
-            self._count_at = len(pre)
-            tail = [f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_PROPS] + ["end_header"]
-            self._file.write(("0" * self._COUNT_DIGITS + "\n" + "\n".join(tail) + "\n")
-                             .encode())
+            head = _own_ply_header(self.meta, "0" * self._COUNT_DIGITS)
+            self._count_at = head.index(b"element vertex ") + len(b"element vertex ")
+            self._file.write(head)
 
     def write(self, cloud: PointCloud) -> None:
-        sample = cloud.sample if cloud.sample is not None else np.zeros(len(cloud), np.int64)
         if self.ext == ".npz":
             self._held.append(cloud)
         elif self.ext == ".ply":
-            rec = np.empty(len(cloud), dtype=[(n, "<" + t) for n, t in _PLY_PROPS])
-            rec["x"], rec["y"], rec["z"] = cloud.xyz.T
-            rec["range_m"], rec["cell_w"] = cloud.range_m, cloud.cell_w
-            rec["cell_h"], rec["sample"] = cloud.cell_h, sample
-            self._file.write(rec.tobytes())
+            self._file.write(_ply_records(cloud))
         else:
             laspy = _laspy(self.ext == ".laz")
             if self._las is None:
@@ -128,11 +136,7 @@ class CloudWriter:
                 self._template = copy.deepcopy(header)
                 self._las = laspy.open(self.tmp, mode="w", header=header,
                                        do_compress=self.ext == ".laz")
-            las = laspy.LasData(copy.deepcopy(self._template))
-            las.x, las.y, las.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
-            las.range_m = cloud.range_m
-            las.cell_w, las.cell_h = cloud.cell_w, cloud.cell_h
-            las.sample = sample.astype(np.int32)
+            las = _fill_las(laspy.LasData(copy.deepcopy(self._template)), cloud)
             self._las.write_points(las.points)
         self.n += len(cloud)
 
@@ -140,9 +144,7 @@ class CloudWriter:
         if self.ext == ".npz":
             cat = (PointCloud(*(np.concatenate([getattr(c, k) for c in self._held])
                                 for k in ("xyz", "range_m", "cell_w", "cell_h")),
-                              np.concatenate([c.sample if c.sample is not None
-                                              else np.zeros(len(c), np.int64)
-                                              for c in self._held]))
+                              np.concatenate([_sample_of(c) for c in self._held]))
                    if self._held else PointCloud(np.zeros((0, 3)), [], [], [],
                                                  np.zeros(0, np.int64)))
             self._held = []
@@ -201,12 +203,9 @@ def _las_header(laspy, cloud: PointCloud, meta: dict):
     return header
 
 
-def _write_las(tmp: Path, cloud: PointCloud, sample, meta: dict, compress: bool) -> None:
+def _write_las(tmp: Path, cloud: PointCloud, meta: dict, compress: bool) -> None:
     laspy = _laspy(compress)
-    las = laspy.LasData(_las_header(laspy, cloud, meta))
-    las.x, las.y, las.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
-    las.range_m = cloud.range_m
-    las.cell_w, las.cell_h, las.sample = cloud.cell_w, cloud.cell_h, sample.astype(np.int32)
+    las = _fill_las(laspy.LasData(_las_header(laspy, cloud, meta)), cloud)
     with open(tmp, "wb") as f:
         las.write(f, do_compress=compress)
 
