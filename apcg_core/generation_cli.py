@@ -82,11 +82,10 @@ def _run_generate(args) -> int:
             empty += len(res.table) - len(np.unique(cloud.sample))
             progress.update(len(res.table))
     progress.close()
-    if empty:
+    from .plausibility import empty_clouds_warning
+    if (warning := empty_clouds_warning(empty, total)) is not None:
         import sys
-        print(f"apcg generate: warning: {empty:,} of {total:,} clouds are empty (no cell of "
-              "the lidar's window sees the target: too small or too far for the lidar); "
-              "they are counted in `sample` but hold no points", file=sys.stderr)
+        print(f"apcg generate: warning: {warning}", file=sys.stderr)
     print(json.dumps({"output": args.output, "clouds": total, "points": points,
                       "empty_clouds": empty,
                       "family": model.family, "runtime": getattr(model, "runtime", None)}))

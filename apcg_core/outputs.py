@@ -52,9 +52,8 @@ def output_problems(args: argparse.Namespace) -> list[str]:
         elif path.exists() and not getattr(args, "force", False):
             out.append(f"{option_name(dest)} {value} already exists; choose another name, or "
                        "--force to replace it")
-        elif _file_on_the_way(path):
-            out.append(f"{option_name(dest)} {value}: {_file_on_the_way(path)} is a file, not "
-                       "a directory")
+        elif (blocker := _file_on_the_way(path)) is not None:
+            out.append(f"{option_name(dest)} {value}: {blocker} is a file, not a directory")
     for dest in getattr(args, "_directory_outputs", ()):
         value = getattr(args, dest, None)
         if value is not None and (Path(value).is_file() or _file_on_the_way(Path(value))):

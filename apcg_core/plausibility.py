@@ -35,6 +35,15 @@ def band_share_warning(n_outside: int, n_total: int) -> str | None:
             "models never saw such ranges, and far-off small targets give empty clouds")
 
 
+def empty_clouds_warning(n_empty: int, n_total: int) -> str | None:
+    """Empty clouds among many generated at once."""
+    if not n_empty:
+        return None
+    return (f"{n_empty:,} of {n_total:,} clouds are empty (no cell of the lidar's window sees "
+            "the target: too small or too far for the lidar); they are counted in `sample` but "
+            "hold no points")
+
+
 def sparse_cloud_warning(n_points: int, what: str) -> str | None:
     """An empty or near-empty cloud: the target covers too few lidar cells."""
     if n_points == 0:

@@ -48,3 +48,13 @@ def test_a_dataset_with_ranges_beyond_table1_counts_them(tmp_path, capsys):
     rc = main(["dataset", "build", "--config", "demo", "-o", str(tmp_path / "demo"),
                "--no-progress"])
     assert rc == 0 and "warning" not in capsys.readouterr().err
+
+
+def test_generated_empty_clouds_are_counted_and_said(tmp_path, capsys):
+    # a hit threshold no logit reaches: every generated cloud is empty
+    rc = main(["generate", "--type", "Mavic 3", "--range-m", "300", "--elevation-deg", "3",
+               "--pitch-deg", "2", "--count", "3", "--tau", "1e9", "-o",
+               str(tmp_path / "g.ply")])
+    out, err = capsys.readouterr()
+    assert rc == 0 and json.loads(out)["empty_clouds"] == 3
+    assert "3 of 3 clouds are empty" in err
