@@ -52,6 +52,7 @@ class Key:
 class Table:
     """A TOML table: its own keys, each with its rule."""
     keys: dict
+    sampling: str | None = None  # only meaningful with this sampling
 
 
 _POSITIVE = Key("a finite number > 0", lambda v: _number(v) and v > 0)
@@ -77,10 +78,10 @@ SCHEMA: dict = {
     "ranges": Table({k: _PAIR for k in ("aircraft_range_m", "drone_range_m", "elevation_deg",
                                         "pitch_deg", "yaw_deg", "roll_deg")}),
     # `counts` shapes the grid only; a random config carrying it would silently ignore it.
-    "counts": Table({k: _COUNT for k in ("elevation", "range_m", "yaw", "pitch", "roll")}),
+    "counts": Table({k: _COUNT for k in ("elevation", "range_m", "yaw", "pitch", "roll")},
+                    "grid"),
 }
 REQUIRED = ("types",)
-GRID_ONLY = ("counts",)
 
 
 def accepted_keys() -> str:
@@ -101,14 +102,11 @@ def check_config(cfg: dict, source: str = "dataset config") -> None:
                          "catalog type names (`apcg catalog list`)")
     sampling = cfg.get("sampling", "grid")
     for key, rule in SCHEMA.items():
-        if key in cfg:
-            _check(source, key, cfg[key], rule)
-        if isinstance(rule, Key) and rule.sampling and key in cfg and sampling != rule.sampling:
+        if key not in cfg:
+            continue
+        _check(source, key, cfg[key], rule)
+        if rule.sampling and sampling != rule.sampling:  # it would be silently ignored
             raise InputError(f"{source}: {key} is used by sampling = \"{rule.sampling}\" only "
-                             f"(this config samples {sampling!r})")
-    for key in GRID_ONLY:
-        if key in cfg and sampling != "grid":
-            raise InputError(f"{source}: [{key}] is used by sampling = \"grid\" only "
                              f"(this config samples {sampling!r})")
     if sampling == "random" and "samples_per_type" not in cfg:
         raise InputError(f"{source}: sampling = \"random\" needs samples_per_type "

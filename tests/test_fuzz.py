@@ -317,6 +317,17 @@ def test_a_config_is_refused_by_key_or_plans(tmp_path_factory, capsys, parts):
     _record("config", json.dumps(cfg, default=str), "handled")
 
 
+@pytest.mark.parametrize("text,key", [
+    ('types = "all"\nsampling = "random"\nsamples_per_type = 3\n[counts]\nyaw = 2\n', "counts"),
+    ('types = "all"\nsamples_per_type = 3\n', "samples_per_type")])
+def test_a_key_the_sampling_would_ignore_is_refused(tmp_path, capsys, text, key):
+    (tmp_path / "c.toml").write_text(text)
+    rc, _, err = run(["dataset", "build", "--config", tmp_path / "c.toml", "-o",
+                      tmp_path / "ds"], capsys)
+    clear_error("config", f"{key} with the other sampling", rc, err, key, "only")
+    assert not (tmp_path / "ds").exists()
+
+
 def test_an_empty_config_is_refused_not_built(tmp_path, capsys):
     (tmp_path / "empty.toml").write_text("")
     rc, _, err = run(["dataset", "build", "--config", tmp_path / "empty.toml", "-o",
