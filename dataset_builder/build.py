@@ -209,7 +209,6 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
     out = Path(out_dir)
     runner = get_engine(engine)
     settings = RunSettings(workers=workers, address=address, tasks_per_process=tasks_per_process,
-                           leaky_backend=plan.config["backend"].startswith("blender"),
                            output=str(out.resolve()))
     runner.check(settings)  # before anything is written: a bad address costs nothing
     (out / "shards").mkdir(parents=True, exist_ok=True)

@@ -103,7 +103,7 @@ def register_dataset(sub) -> None:
                    help="build only shards with index %% N == I (0 <= I < N), for job arrays")
     b.add_argument("--tasks-per-process", type=int, default=None,
                    help="shards a local pool's worker builds before it is replaced "
-                        "(blender default: 1)")
+                        "(default: workers live for the whole build)")
     b.add_argument("--engine", default="local", metavar="NAME",
                    help="where the shards are computed: " + "; ".join(
                        f"{name}: {engine.summary}" for name, engine in ENGINES.items()))

@@ -39,9 +39,7 @@ class RunSettings:
 
     workers: int = 1
     address: str | None = None  # a running cluster's scheduler; None: start one here
-    tasks_per_process: int | None = None  # as given; None: the engine's default
-    # Blender's memory grows across long loops: a local pool replaces each worker after a shard
-    leaky_backend: bool = False
+    tasks_per_process: int | None = None  # as given; None: workers live for the whole build
     output: str = ""  # the dataset directory, which a cluster's workers must see too
 
     @property
@@ -80,10 +78,10 @@ class LocalEngine:
 
     @contextlib.contextmanager
     def start(self, settings: RunSettings) -> Iterator[Runner]:
-        if settings.workers == 1 and not (settings.leaky_backend and settings.tasks_per_process):
+        if settings.workers == 1 and not settings.tasks_per_process:
             yield map
             return
-        per = settings.tasks_per_process or (1 if settings.leaky_backend else None)
+        per = settings.tasks_per_process
         # Imported only here: Debian's Blender 3.4 crashes at exit once multiprocessing has
         # been imported, and inside a Blender binary builds run with one worker.
         import multiprocessing as mp

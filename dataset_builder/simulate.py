@@ -8,6 +8,7 @@ time bin), whichever backend found it.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,8 @@ from .rays import (
 # the (rays x 3 x 3) temporaries stay around 100 MB.
 RAYS_PER_CALL = 1_000_000
 POINTS_SAMPLES_PER_CHUNK = 64
+# Ray casters (one per mesh) a simulator keeps; the least recently used is closed beyond this.
+MAX_CASTERS = 4
 
 
 @dataclass
@@ -93,7 +96,7 @@ class Simulator:
         self.supersample = int(supersample)
         self.fine_cloud_points = int(fine_cloud_points)
         self.fine_cloud_seed = int(fine_cloud_seed)
-        self._casters: dict = {}
+        self._casters: OrderedDict = OrderedDict()  # most recently used last
         self._fine: dict = {}
 
     # --- public ------------------------------------------------------------------------------
@@ -150,9 +153,18 @@ class Simulator:
 
     # --- ray casting ---------------------------------------------------------------------------
     def _caster(self, mesh, key):
-        if key not in self._casters:
-            self._casters[key] = make_caster(self.backend, mesh)
-        return self._casters[key]
+        casters = self._casters
+        if key in casters:
+            casters.move_to_end(key)
+            return casters[key]
+        # A long-lived worker meets type after type (a build's shards come type by type):
+        # keep the few it is using, so that its memory does not grow with the catalog.
+        while len(casters) >= MAX_CASTERS:
+            _, old = casters.popitem(last=False)
+            if hasattr(old, "close"):
+                old.close()
+        casters[key] = make_caster(self.backend, mesh)
+        return casters[key]
 
     def _simulate_rays(self, mesh, table, key, radius) -> SimResult:
         s, w, h, r, clipped, n_rays = self._ray_cells(mesh, table, key, radius)

@@ -192,3 +192,18 @@ def test_blender_binary_build_matches_embree(reference, tmp_path):
                                      str(tmp_path / "n")], capture_output=True, text=True,
                          timeout=600)
     assert bad.returncode == 2 and "no dataset config" in bad.stderr
+
+
+def test_blender_pool_workers_live_across_shards_and_write_the_same_bytes(tmp_path):
+    """Workers of a blender pool now build shard after shard (and type after type, closing old
+    casters); the bytes are those of a fresh process per shard."""
+    outs = {}
+    for name, extra in (("reused", []), ("fresh", ["--tasks-per-process", "1"])):
+        outs[name] = tmp_path / name
+        run = subprocess.run([sys.executable, "-m", "apcg_core.cli", "dataset", "build",
+                              "--config", "demo", "-o", str(outs[name]), "--backend",
+                              "blender", "--workers", "2", "--no-progress", *extra],
+                             capture_output=True, text=True, cwd=ROOT, timeout=600)
+        assert run.returncode == 0, run.stderr[-2000:]
+    a, b = _files(outs["reused"]), _files(outs["fresh"])
+    assert len(a) > 10 and a == b
