@@ -21,6 +21,8 @@ Beside the pipelines it times each caster's call alone on the pipeline's own flo
 the pipeline's blocks (``raw_*``: embree's ``distances32``; Blender's Geometry Nodes evaluation
 with its I/O): ``raw_blender_cpu_over_raw_embree_cpu`` is the floor of the Blender path's ratio,
 ``bpy_cpu_over_raw_blender_cpu`` what the pipeline adds on top of Blender's own ray casting.
+``oracle_blender_*``: Blender casting only the rays that embree finds a surface on, over the
+whole embree pipeline: the best that any pre-filter of Blender's rays could reach.
 
 It also checks the Blender shards against embree's cell for cell: the (sample, pixel) sets and
 the stored ranges.
@@ -86,11 +88,16 @@ def _warm(tasks) -> None:
     close_simulators()
 
 
-def raw_seconds(tasks, backend: str, block: int = 32_768) -> tuple[float, float]:
+def raw_seconds(tasks, backend: str, block: int = 32_768,
+                hits_only: bool = False) -> tuple[float, float]:
     """The ray caster's call alone on the pipeline's own float32 rays (made beforehand,
     untimed), in blocks of ``block`` rays as the pipeline calls it: wall and CPU seconds.
     embree: ``EmbreeCaster.distances32``; blender: Blender's Geometry Nodes evaluation with
-    its I/O (``BlenderCaster._distances``: rays in, distances out)."""
+    its I/O (``BlenderCaster._distances``: rays in, distances out).
+
+    ``hits_only``: cast only the rays that embree finds a surface on (chosen untimed), as an
+    oracle pre-filter would: no real filter of the rays can leave the caster less to do, so
+    this is the floor of what filtering could buy (issue 22, point 2)."""
     from apcg_core.catalog.catalog import default_catalog
     from apcg_core.lidar import LidarParams
     from dataset_builder.backends import make_caster
@@ -108,6 +115,9 @@ def raw_seconds(tasks, backend: str, block: int = 32_768) -> tuple[float, float]
         d = np.ascontiguousarray(rays.direction, np.float32)
         limit = np.float32(rays.t_max)
         del rays
+        if hits_only:
+            hit = make_caster("embree", mesh).distances32(o, d, limit) < limit
+            o, d = np.ascontiguousarray(o[hit]), np.ascontiguousarray(d[hit])
         caster = make_caster(backend, mesh)
         call = caster._distances if backend == "blender" else caster.distances32
         t0, c0 = time.perf_counter(), time.process_time()
@@ -225,6 +235,11 @@ def measure(types: int = 4, samples: int = 2500, repeat: int = 1, binary: bool =
                 r["raw_blender_cpu_over_raw_embree_cpu"] = (r["raw_blender_cpu_s"]
                                                            / r["raw_embree_cpu_s"])
                 r["bpy_cpu_over_raw_blender_cpu"] = r["bpy_cpu_s"] / r["raw_blender_cpu_s"]
+                r["oracle_blender_s"], r["oracle_blender_cpu_s"] = raw_seconds(
+                    bl, "blender", hits_only=True)
+                r["oracle_blender_over_embree"] = r["oracle_blender_s"] / r["embree_s"]
+                r["oracle_blender_cpu_over_embree_cpu"] = (r["oracle_blender_cpu_s"]
+                                                          / r["embree_cpu_s"])
             r["bpy_over_embree"] = r["bpy_s"] / r["embree_s"]
             r["bpy_cpu_over_embree_cpu"] = r["bpy_cpu_s"] / r["embree_cpu_s"]
             if binary:
@@ -246,6 +261,12 @@ def measure(types: int = 4, samples: int = 2500, repeat: int = 1, binary: bool =
             res["raw_blender_cpu_over_raw_embree_cpu"] = round(
                 best["raw_blender_cpu_over_raw_embree_cpu"], 3)
             res["bpy_cpu_over_raw_blender_cpu"] = round(best["bpy_cpu_over_raw_blender_cpu"], 3)
+            # Blender casting only the rays that hit, nothing else timed, over the whole
+            # embree pipeline: what a perfect pre-filter of the rays would leave
+            res["oracle_blender_over_embree"] = round(
+                min(r["oracle_blender_over_embree"] for r in rounds), 3)
+            res["oracle_blender_cpu_over_embree_cpu"] = round(
+                min(r["oracle_blender_cpu_over_embree_cpu"] for r in rounds), 3)
         if binary:
             bb = min(rounds, key=lambda r: r["binary_over_embree"])
             res.update({"blender_binary": bb["binary_version"],

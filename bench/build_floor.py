@@ -87,7 +87,8 @@ def stage_times(tasks) -> dict:
 
     swaps = [(simulate, "angular_boxes"), (simulate, "cast_cells"), (rays, "_block"),
              (rays.RayBlock, "cells"), (EmbreeCaster, "distances32"), (EmbreeCaster, "cast_hits"),
-             (LidarParams, "quantize_range"), (build, "compute_shard"),
+             (LidarParams, "quantize_range"), (simulate, "refine_ranges"),
+             (build, "compute_shard"),
              (dataset_io.Shard, "to_bytes"), (build, "write_atomic")]
     if kernels.loaded():
         k = kernels.require()
@@ -121,9 +122,10 @@ def stage_times(tasks) -> dict:
         "rest of cast_cells (per-table set-up, block loop)":
             sub(acc.get("cast_cells", z), embree, raygen, hits),
         "quantisation": acc.get("quantize_range", z),
+        "float64 ranges at bin edges (refine_ranges)": acc.get("refine_ranges", z),
         "shard arrays (compute_shard's own numpy)":
             sub(acc.get("compute_shard", z), acc.get("angular_boxes", z), acc.get("cast_cells", z),
-                acc.get("quantize_range", z)),
+                acc.get("quantize_range", z), acc.get("refine_ranges", z)),
         "zip bytes": acc.get("to_bytes", z),
         "write, fsync, rename": acc.get("write_atomic", z),
     }

@@ -258,21 +258,42 @@ def make_rays(table: np.ndarray, boxes: AngularBoxes, lidar: LidarParams, m: np.
     flat = rs * beta.shape[1] + ih
     sb, cb = np.sin(beta).ravel()[flat], np.cos(beta).ravel()[flat]
 
+    margin = start_margin_m(radius)
+    t_start = table[:, 1] - radius - margin
+    origin, direction = _body_rays(sa, ca, sb, cb, m, c, rs, t_start)
+    return RayBatch(sample=sample, w=w.astype(np.int32), h=h.astype(np.int32), origin=origin,
+                    direction=direction, t_start=t_start,
+                    t_max=2.0 * (radius + 2.0 * margin), k=kk)
+
+
+def _body_rays(sa, ca, sb, cb, m, c, rs, t_start):
+    """Origins and unit directions (float64, body frame) of rays of azimuth sines / cosines
+    (sa, ca) and elevation sines / cosines (sb, cb), ray i belonging to sample rs[i]."""
     # Body frame: d_body = M^T d_obs, and with d_obs = (cb sa, sb, cb ca) that is
     # cb (sa M[0] + ca M[2]) + sb M[1] (rows of M).
     direction = np.empty((len(rs), 3))
     for i in range(3):
         direction[:, i] = cb * (sa * m[rs, 0, i] + ca * m[rs, 2, i]) + sb * m[rs, 1, i]
-
-    margin = start_margin_m(radius)
-    t_start = table[:, 1] - radius - margin
     # The origin is the point at range t_start along the ray: M^T (t_start d_obs - C). Both terms
     # are ~r0 long; float64 keeps their small difference exact to picometres.
     lidar_body = np.einsum("nji,nj->ni", m, c)  # M^T C
     origin = t_start[rs, None] * direction - lidar_body[rs]
-    return RayBatch(sample=sample, w=w.astype(np.int32), h=h.astype(np.int32), origin=origin,
-                    direction=direction, t_start=t_start,
-                    t_max=2.0 * (radius + 2.0 * margin), k=kk)
+    return origin, direction
+
+
+def cell_rays(table: np.ndarray, w: np.ndarray, h: np.ndarray, lidar: LidarParams,
+              m: np.ndarray, c: np.ndarray, radius: float):
+    """The ray through cell (w[i], h[i]) of sample i (rows of table, m, c), one ray per cell:
+    :func:`make_rays`' numbers for those cells (sines and cosines of the same angles, numpy's
+    being elementwise, then the same arithmetic), without the per-row tables a box needs.
+    Returns origin, direction (float64, body frame), t_start per ray and t_max."""
+    alpha = np.asarray(w, dtype=np.int64) * lidar.r_alpha
+    beta = table[:, 2] + np.asarray(h, dtype=np.int64) * lidar.r_beta
+    margin = start_margin_m(radius)
+    t_start = table[:, 1] - radius - margin
+    origin, direction = _body_rays(np.sin(alpha), np.cos(alpha), np.sin(beta), np.cos(beta), m,
+                                   c, np.arange(len(table)), t_start)
+    return origin, direction, t_start, 2.0 * (radius + 2.0 * margin)
 
 
 # Rays per block of the float32 path: the per-ray temporaries (~100 bytes a ray) stay in the

@@ -28,6 +28,7 @@ from .rays import (
     make_rays,
     sample_frames,
 )
+from .refine import refine_ranges
 
 # Rays per ray-casting call: large enough that per-call overhead vanishes, small enough that
 # the (rays x 3 x 3) temporaries stay around 100 MB.
@@ -182,6 +183,9 @@ class Simulator:
             # float32 rays made block by block and only the hits carried on, in compiled loops
             # where numba is installed (docs/SCALE.md)
             s, w, h, r = cast_cells(caster, table, boxes, lidar, m, c, radius)
+            if self.quantize:  # a bin decided by float32 rounding: decide it in float64
+                r = refine_ranges(caster, mesh.vertices, mesh.faces, table, lidar, m, c,
+                                  radius, s, w, h, r)
             return s, w, h, r, boxes.clipped, rays_per_sample.astype(np.int64)
         parts = []
         start = 0

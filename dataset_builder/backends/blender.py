@@ -119,6 +119,8 @@ class BlenderCaster:
         self._bpy = bpy = _import_bpy()
         verts = mesh.vertices.astype(np.float32)
         faces = mesh.faces.astype(np.int32)
+        self._verts, self._faces = verts, faces
+        self._bvh = None  # mathutils' BVH: the bvh method's caster, else made when first needed
         if method == "bvh":
             from mathutils.bvhtree import BVHTree
             self._bvh = BVHTree.FromPolygons(verts.tolist(), faces.tolist(), all_triangles=True)
@@ -235,6 +237,27 @@ class BlenderCaster:
         """:meth:`cast` for float32 rays, answering only the hits: (ray index, float64
         distance), the embree backend's arithmetic on :meth:`distances32`."""
         return hits_of(self.distances32, origin, direction, t_max)
+
+    def triangles(self, origin: np.ndarray, direction: np.ndarray,
+                  limit: np.float32) -> np.ndarray:
+        """Index of the triangle each float32 ray hits first before ``limit``, -1 where none,
+        by Blender's BVH (``mathutils.bvhtree``) over this caster's triangles: for the few
+        rays of :func:`dataset_builder.refine.refine_ranges`, so a Python loop is enough."""
+        from mathutils import Vector
+        if self._bvh is None:
+            from mathutils.bvhtree import BVHTree
+            self._bvh = BVHTree.FromPolygons(self._verts.tolist(), self._faces.tolist(),
+                                             all_triangles=True)
+        out = np.full(len(origin), -1, np.int64)
+        ray_cast = self._bvh.ray_cast
+        length = float(limit)
+        for i, (oi, di) in enumerate(zip(np.asarray(origin, np.float32).tolist(),
+                                         np.asarray(direction, np.float32).tolist(),
+                                         strict=True)):
+            hit = ray_cast(Vector(oi), Vector(di), length)
+            if hit[2] is not None:
+                out[i] = hit[2]
+        return out
 
     def _cast_bvh(self, o, d, t_max) -> np.ndarray:
         from mathutils import Vector

@@ -66,3 +66,15 @@ class EmbreeCaster:
             out = np.empty(len(origin), np.float32)
         out.fill(limit)
         return self._scene.run(origin, direction, dists=out, query="DISTANCE")
+
+    def triangles(self, origin: np.ndarray, direction: np.ndarray,
+                  limit: np.float32) -> np.ndarray:
+        """Index of the triangle each float32 ray hits first before ``limit``, -1 where none
+        (for :func:`dataset_builder.refine.refine_ranges`)."""
+        if len(origin) == 0:
+            return np.zeros(0, np.int64)
+        o = np.ascontiguousarray(origin, dtype=np.float32)
+        d = np.ascontiguousarray(direction, dtype=np.float32)
+        prim = self._scene.run(o, d, dists=np.full(len(o), limit, np.float32),
+                               query="INTERSECT")
+        return np.asarray(prim, dtype=np.int64)
