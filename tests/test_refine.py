@@ -134,3 +134,28 @@ def test_blender_and_embree_store_the_same_bins_at_bin_edges():
         assert len(common) >= 0.999 * len(ka)
         assert all(ka[k] == kc[k] for k in common)
     assert n_edge > 100
+
+
+def test_cell_rays_are_the_rays_the_build_casts():
+    """refine_ranges re-makes a hit's ray from its cell alone; it must be the box's ray to the
+    bit, else the float64 distance would be of another ray."""
+    from dataset_builder.rays import (
+        angular_boxes,
+        bounding_radius,
+        cell_rays,
+        make_rays,
+        sample_frames,
+    )
+    cat = default_catalog()
+    for name in ("A320neo", "Mavic 3"):
+        mesh = cat.mesh(cat.get(name))
+        table = _conditions(name, 12, seed=4)
+        radius = bounding_radius(mesh.vertices)
+        m, c = sample_frames(table)
+        boxes = angular_boxes(mesh.vertices, table, LIDAR, m, c)
+        rays = make_rays(table, boxes, LIDAR, m, c, radius)
+        s = rays.sample
+        o, d, t_start, t_max = cell_rays(table[s], rays.w, rays.h, LIDAR, m[s], c[s], radius)
+        assert len(o) > 1000
+        assert np.array_equal(o, rays.origin) and np.array_equal(d, rays.direction)
+        assert np.array_equal(t_start, rays.t_start[s]) and t_max == rays.t_max
