@@ -74,6 +74,21 @@ def test_local_cluster_build_of_demo_equals_single_process(demo_reference, tmp_p
     assert timing["rays"] > 960 and timing["seconds"] > 0
 
 
+def test_blender_backend_on_a_local_cluster_equals_one_process(tmp_path):
+    """Each Dask worker imports bpy and keeps its casters across shards; the bytes are a
+    single-process Blender build's."""
+    outs = {}
+    for name, extra in (("one", []), ("dask", ["--engine", "dask", "--workers", "2"])):
+        outs[name] = tmp_path / name
+        r = subprocess.run(_build_cmd(outs[name], "--backend", "blender", *extra,
+                                      config="demo"),
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-2000:]
+    one = _files(outs["one"])
+    assert sum(f.startswith("shards/") for f in one) == 18
+    _assert_same(outs["dask"], one)
+
+
 def test_engine_build_of_cpu_part_equals_single_process(cpu_reference, tmp_path):
     r = subprocess.run(_build_cmd(tmp_path / "ds", "--engine", "dask", "--workers", "2"),
                        capture_output=True, text=True, timeout=300)
