@@ -285,6 +285,8 @@ def measure(types: int = 4, samples: int = 2500, repeat: int = 1, binary: bool =
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--types", type=int, default=4, help="types (one real shard each)")
     ap.add_argument("--samples", type=int, default=2500, help="samples per shard")
@@ -298,9 +300,7 @@ def main() -> int:
     args = ap.parse_args()
     res = measure(args.types, args.samples, args.repeat, args.blender_binary,
                   not args.no_check, not args.no_raw)
-    print(json.dumps(res, indent=1))
-    if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=1) + "\n")
+    emit(res, args.json)
     return 0
 
 

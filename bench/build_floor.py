@@ -19,7 +19,6 @@ pyinstrument profile of one more round (which sees nothing inside the compiled k
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -200,6 +199,8 @@ def rates(n_types: int = 8, samples: int = 2500, repeat: int = 2) -> tuple[float
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--types", type=int, default=8, help="types (one real shard each)")
     ap.add_argument("--samples", type=int, default=2500, help="samples per shard")
@@ -212,9 +213,7 @@ def main() -> int:
     res = {"command": "python bench/build_floor.py " + " ".join(sys.argv[1:]),
            **measure(args.types, args.samples, args.repeat, args.profile, args.stages)}
     profile = res.pop("profile", None)
-    print(json.dumps(res, indent=1))
-    if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=1) + "\n")
+    emit(res, args.json)
     if profile:
         print(profile)
     return 0

@@ -149,6 +149,8 @@ def _child(mode: str, cfg: Path, work: Path, out_json: Path) -> None:
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--samples", type=int, default=100_000)
     ap.add_argument("--shard-size", type=int, default=2500)
@@ -183,9 +185,8 @@ def main() -> int:
             print(table(res), flush=True)
     summary = {m: {k: v for k, v in r.items() if k != "per_shard"}
                for m, r in results["modes"].items()}
-    print(json.dumps(summary, indent=1))
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1) + "\n")
+    emit(summary)
+    emit(results, args.json, show=False)
     return 0
 
 

@@ -48,6 +48,8 @@ def subsampling_effect(model, data, n: int = 200, seed: int = 0) -> dict:
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True)
     ap.add_argument("--model")
@@ -67,9 +69,7 @@ def main() -> int:
            "fixed_seconds": float(per_pair[1]),
            "seconds_for_10000": float(np.polyval(per_pair, 10_000)),
            "subsampling": subsampling_effect(model, args.data)}
-    print(json.dumps(out, indent=1))
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+    emit(out, args.json)
     return 0
 
 

@@ -69,6 +69,8 @@ def clouds_per_second(g, batch: int, bf16: bool, seconds: float, rng,
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", help="model directory (its network width is used)")
     ap.add_argument("--batches", default="1,8,32,128")
@@ -110,8 +112,7 @@ def main() -> int:
                 res["rows"].append(row)
                 print(json.dumps(row), flush=True)
     print(json.dumps({k: v for k, v in res.items() if k != "rows"}))
-    if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=1) + "\n")
+    emit(res, args.json, show=False)
     return 0
 
 

@@ -15,7 +15,6 @@ The ratio generate / build is the issue's figure of merit (<= 1.0: generation is
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import subprocess
@@ -50,6 +49,8 @@ def timed(cmd: list[str], cwd: Path) -> float:
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True, help="model directory to generate with")
     ap.add_argument("--per-type", type=int, default=168)
@@ -81,10 +82,7 @@ def main() -> int:
                   "ratio_generate_over_build": round(med["generate"] / med["build"], 3)}
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    text = json.dumps(report, indent=1)
-    print(text)
-    if args.json:
-        Path(args.json).write_text(text + "\n")
+    emit(report, args.json)
     return 0
 
 

@@ -40,6 +40,8 @@ def sized_config(samples: int) -> dict:
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--max-samples", type=int, default=10**6)
     ap.add_argument("--workers", type=int, default=2)
@@ -90,10 +92,7 @@ def main() -> int:
         "cost_per_sample_last_over_first": round(sizes[-1]["us_per_sample"]
                                                  / sizes[0]["us_per_sample"], 3),
         "seconds": round(time.perf_counter() - t_start, 1)}
-    text = json.dumps(res, indent=1)
-    print(text)
-    if a.json:
-        Path(a.json).write_text(text + "\n")
+    emit(res, a.json)
     return 0
 
 

@@ -117,6 +117,8 @@ def agreement(ref_dir: Path, other_dir: Path, backend: str, n_tasks: int) -> dic
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--per-type", type=int, default=40, help="samples per type (80 types)")
     ap.add_argument("--workers", type=int, default=2)
@@ -206,9 +208,7 @@ def main() -> int:
                 continue
             results["backends"][backend]["vs_embree"] = agreement(
                 ref, tmp / backend, backend, len(plan.types))
-    print(json.dumps(results, indent=1))
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1) + "\n")
+    emit(results, args.json)
     return 0
 
 

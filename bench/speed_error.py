@@ -21,7 +21,6 @@ and models loaded beforehand. Every row carries its point counts; JSD carries it
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -68,6 +67,8 @@ def score(refs, clouds, bands, seed: int = 0) -> dict:
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True)
     ap.add_argument("--per-band", type=int, default=24)
@@ -100,9 +101,7 @@ def main() -> int:
         report["methods"][name] = {"ms_per_cloud": round(1e3 * sec, 3),
                                    "bands": score(refs, clouds, bands, args.seed)}
         print(name, report["methods"][name]["ms_per_cloud"], "ms/cloud", flush=True)
-    text = json.dumps(report, indent=1)
-    if args.json:
-        Path(args.json).write_text(text + "\n")
+    emit(report, args.json, show=False)
     print(markdown(report))
     if args.plot:
         plot(report, Path(args.plot))

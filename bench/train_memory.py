@@ -32,6 +32,8 @@ CONFIGS = {
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True)
     ap.add_argument("--steps", type=int, default=20)
@@ -52,8 +54,7 @@ def main() -> int:
         print(json.dumps(row), flush=True)
     out = {"command": "python bench/train_memory.py " + " ".join(sys.argv[1:]),
            "steps": args.steps, "rows": rows}
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+    emit(out, args.json, show=False)
     if args.plot:
         import matplotlib
         matplotlib.use("Agg")
