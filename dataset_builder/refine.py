@@ -35,17 +35,18 @@ def near_bin_edges(range_m: np.ndarray, bin_m: float, tol_m: float = EDGE_TOL_M)
     return np.flatnonzero(np.abs(q) < tol_m / bin_m)
 
 
-def triangle_distances(vertices32: np.ndarray, faces: np.ndarray, tri: np.ndarray,
+def triangle_distances(vertices: np.ndarray, faces: np.ndarray, tri: np.ndarray,
                        origin32: np.ndarray, direction32: np.ndarray) -> np.ndarray:
     """Float64 distance (metres) along each float32 ray to the plane of its triangle ``tri``
-    (Moller-Trumbore in float64 on the float32 numbers), NaN where ``tri`` is -1, the ray is
-    parallel to the plane, or the crossing lies clearly outside the triangle."""
+    (Moller-Trumbore in float64 on the float32 numbers: ``vertices`` are rounded to float32 as
+    the casters hold them), NaN where ``tri`` is -1, the ray is parallel to the plane, or the
+    crossing lies clearly outside the triangle."""
     n = len(tri)
     out = np.full(n, np.nan)
     ok = tri >= 0
     if not ok.any():
         return out
-    v = np.asarray(vertices32, dtype=np.float32).astype(np.float64)
+    v = np.asarray(vertices, dtype=np.float32).astype(np.float64)
     f = np.asarray(faces)[tri[ok]]
     v0, v1, v2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     o = np.asarray(origin32, dtype=np.float32)[ok].astype(np.float64)
@@ -64,8 +65,7 @@ def triangle_distances(vertices32: np.ndarray, faces: np.ndarray, tri: np.ndarra
     # degenerate triangle) is refused. Edge hits sit at u, v ~ 0 and may round either side.
     slack = 1e-6
     inside = (np.isfinite(t) & (u >= -slack) & (w >= -slack) & (u + w <= 1.0 + slack))
-    out_ok = np.where(inside, t * np.sqrt((d * d).sum(axis=1)), np.nan)
-    out[ok] = out_ok
+    out[ok] = np.where(inside, t * np.sqrt((d * d).sum(axis=1)), np.nan)
     return out
 
 
@@ -75,8 +75,10 @@ def refine_ranges(caster, vertices: np.ndarray, faces: np.ndarray, table: np.nda
     """``r`` (float64 ranges of the hit cells (s, w, h), one ray per cell) with the hits near a
     time-bin edge replaced by the float64 distance to the triangle the caster hit. Casters
     without ``triangles`` are left as they are."""
+    if not hasattr(caster, "triangles"):
+        return r
     idx = near_bin_edges(r, lidar.r_r, EDGE_TOL_M)
-    if len(idx) == 0 or not hasattr(caster, "triangles"):
+    if len(idx) == 0:
         return r
     si = s[idx]
     # the rays the build cast, rounded to float32 as its blocks round them

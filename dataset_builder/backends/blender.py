@@ -9,8 +9,9 @@ a user's open scene is never touched. Both answer in the embree backend's terms
 (``distances32`` / ``cast_hits``), so the build's hot loop is the same for every caster.
 
 Where the time goes (bench/blender_path.py): Blender's own Raycast evaluation is ~95 % of the
-path; it costs about 6-7 times embree's CPU time per ray (its BVH traversal: ~0.3 us a miss,
-~0.8 us a hit, against embree's ~0.05 / 0.15 us), and it runs on every core.
+path; it costs about 6-8 times embree's CPU time per ray (its BVH traversal: ~0.3-0.45 us a
+miss near the target, 0.8-1.3 us a hit, against embree's ~0.05 / 0.15 us), and it runs on every
+core. Even casting only the rays that hit, it costs 2.7x the whole embree path's CPU.
 """
 
 from __future__ import annotations
