@@ -66,8 +66,8 @@ def stage_times(tasks) -> dict:
     """Wall and CPU seconds of each stage of one pipeline round, from timers put around the
     functions that do them (a profiler cannot see inside the compiled kernels)."""
     import apcg_core.io.dataset as dataset_io
-    import dataset_builder.build as build
     import dataset_builder.rays as rays
+    import dataset_builder.shards as shards
     import dataset_builder.simulate as simulate
     from apcg_core.lidar import LidarParams
     from dataset_builder.backends.embree import EmbreeCaster
@@ -87,8 +87,8 @@ def stage_times(tasks) -> dict:
     swaps = [(simulate, "angular_boxes"), (simulate, "cast_cells"), (rays, "_block"),
              (rays.RayBlock, "cells"), (EmbreeCaster, "distances32"), (EmbreeCaster, "cast_hits"),
              (LidarParams, "quantize_range"), (simulate, "refine_ranges"),
-             (build, "compute_shard"),
-             (dataset_io.Shard, "to_bytes"), (build, "write_atomic")]
+             (shards, "compute_shard"),
+             (dataset_io.Shard, "to_bytes"), (shards, "write_atomic")]
     if kernels.loaded():
         k = kernels.require()
         swaps += [(k, "row_elevations"), (k, "rays"), (k, "hits"), (k, "screen")]

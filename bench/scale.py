@@ -8,7 +8,7 @@ per sample of whole builds from 10^3 to 10^6 samples (flat is the goal).
 Each part is its own bench's function, so the figures mean what those benches say:
 ``bench/build_floor.py`` (embree on the first training shard of 8 types, the best round's
 ratio), ``bench/blender_path.py`` (the same pipeline through ``--backend blender`` on 4 shards),
-``dataset_builder.engine.time_engine_build`` (a whole build of the cpu-like config below, cluster
+``dataset_builder.build.time_engine_build`` (a whole build of the cpu-like config below, cluster
 start-up included, against the local pool on the same config; the local pool again with the
 Blender backend). The Blender path's ``oracle`` figures are Blender casting only the rays that
 hit, against the whole embree pipeline: the floor under any pre-filter of its rays. The sizes
@@ -51,7 +51,7 @@ def main() -> int:
     import blender_path
     import build_floor
 
-    from dataset_builder.engine import time_engine_build
+    from dataset_builder.build import time_engine_build
     t_start = time.perf_counter()
     floor = build_floor.measure(n_types=8, samples=2500, repeat=2)
     blender = blender_path.measure(types=4, samples=2500, repeat=1, check=False, raw=True)

@@ -11,22 +11,21 @@ files, the manifest) have the same bytes whoever writes them and appear by atomi
 a lock file per shard spec refuses a second build of the same part while the first one lives.
 
 Where the shards are computed (this process, a local pool, a Dask cluster) is the engine's
-business (``engine.py``); every engine runs the same ``run_task`` on the same tasks. Ctrl-C
+business (``engine.py``); every engine runs the same ``shards.run_task`` on the same tasks. Ctrl-C
 stops the workers, drops their temporary files and raises ``BuildInterrupted`` saying how many
 shards are done: the same command resumes.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from apcg_core import __version__
-from apcg_core.depth import DEPTH_SCALE, TARGET_FLOOR
 from apcg_core.errors import InputError
 from apcg_core.io.dataset import (
     FORMAT_VERSION,
@@ -45,6 +44,7 @@ from .backends import check_backend
 from .engine import RunSettings, get_engine, worker_init  # noqa: F401 (benches import it here)
 from .plan import Plan, ShardPlan, load_config, make_plan
 from .rays import bounding_radius
+from .shards import ShardTask, close_simulators, part_suffix, run_task
 
 
 def header_of(plan: Plan, catalog) -> dict:
@@ -80,84 +80,6 @@ def conditions_csv(plan: Plan) -> bytes:
         lines.append(f"{i},{plan.split[i]},{shard_of[i]},{c},{names[c]},{t[i, 1]!r},"
                      f"{deg[i, 0]!r},{deg[i, 1]!r},{deg[i, 2]!r},{deg[i, 3]!r}")
     return ("\n".join(lines) + "\n").encode()
-
-
-@dataclass
-class ShardTask:
-    """What a worker needs for one shard (small and picklable: no plan, no catalog)."""
-
-    index: int
-    path: str
-    type_catalog_index: int
-    depth_length_m: float
-    rows: np.ndarray
-    table: np.ndarray
-    nu: np.ndarray
-    backend: str
-    quantize: bool
-    supersample: int
-    fine_cloud_points: int
-    lidar: dict
-
-
-_SIMULATORS: dict = {}
-
-
-def _simulator(task: ShardTask):
-    from apcg_core.lidar import LidarParams
-
-    from .simulate import Simulator
-    key = (task.backend, task.quantize, task.supersample, task.fine_cloud_points,
-           tuple(sorted(task.lidar.items())))
-    if key not in _SIMULATORS:
-        _SIMULATORS[key] = Simulator(task.backend, LidarParams.from_dict(task.lidar),
-                                     task.quantize, task.supersample, task.fine_cloud_points)
-    return _SIMULATORS[key]
-
-
-def close_simulators() -> None:
-    """Free every cached simulator's backend (Blender objects must go before Blender exits)."""
-    for sim in _SIMULATORS.values():
-        sim.close()
-    _SIMULATORS.clear()
-
-
-def compute_shard(task: ShardTask) -> Shard:
-    from apcg_core.catalog.catalog import default_catalog
-    sim = _simulator(task)
-    lidar = sim.lidar
-    cl = sim.simulate_cells_type(default_catalog(), task.type_catalog_index, task.table)
-    n = len(task.rows)
-    s = cl.sample
-    if len(s) > 1 and (np.diff(s) < 0).any():  # backends return clouds in sample order
-        raise RuntimeError("internal error: simulator output is not grouped by sample")
-    counts = np.bincount(s, minlength=n)
-    r0 = task.table[s, 1]
-    d = DEPTH_SCALE * (cl.range_m - r0) / task.depth_length_m
-    dc = np.clip(d, TARGET_FLOOR, 1.0)
-    pixel = lidar.row_of_h(cl.cell_h) * lidar.width + lidar.col_of_w(cl.cell_w)
-    pix_type = np.uint16 if lidar.width * lidar.height <= 1 << 16 else np.uint32
-    return Shard(sample_id=task.rows.astype(np.int64), conditions=task.table,
-                 nu=task.nu.astype(np.float32),
-                 offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-                 pixel=pixel.astype(pix_type), depth=dc.astype(np.float16),
-                 delta_range_m=(cl.range_m - r0).astype(np.float32),
-                 clipped=cl.clipped.astype(bool),
-                 n_clamped=np.bincount(s, weights=(d != dc), minlength=n).astype(np.int32),
-                 n_rays=cl.n_rays.astype(np.int32))
-
-
-def _part_suffix() -> str:
-    """Temporary-file suffix unique to this process (concurrent builders share a directory)."""
-    return f".{os.getpid()}.part"
-
-
-def run_task(task: ShardTask) -> tuple[int, int, float]:
-    t0 = time.perf_counter()
-    shard = compute_shard(task)
-    path = Path(task.path)
-    write_atomic(path, shard.to_bytes(), part_suffix=_part_suffix())
-    return task.index, len(task.rows), time.perf_counter() - t0
 
 
 def _remove_dead_parts(directory: Path) -> None:
@@ -236,11 +158,11 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
             raise InputError(f"{out} already holds a different dataset (its dataset.json differs "
                              "from this config's); build into a new directory or delete it")
     else:
-        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=_part_suffix())
+        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=part_suffix())
         # last: its presence means the plan files are complete
-        write_atomic(head_path, header, part_suffix=_part_suffix())
+        write_atomic(head_path, header, part_suffix=part_suffix())
     if not (out / "conditions.csv").exists():
-        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=_part_suffix())
+        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=part_suffix())
 
     mine = [s for s in plan.shards if s.index % part_n == part_i]
     todo = [s for s in mine if not (out / s.file).exists()]
@@ -266,7 +188,7 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
         _remove_dead_parts(out)
         manifest = {"complete": True, "shards": [
             {"file": s.file, "sha256": sha256_file(out / s.file)} for s in plan.shards]}
-        write_atomic(out / "manifest.json", json_bytes(manifest), part_suffix=_part_suffix())
+        write_atomic(out / "manifest.json", json_bytes(manifest), part_suffix=part_suffix())
     return {"directory": str(out), "built_shards": len(tasks), "skipped_shards": len(mine) -
             len(tasks), "samples_built": sum(len(t.rows) for t in tasks),
             "seconds": round(elapsed, 3), "complete": complete}
@@ -346,3 +268,25 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
                      "clipped_samples": clipped, "clamped_pixels": clamped,
                      "empty_samples": empty, "verified": True})
     return info
+
+
+def time_engine_build(config, engine: str = "dask", workers: int = 2, out_dir=None,
+                      shard_spec: str | None = None) -> dict:
+    """Build ``config`` with ``engine`` and ``workers`` into ``out_dir`` (a fresh temporary
+    directory when None) and time it, cluster start-up included: for benches.
+
+    Returns ``seconds`` (wall, whole build), ``rays`` (rays cast in the built shards, 0 for
+    the points backend), ``samples`` and ``shards`` built."""
+    import tempfile
+
+    with contextlib.ExitStack() as stack:
+        if out_dir is None:
+            out_dir = Path(stack.enter_context(tempfile.TemporaryDirectory())) / "ds"
+        t0 = time.perf_counter()
+        summary = build_dataset(config, out_dir, workers=workers, engine=engine,
+                                shard_spec=shard_spec, progress=False)
+        seconds = time.perf_counter() - t0
+        rays = sum(int(np.sum(Shard.load(p).n_rays, dtype=np.int64))
+                   for p in sorted((Path(out_dir) / "shards").glob("*.npz")))
+    return {"engine": engine, "workers": workers, "seconds": round(seconds, 3), "rays": rays,
+            "samples": summary["samples_built"], "shards": summary["built_shards"]}

@@ -2,7 +2,7 @@
 cluster (``apcg dataset build --engine dask [--address ADDR]``), one task per shard.
 
 Every engine is handed the same small, picklable ``ShardTask``s and the same pure function
-(``build.run_task``), which computes one shard and writes it atomically itself; an engine only
+(``shards.run_task``), which computes one shard and writes it atomically itself; an engine only
 decides where that happens and yields each finished task's result in completion order. So where
 a shard was computed never shows in its bytes, and a task whose worker dies (a crash, a kill)
 is simply run again: the rerun writes the same bytes under the same name.
@@ -21,13 +21,15 @@ import signal
 import socket
 import sys
 import threading
-import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 from apcg_core.errors import APCGError, InputError
+from apcg_core.testpoints import wait_point
+
+from .shards import close_simulators
 
 # fn(tasks) -> results as they finish
 Runner = Callable[[Callable, Iterable], Iterator]
@@ -91,6 +93,7 @@ class LocalEngine:
             with _sigint_held():
                 pool = stack.enter_context(ctx.Pool(settings.workers, initializer=worker_init,
                                                     maxtasksperchild=per))
+                wait_point("build.workers-starting")
             yield pool.imap_unordered
 
 
@@ -126,7 +129,6 @@ class DaskEngine:
         with _dask_client(distributed, settings) as client:
             yield lambda fn, tasks: _dask_results(distributed, client, fn, tasks)
             if settings.address:  # a long-lived cluster: free the workers' cached meshes
-                from .build import close_simulators
                 with contextlib.suppress(Exception):
                     client.run(close_simulators)
 
@@ -190,6 +192,7 @@ def _dask_client(distributed, settings: RunSettings):
             cluster = stack.enter_context(distributed.LocalCluster(
                 n_workers=settings.workers, threads_per_worker=1, processes=True,
                 dashboard_address=None, silence_logs=logging.ERROR))
+            wait_point("build.workers-starting")
         client = stack.enter_context(distributed.Client(cluster, set_as_default=False))
         client.register_worker_callbacks(setup=worker_init)
         yield client
@@ -277,30 +280,3 @@ def _dask_results(distributed, client, fn: Callable, tasks: list) -> Iterator:
     finally:
         # Stopped early (Ctrl-C, an error): unstarted tasks must not run on a shared cluster.
         client.cancel(futures)
-
-
-def time_engine_build(config, engine: str = "dask", workers: int = 2, out_dir=None,
-                      shard_spec: str | None = None) -> dict:
-    """Build ``config`` with ``engine`` and ``workers`` into ``out_dir`` (a fresh temporary
-    directory when None) and time it, cluster start-up included: for benches.
-
-    Returns ``seconds`` (wall, whole build), ``rays`` (rays cast in the built shards, 0 for
-    the points backend), ``samples`` and ``shards`` built."""
-    import tempfile
-
-    import numpy as np
-
-    from apcg_core.io.dataset import Shard
-
-    from .build import build_dataset
-    with contextlib.ExitStack() as stack:
-        if out_dir is None:
-            out_dir = Path(stack.enter_context(tempfile.TemporaryDirectory())) / "ds"
-        t0 = time.perf_counter()
-        summary = build_dataset(config, out_dir, workers=workers, engine=engine,
-                                shard_spec=shard_spec, progress=False)
-        seconds = time.perf_counter() - t0
-        rays = sum(int(np.sum(Shard.load(p).n_rays, dtype=np.int64))
-                   for p in sorted((Path(out_dir) / "shards").glob("*.npz")))
-    return {"engine": engine, "workers": workers, "seconds": round(seconds, 3), "rays": rays,
-            "samples": summary["samples_built"], "shards": summary["built_shards"]}

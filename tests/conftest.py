@@ -1,4 +1,7 @@
 import os
+import shutil
+import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -40,3 +43,59 @@ def tiny_training_data(tmp_path_factory) -> Path:
     build_dataset(str(Path(__file__).parent / "data" / "dataset_tiny_window.toml"), out,
                   progress=False)
     return out
+
+
+BLENDER_APT = "apt-get install -y blender python3-numpy (the README's set-up)"
+
+
+def blender_or_skip() -> str:
+    """The ``blender`` binary on PATH, or a skip naming how to install it: the one rule of every
+    test that runs the binary (CI's APCG_FAIL_ON_SKIP turns the skip into a failure)."""
+    exe = shutil.which("blender")
+    if exe is None:
+        pytest.skip(f"needs the blender binary, which is not on PATH: {BLENDER_APT}")
+    return exe
+
+
+@pytest.fixture
+def blender_binary() -> str:
+    return blender_or_skip()
+
+
+class Hold:
+    """Holds a command at named points of ``apcg_core.testpoints`` so that a test interrupts it
+    at a known moment, however fast or loaded the machine is."""
+
+    def __init__(self, directory: Path):
+        self.directory = directory
+        directory.mkdir(parents=True, exist_ok=True)
+
+    def env(self, *points: str) -> dict:
+        """This process's environment, plus what makes a command wait at ``points``."""
+        from apcg_core.testpoints import ENV_AT, ENV_DIR, POINTS
+        unknown = [p for p in points if p not in POINTS]
+        assert not unknown, f"unknown test points {unknown}; known: {list(POINTS)}"
+        return {**os.environ, ENV_AT: ",".join(points), ENV_DIR: str(self.directory)}
+
+    def wait(self, point: str, proc: subprocess.Popen, timeout: float = 300) -> int:
+        """Until some process of ``proc`` waits at ``point``; returns that process's pid.
+        Fails, with the command's stderr, if ``proc`` ends first."""
+        reached = self.directory / f"{point}.reached"
+        deadline = time.monotonic() + timeout
+        while not reached.exists():
+            if proc.poll() is not None:
+                err = proc.stderr.read() if proc.stderr else ""
+                pytest.fail(f"the command ended (exit {proc.returncode}) before reaching "
+                            f"{point}: {err[-2000:] if err else ''}")
+            assert time.monotonic() < deadline, f"{point} not reached in {timeout} s"
+            time.sleep(0.005)
+        return int(reached.read_text())
+
+    def release(self, point: str) -> None:
+        """Let every process waiting at ``point`` (and all that come later) go on."""
+        (self.directory / f"{point}.go").touch()
+
+
+@pytest.fixture
+def hold(tmp_path_factory) -> Hold:
+    return Hold(tmp_path_factory.mktemp("test-points"))  # not in tmp_path: tests list that

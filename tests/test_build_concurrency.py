@@ -8,7 +8,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -106,27 +105,22 @@ def test_same_part_refused_while_its_builder_lives(config, tmp_path):
         holder.wait()
 
 
-def test_two_live_builds_of_one_part_one_refused(config, tmp_path):
+def test_two_live_builds_of_one_part_one_refused(config, tmp_path, hold):
     out = tmp_path / "ds"
+    point = "build.shard-written"
     first = subprocess.Popen(_build_cmd(config, out, "0/1"), stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
+                             stderr=subprocess.PIPE, text=True, env=hold.env(point))
     try:
-        lock = out / ".build-0-of-1.lock"
-        deadline = time.monotonic() + 120
-        while not lock.exists() and first.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.005)
-        if not lock.exists():
-            pytest.fail("the first build never showed its lock file: "
-                        f"{first.communicate()[1]}")
-        second = subprocess.run(_build_cmd(config, out, "0/1"), capture_output=True, text=True)
-        first_alive = first.poll() is None
+        hold.wait(point, first)  # the first build holds its lock, waiting after a shard
+        second = subprocess.run(_build_cmd(config, out, "0/1"), capture_output=True, text=True,
+                                timeout=300)
     finally:
+        hold.release(point)
         _, err = first.communicate(timeout=300)
     assert first.returncode == 0, err
-    if first_alive:  # the usual case: the second ran while the first held the lock
-        assert second.returncode != 0
-        assert f"pid {first.pid}" in second.stderr
-    assert not lock.exists()
+    assert second.returncode != 0
+    assert f"pid {first.pid}" in second.stderr
+    assert not (out / ".build-0-of-1.lock").exists()
 
 
 def test_stale_lock_of_dead_process_taken_over(config, reference, tmp_path):

@@ -22,8 +22,7 @@ import pytest
 pytest.importorskip("embreex")
 pytest.importorskip("distributed")
 
-from dataset_builder.build import build_dataset  # noqa: E402
-from dataset_builder.engine import time_engine_build  # noqa: E402
+from dataset_builder.build import build_dataset, time_engine_build  # noqa: E402
 
 # A sixth of the committed `cpu` config (33 of its 196 shards: 8,400 of 49,000 samples over
 # 33 of its 98 types, both splits): the whole config takes 7-15 s a build on 2 cores, and the
@@ -217,20 +216,17 @@ def test_without_retries_the_killed_shard_fails_the_build_in_one_line(cluster_wi
     assert not (tmp_path / "ds" / "manifest.json").exists()
 
 
-def _ctrl_c_when(cmd, ready, settle: float = 0.0) -> tuple[int, str]:
+def _ctrl_c_at(cmd, hold, point: str) -> tuple[int, str]:
     """Run ``cmd`` in its own process group (a shell's foreground job, which Ctrl-C reaches
-    whole), send SIGINT to the group once ``ready()`` is true (and ``settle`` s more):
-    (exit code, stderr)."""
+    whole), held at the test point ``point``; once a process of it waits there, send SIGINT
+    to the group, then let the point go: (exit code, stderr)."""
     build = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                             start_new_session=True)
+                             start_new_session=True, env=hold.env(point))
     try:
-        deadline = time.monotonic() + 120
-        while not ready() and build.poll() is None:
-            assert time.monotonic() < deadline, "not ready in 120 s"
-            time.sleep(0.002)
-        time.sleep(settle)
+        hold.wait(point, build)
         os.killpg(build.pid, signal.SIGINT)
-        _, err = build.communicate(timeout=120)
+        hold.release(point)
+        _, err = build.communicate(timeout=300)
     finally:
         if build.poll() is None:
             os.killpg(build.pid, signal.SIGKILL)
@@ -240,10 +236,12 @@ def _ctrl_c_when(cmd, ready, settle: float = 0.0) -> tuple[int, str]:
 
 @pytest.mark.parametrize("how", [[], ["--workers", "2"], ["--engine", "dask", "--workers", "2"]],
                          ids=["one-process", "local-pool", "dask"])
-def test_ctrl_c_stops_cleanly_and_the_same_command_resumes(cpu_reference, tmp_path, how):
+def test_ctrl_c_stops_cleanly_and_the_same_command_resumes(cpu_reference, tmp_path, hold, how):
     out = tmp_path / "ds"
     cmd = _build_cmd(out, *how)
-    rc, err = _ctrl_c_when(cmd, lambda: list((out / "shards").glob("*.npz")))
+    # Ctrl-C once a shard is written, while every worker that wrote one waits: it lands
+    # among the shards, never after the last
+    rc, err = _ctrl_c_at(cmd, hold, "build.shard-written")
     assert rc == 130, err
     assert "Traceback" not in err
     done = len(list((out / "shards").glob("*.npz")))
@@ -261,16 +259,16 @@ def test_ctrl_c_stops_cleanly_and_the_same_command_resumes(cpu_reference, tmp_pa
 
 @pytest.mark.parametrize("how", [["--workers", "2"], ["--engine", "dask", "--workers", "2"]],
                          ids=["local-pool", "dask"])
-def test_ctrl_c_while_the_workers_start_is_not_lost(tmp_path, how):
-    # dataset.json is written just before the workers are started: Ctrl-C then lands while
-    # they boot, when a worker that saw it would print a traceback and a build that ignored
-    # it would run on to the end.
+def test_ctrl_c_while_the_workers_start_is_not_lost(tmp_path, hold, how):
+    # Held just after the pool or cluster is started: Ctrl-C lands while its workers boot,
+    # when a worker that saw it would print a traceback and a build that ignored it would
+    # run on to the end.
     out = tmp_path / "ds"
-    # 0.2 s after dataset.json: the workers are being spawned, importing, not yet set up
-    rc, err = _ctrl_c_when(_build_cmd(out, *how), (out / "dataset.json").exists, settle=0.2)
+    rc, err = _ctrl_c_at(_build_cmd(out, *how), hold, "build.workers-starting")
     assert rc == 130, err
     assert "Traceback" not in err and "run the same command again" in err.lower(), err
     assert [p.name for p in out.rglob("*") if ".part" in p.name or ".lock" in p.name] == []
+    assert not list((out / "shards").glob("*.npz"))  # stopped before any shard
 
 
 def _closed_port() -> int:

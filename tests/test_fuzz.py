@@ -506,14 +506,20 @@ def test_a_full_disk_during_a_build_resumes_to_the_same_dataset(demo_dataset, tm
     _record("full disk", "dataset build, then resumed", "handled")
 
 
-def test_ctrl_c_while_generating_leaves_nothing_and_exits_130(tmp_path):
-    p = subprocess.Popen([APCG, "generate", *POSE, "--count", "200000", "-o",
-                          tmp_path / "g.ply"], stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
-    while not (tmp_path / "g.ply.part").exists() and time.time() < deadline:
-        time.sleep(0.05)
-    p.send_signal(signal.SIGINT)
-    err = p.communicate(timeout=120)[1]
+def test_ctrl_c_while_generating_leaves_nothing_and_exits_130(tmp_path, hold):
+    # held after the first of three blocks is written to g.ply's temporary file
+    p = subprocess.Popen([APCG, "generate", *POSE, "--count", "20000", "-o",
+                          tmp_path / "g.ply"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         text=True, env=hold.env("generate.block-written"))
+    try:
+        hold.wait("generate.block-written", p)
+        p.send_signal(signal.SIGINT)
+        hold.release("generate.block-written")
+        err = p.communicate(timeout=300)[1]
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
     assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
     assert list(tmp_path.iterdir()) == []
     _record("interrupt", "generate Ctrl-C", "handled")

@@ -1,0 +1,97 @@
+"""One shard: the small task a worker is handed, and the pure function that computes the shard
+and writes it whole (``run_task``). Every engine (``engine.py``) runs ``run_task`` on the tasks
+that ``build.py`` plans, in this process, a local pool or a Dask cluster; a worker keeps its
+simulators across tasks until ``close_simulators``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from apcg_core.depth import DEPTH_SCALE, TARGET_FLOOR
+from apcg_core.io.dataset import Shard, write_atomic
+from apcg_core.testpoints import wait_point
+
+
+@dataclass
+class ShardTask:
+    """What a worker needs for one shard (small and picklable: no plan, no catalog)."""
+
+    index: int
+    path: str
+    type_catalog_index: int
+    depth_length_m: float
+    rows: np.ndarray
+    table: np.ndarray
+    nu: np.ndarray
+    backend: str
+    quantize: bool
+    supersample: int
+    fine_cloud_points: int
+    lidar: dict
+
+
+_SIMULATORS: dict = {}
+
+
+def _simulator(task: ShardTask):
+    from apcg_core.lidar import LidarParams
+
+    from .simulate import Simulator
+    key = (task.backend, task.quantize, task.supersample, task.fine_cloud_points,
+           tuple(sorted(task.lidar.items())))
+    if key not in _SIMULATORS:
+        _SIMULATORS[key] = Simulator(task.backend, LidarParams.from_dict(task.lidar),
+                                     task.quantize, task.supersample, task.fine_cloud_points)
+    return _SIMULATORS[key]
+
+
+def close_simulators() -> None:
+    """Free every cached simulator's backend (Blender objects must go before Blender exits)."""
+    for sim in _SIMULATORS.values():
+        sim.close()
+    _SIMULATORS.clear()
+
+
+def compute_shard(task: ShardTask) -> Shard:
+    from apcg_core.catalog.catalog import default_catalog
+    sim = _simulator(task)
+    lidar = sim.lidar
+    cl = sim.simulate_cells_type(default_catalog(), task.type_catalog_index, task.table)
+    n = len(task.rows)
+    s = cl.sample
+    if len(s) > 1 and (np.diff(s) < 0).any():  # backends return clouds in sample order
+        raise RuntimeError("internal error: simulator output is not grouped by sample")
+    counts = np.bincount(s, minlength=n)
+    r0 = task.table[s, 1]
+    d = DEPTH_SCALE * (cl.range_m - r0) / task.depth_length_m
+    dc = np.clip(d, TARGET_FLOOR, 1.0)
+    pixel = lidar.row_of_h(cl.cell_h) * lidar.width + lidar.col_of_w(cl.cell_w)
+    pix_type = np.uint16 if lidar.width * lidar.height <= 1 << 16 else np.uint32
+    return Shard(sample_id=task.rows.astype(np.int64), conditions=task.table,
+                 nu=task.nu.astype(np.float32),
+                 offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+                 pixel=pixel.astype(pix_type), depth=dc.astype(np.float16),
+                 delta_range_m=(cl.range_m - r0).astype(np.float32),
+                 clipped=cl.clipped.astype(bool),
+                 n_clamped=np.bincount(s, weights=(d != dc), minlength=n).astype(np.int32),
+                 n_rays=cl.n_rays.astype(np.int32))
+
+
+def part_suffix() -> str:
+    """Temporary-file suffix unique to this process (concurrent builders share a directory)."""
+    return f".{os.getpid()}.part"
+
+
+def run_task(task: ShardTask) -> tuple[int, int, float]:
+    t0 = time.perf_counter()
+    shard = compute_shard(task)
+    path = Path(task.path)
+    write_atomic(path, shard.to_bytes(), part_suffix=part_suffix())
+    wait_point("build.shard-written")
+    return task.index, len(task.rows), time.perf_counter() - t0
