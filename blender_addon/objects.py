@@ -253,9 +253,17 @@ def _axes_for(mesh: Mesh, forward: str | None, up: str | None) -> dict:
         return None if a is None else str(a).upper()
 
     forward, up = axis(forward), axis(up)
-    if forward is not None and up is not None:
-        return {"forward": forward, "up": up, "how": "stated", "why": "", "confident": True}
     g = guess_axes(mesh)
+    if forward is not None and up is not None:
+        # stated axes that a confident guess contradicts: one line naming the fix
+        from apcg_core.catalog.checks import axes_warning
+        warning = axes_warning(g, forward, up, f"stated: forward {forward}, up {up}",
+                               option=lambda k, v: f"{k.capitalize()} {v}")
+        out = {"forward": forward, "up": up, "how": "stated", "why": "", "confident": True}
+        if warning:
+            out["warning"] = (warning.replace("(check with a preview)", "")
+                              .rstrip() + ", or tick Guess axes")
+        return out
     if forward is None and up is None:
         return {"forward": g.forward, "up": g.up, "how": "guessed", "why": g.why,
                 "confident": bool(g.confident)}

@@ -127,6 +127,9 @@ class APCG_OT_add_aircraft(bpy.types.Operator):
                                        self.azimuth_deg)
         except Exception as exc:  # noqa: BLE001
             return _report_error(self, exc)
+        warning = (obj.get(AXES_KEY) or {}).get("warning")
+        if warning:  # the mesh's x / z contradict its shape: say how to fix it
+            self.report({"WARNING"}, warning.replace("Guess axes", "Guess axes in Make Target"))
         _select_only(context, obj)
         return {"FINISHED"}
 
@@ -213,6 +216,8 @@ class APCG_OT_make_target(bpy.types.Operator):
         self.report({"INFO"}, f"{obj.name}: axes {api.axes_label(obj)}; length {ext[0]:.3g} m, "
                               f"span {ext[1]:.3g} m, height {ext[2]:.3g} m; type "
                               f"{obj[TYPE_KEY]!r}")
+        if axes.get("warning"):  # stated axes the shape contradicts, with the fix
+            self.report({"WARNING"}, axes["warning"])
         if not axes.get("confident", True) and self.guess_axes:
             self.report({"WARNING"}, "the axes guess is unsure (the shape looks alike from "
                                      "several sides): check the target, or untick Guess axes "

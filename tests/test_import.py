@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from apcg_core.catalog import Catalog
-from apcg_core.catalog.importer import _merge_close, export_mesh, import_model, read_mesh
+from apcg_core.catalog.importer import EXPORT_SUFFIXES, export_mesh, import_model, read_mesh
 from apcg_core.errors import InputError
 
 
@@ -125,18 +125,38 @@ def test_broken_other_files(tmp_path):
         import_model(REF / "odedstein_plane.obj", forward="W", length_m=1)
 
 
-@pytest.mark.parametrize("ext", ["ply", "obj", "stl", "glb"])
-def test_export_round_trip(tmp_path, ext):
-    m = CAT.mesh("ATR 72-600")
+@pytest.mark.parametrize("ext", [s.lstrip(".") for s in EXPORT_SUFFIXES])
+@pytest.mark.parametrize("name", ["ATR 72-600", "A320neo"])
+def test_export_round_trip(tmp_path, ext, name):
+    """Every format `catalog export` writes reads back with `catalog add`'s importer at the
+    same size and attitude (glTF: written +Y up, +Z forward as its specification says, read
+    back the same way; the others in the body frame's own axes)."""
+    m = CAT.mesh(name)
     p = export_mesh(m, tmp_path / f"atr.{ext}")
-    back = _merge_close(read_mesh(p))
+    back, rep = import_model(p, guess=True)
     assert len(back.vertices) == len(np.unique(m.vertices, axis=0))
     assert len(back.faces) == len(m.faces)
-    # same vertex set (float32 formats keep ~1e-7 relative)
+    np.testing.assert_allclose(back.extents, m.extents, rtol=1e-6)
+    assert rep.scale == 1.0 and rep.centre == "volume centroid"
+    # same vertex set, nose +x, fin up (float32 formats keep ~1e-7 relative)
     a = m.vertices[np.lexsort(np.round(m.vertices, 4).T)]
     b = back.vertices[np.lexsort(np.round(back.vertices, 4).T)]
     np.testing.assert_allclose(b, a, atol=2e-6 * np.abs(m.vertices).max())
+    from apcg_core.catalog.checks import axes_fix
+    assert axes_fix(rep.guess, rep.forward, rep.up) == {}  # the shape agrees: no warning
     assert not list(tmp_path.glob("*.part"))
+
+
+def test_exported_gltf_is_y_up_z_forward_as_its_specification_says(tmp_path):
+    """glTF 2.0: +Y up, +Z forward, +X left (right-handed), metres: stored that way."""
+    m = CAT.mesh("A320neo")
+    stored = read_mesh(export_mesh(m, tmp_path / "a.glb"))
+    ext = stored.extents
+    assert ext == pytest.approx([m.extents[1], m.extents[2], m.extents[0]], rel=1e-6)
+    nose = stored.vertices[np.argmax(stored.vertices[:, 2])]  # the foremost point, on +Z
+    assert abs(nose[0]) < 0.1 * ext[0]  # on the centre line (X is the span)
+    fin_top = stored.vertices[np.argmax(stored.vertices[:, 1])]  # the highest point, +Y
+    assert fin_top[2] < 0  # the fin lies aft
 
 
 def test_user_catalog_add_reload_and_refuse(tmp_path):
@@ -153,7 +173,7 @@ def test_user_catalog_add_reload_and_refuse(tmp_path):
     with pytest.raises(InputError, match="already exists"):
         again.add_user_type("A320neo", mesh, "aircraft", "user", "x")
     (tmp_path / "user_types.json").write_text("{broken")
-    with pytest.raises(InputError, match="corrupt"):
+    with pytest.raises(InputError, match="damaged"):
         Catalog(user_path=tmp_path)
 
 

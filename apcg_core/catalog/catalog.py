@@ -7,27 +7,32 @@ their row number in ``types.csv`` (new rows are only appended), user types are n
 
 from __future__ import annotations
 
-import csv
 import difflib
 import functools
+import hashlib
 import json
+import math
 import os
-from dataclasses import asdict, dataclass
+import random
+import time
+import unicodedata
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
 from ..condition import ConditionSpace
 from ..errors import InputError
-from .mesh import Mesh
+from ..io.atomic import atomic_path
+from ..io.csv_table import read_csv
+from ..lock import ProcessLock
+from .checks import check_size
+from .mesh import Mesh, sample_surface
 
 TYPES_CSV = Path(__file__).with_name("types.csv")
 USER_INDEX_START = 1000
 FINE_CLOUD_POINTS = 10_000
-
-
-def _f(v):
-    return float(v) if v not in (None, "") else None
 
 
 @dataclass(frozen=True)
@@ -62,23 +67,46 @@ class AircraftType:
                 "source": self.source}
 
 
+_TEXT_COLUMNS = ("manufacturer", "dims_note", "n_engines", "propulsion", "engine_placement",
+                 "wing_position", "tail_type", "sweep_ref", "n_rotors", "confidence")
+
+
 def _load_builtin() -> list[AircraftType]:
-    out = []
-    with open(TYPES_CSV, newline="", encoding="utf-8") as fh:
-        for row in csv.DictReader(fh):
-            out.append(AircraftType(
-                index=int(row["index"]), name=row["name"], kind=row["kind"],
-                range_band=row["range_band"], category=row["category"],
-                length_m=float(row["length_m"]), span_m=float(row["span_m"]),
-                height_m=float(row["height_m"]), manufacturer=row["manufacturer"],
-                dims_note=row["dims_note"], n_engines=row["n_engines"],
-                propulsion=row["propulsion"], engine_placement=row["engine_placement"],
-                wing_position=row["wing_position"], tail_type=row["tail_type"],
-                sweep_deg=_f(row["sweep_deg"]), sweep_ref=row["sweep_ref"],
-                n_rotors=row["n_rotors"], rotor_diameter_m=_f(row["rotor_diameter_m"]),
-                diagonal_wheelbase_m=_f(row["diagonal_wheelbase_m"]),
-                confidence=row["confidence"]))
-    return out
+    table = read_csv(TYPES_CSV, required=("index", "name", "kind", "range_band", "category",
+                                          "length_m", "span_m", "height_m", *_TEXT_COLUMNS,
+                                          "sweep_deg", "rotor_diameter_m",
+                                          "diagonal_wheelbase_m"), what="type table")
+    return [AircraftType(
+        index=row.int("index"), name=row.text("name"), kind=row.text("kind"),
+        range_band=row.text("range_band"), category=row.text("category"),
+        length_m=row.float("length_m"), span_m=row.float("span_m"),
+        height_m=row.float("height_m"), sweep_deg=row.float("sweep_deg", optional=True),
+        rotor_diameter_m=row.float("rotor_diameter_m", optional=True),
+        diagonal_wheelbase_m=row.float("diagonal_wheelbase_m", optional=True),
+        **{k: row[k] for k in _TEXT_COLUMNS}) for row in table]
+
+
+def normalize_name(name) -> str:
+    """A type name as it is stored and shown: Unicode NFC, outer whitespace stripped."""
+    return unicodedata.normalize("NFC", str(name)).strip()
+
+
+def name_key(name) -> str:
+    """What two names must differ in to be two types: the name normalised, case folded, and
+    without whitespace, dashes or underscores ("Jet_A", "Jet A", "jet-a" are one name)."""
+    return "".join(c for c in normalize_name(name).casefold()
+                   if not c.isspace() and unicodedata.category(c) not in ("Pd", "Pc"))
+
+
+def mesh_file_stem(name) -> str:
+    """The file name (no suffix) of a user type's mesh: its name key where that is plain
+    letters and digits, else the key made safe plus a digest of the key, so that two names
+    share a file exactly when they are the same name."""
+    key = name_key(name)
+    safe = "".join(c if c.isalnum() else "_" for c in key)[:80]
+    if safe != key:
+        safe += "-" + hashlib.sha256(key.encode()).hexdigest()[:10]
+    return safe
 
 
 def user_dir() -> Path:
@@ -89,17 +117,36 @@ def user_dir() -> Path:
     return root / "catalog"
 
 
+REGISTRY = "user_types.json"
+LOCK_WAIT_S = 120.0  # how long a catalog change waits for another process's change to end
+# A registry entry: field -> (accepted types, required). The rest of AircraftType is optional.
+_ENTRY_FIELDS = {f.name: f for f in fields(AircraftType)}
+_REQUIRED = ("index", "name", "kind", "range_band", "category", "length_m", "span_m",
+             "height_m")
+
+
 class Catalog:
-    """All types known to this process: built-in, then the user's."""
+    """All types known to this process: built-in, then the user's.
+
+    The user's types are a small database in :attr:`user_path`: ``user_types.json`` (the
+    registry) and one ``.npz`` mesh per type. Every change (:meth:`add_user_type`,
+    :meth:`remove_user_type`) holds a lock on the folder, reads the registry as it is on disk
+    then, and replaces it atomically, so changes from several processes at once are never lost.
+    """
 
     def __init__(self, user_path: Path | None = None, include_user: bool = True) -> None:
         self.user_path = Path(user_path) if user_path else user_dir()
-        self.types: list[AircraftType] = _load_builtin()
-        if include_user:
-            self.types += self._load_user()
-        self._by_name = {t.name.lower(): t for t in self.types}
-        self._by_index = {t.index: t for t in self.types}
+        self.include_user = include_user
+        self._builtin: list[AircraftType] = _load_builtin()
+        self._set_types(self._builtin + (self._load_user() if include_user else []))
         self._meshes: dict[int, Mesh] = {}
+        self.last_replaced: AircraftType | None = None  # by the last add_user_type (force)
+
+    def _set_types(self, types: list[AircraftType]) -> None:
+        self.types = types
+        self._by_name = {normalize_name(t.name).casefold(): t for t in types}
+        self._by_key = {name_key(t.name): t for t in types}
+        self._by_index = {t.index: t for t in types}
 
     # --- lookup ----------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -112,8 +159,9 @@ class Catalog:
         return [t.name for t in self.types]
 
     def get(self, key) -> AircraftType:
-        """A type by name (case-insensitive, outer spaces ignored) or index (an int, or a
-        string of digits: no type is named by a number); unknown keys name close matches."""
+        """A type by name (case-insensitive, outer spaces ignored; a user type also by its
+        name key, see :func:`name_key`) or index (an int, or a string of digits: no type is
+        named by a number); unknown keys name close matches."""
         if isinstance(key, AircraftType):
             return key
         if isinstance(key, str) and key.strip().isdigit():
@@ -124,7 +172,9 @@ class Catalog:
             raise InputError(f"unknown type index {key}; accepted: 0 .. "
                              f"{max(t.index for t in self.types if t.source == 'builtin')} "
                              "(built-in) and the user types listed by `apcg catalog list`")
-        t = self._by_name.get(str(key).strip().lower())
+        t = self._by_name.get(normalize_name(key).casefold())
+        if t is None:
+            t = self._by_key.get(name_key(key))
         if t is None:
             close = difflib.get_close_matches(str(key), self.names(), n=4, cutoff=0.5)
             hint = f"; did you mean {', '.join(close)}?" if close else ""
@@ -141,8 +191,7 @@ class Catalog:
                 from .builders import build
                 self._meshes[t.index] = build(t).mesh
             else:
-                with np.load(self._user_mesh_file(t.name)) as z:
-                    self._meshes[t.index] = Mesh(z["vertices"], z["faces"])
+                self._meshes[t.index] = self._read_user_mesh(t)
         return self._meshes[t.index]
 
     def depth_length_m(self, key) -> float:
@@ -164,34 +213,172 @@ class Catalog:
         near = tuple(i for i, t in enumerate(self.types) if t.range_band == "near")
         return ConditionSpace(n_types=len(self.types), drone_types=near, **ranges)
 
-    # --- user types ------------------------------------------------------------------------
+    # --- user types: files -----------------------------------------------------------------
     def _registry(self) -> Path:
-        return self.user_path / "user_types.json"
+        return self.user_path / REGISTRY
 
     def _user_mesh_file(self, name: str) -> Path:
+        return self.user_path / f"{mesh_file_stem(name)}.npz"
+
+    def _legacy_mesh_file(self, name: str) -> Path:
+        """Where catalogs written before name keys kept a type's mesh."""
         safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
         return self.user_path / f"{safe}.npz"
 
-    def _load_user(self) -> list[AircraftType]:
-        reg = self._registry()
-        if not reg.exists():
-            return []
+    def _read_user_mesh(self, t: AircraftType) -> Mesh:
+        path = self._user_mesh_file(t.name)
+        if not path.exists() and self._legacy_mesh_file(t.name).exists():
+            path = self._legacy_mesh_file(t.name)
+        fix = (f"add the type again (apcg catalog add MODEL --name {t.name!r} --force), or "
+               f"remove it (apcg catalog remove {t.name!r})")
+        if not path.exists():
+            raise InputError(f"the mesh of user type {t.name!r} ({path}) is missing; {fix}")
         try:
-            entries = json.loads(reg.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(f"the user catalog {reg} is corrupt ({exc}); fix or delete it"
-                             ) from exc
-        return [AircraftType(**e) for e in entries]
+            with np.load(path, allow_pickle=False) as z:
+                return Mesh(z["vertices"], z["faces"])
+        except Exception as exc:  # noqa: BLE001 - zipfile, numpy and KeyError on a bad file
+            raise InputError(f"the mesh of user type {t.name!r} ({path}) is damaged "
+                             f"({type(exc).__name__}); {fix}") from exc
 
-    def check_new_type(self, name: str, kind: str) -> None:
-        """Refuse a name or kind a new user type cannot have (before any file is read)."""
-        if name.lower() in self._by_name:
-            raise InputError(f"a type named {name!r} already exists; choose another --name")
+    def _damaged(self, what: str) -> InputError:
+        reg = self._registry()
+        return InputError(
+            f"the user catalog {reg} is damaged: {what}; fix that entry in a text editor, or "
+            f"move the file aside (mv '{reg}' '{reg}.bad') and add your types again with "
+            f"`apcg catalog add` (their meshes stay in {self.user_path})")
+
+    def _read_registry(self) -> list[AircraftType]:
+        """The user types as the registry holds them now; a damaged registry (not JSON, cut
+        short, an entry short of a field or with a wrong value) is named with the fix."""
+        reg = self._registry()
+        try:
+            text = reg.read_bytes().decode("utf-8-sig")
+        except FileNotFoundError:
+            return []
+        except UnicodeDecodeError:
+            raise self._damaged("it is not UTF-8 text") from None
+        if not text.strip():
+            raise self._damaged("it is empty")
+        try:
+            entries = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise self._damaged(f"not valid JSON (line {exc.lineno}, column {exc.colno}: "
+                                f"{exc.msg}; cut short?)") from None
+        if not isinstance(entries, list):
+            raise self._damaged(f"it holds a JSON {type(entries).__name__}, not a list of "
+                                "types")
+        types, keys, indices = [], {}, set()
+        for i, e in enumerate(entries):
+            t = self._entry(i, e)
+            if t.index in indices:
+                raise self._damaged(f"entry {i + 1} ({t.name!r}) repeats the index {t.index}")
+            if name_key(t.name) in keys:
+                raise self._damaged(f"entry {i + 1} ({t.name!r}) has the same name as "
+                                    f"{keys[name_key(t.name)]!r}")
+            indices.add(t.index)
+            keys[name_key(t.name)] = t.name
+            types.append(t)
+        return types
+
+    def _entry(self, i: int, e) -> AircraftType:
+        at = f"entry {i + 1}"
+        if not isinstance(e, dict):
+            raise self._damaged(f"{at} is a JSON {type(e).__name__}, not an object")
+        if isinstance(e.get("name"), str):
+            at += f" ({e['name']!r})"
+        missing = [k for k in _REQUIRED if k not in e]
+        if missing:
+            raise self._damaged(f"{at} has no {', '.join(missing)}")
+        unknown = [k for k in e if k not in _ENTRY_FIELDS]
+        if unknown:
+            raise self._damaged(f"{at} has fields this version does not know: "
+                                f"{', '.join(unknown)}")
+        idx = e["index"]
+        if not isinstance(idx, int) or isinstance(idx, bool) or idx < USER_INDEX_START:
+            raise self._damaged(f"{at}: index {idx!r} is not a whole number >= "
+                                f"{USER_INDEX_START}")
+        name = e["name"]
+        if not isinstance(name, str) or not name_key(name) or name.strip().isdigit():
+            raise self._damaged(f"{at}: name {name!r} is not a type name")
+        if e["kind"] not in ("aircraft", "drone"):
+            raise self._damaged(f"{at}: kind {e['kind']!r} is not 'aircraft' or 'drone'")
+        if e["range_band"] not in ("far", "near"):
+            raise self._damaged(f"{at}: range_band {e['range_band']!r} is not 'far' or 'near'")
+        for k, v in e.items():
+            if k in ("index", "name", "kind", "range_band"):
+                continue
+            if k.endswith("_m") or k.endswith("_deg"):
+                finite = (isinstance(v, (int, float)) and not isinstance(v, bool)
+                          and math.isfinite(v))
+                if k in _REQUIRED and not (finite and v >= 0):
+                    raise self._damaged(f"{at}: {k} {v!r} is not a number >= 0")
+                if k not in _REQUIRED and not (v is None or finite):
+                    raise self._damaged(f"{at}: {k} {v!r} is not a number (or null)")
+            elif not isinstance(v, str):
+                raise self._damaged(f"{at}: {k} {v!r} is not text")
+        return AircraftType(**{**e, "name": normalize_name(name)})
+
+    def _load_user(self) -> list[AircraftType]:
+        return self._read_registry()
+
+    def _write_registry(self, users: list[AircraftType]) -> None:
+        with atomic_path(self._registry()) as tmp:
+            tmp.write_text(json.dumps([asdict(u) for u in users], indent=1,
+                                      ensure_ascii=False) + "\n", encoding="utf-8")
+
+    @contextmanager
+    def _changing(self):
+        """Hold the user catalog's lock (waiting up to LOCK_WAIT_S for another process's
+        change), yield the user types as they are on disk now, and take the result in."""
+        lock = ProcessLock(self.user_path / ".lock", "change of the user catalog")
+        deadline = time.monotonic() + LOCK_WAIT_S
+        while True:
+            try:
+                lock.acquire()
+                break
+            except InputError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.02 + 0.05 * random.random())
+        try:
+            users = self._read_registry()
+            yield users
+        finally:
+            lock.release()
+        self._set_types(self._builtin + users)
+
+    # --- user types: changes ---------------------------------------------------------------
+    def _conflict(self, name: str, force: bool, users=None) -> AircraftType | None:
+        """The user type that ``name`` would replace (with ``force``), or None; a built-in
+        type of that name, or a user type without ``force``, is refused naming it."""
+        key = name_key(name)
+        same = next((t for t in self._builtin if name_key(t.name) == key), None)
+        if same is not None:
+            raise InputError(f"a built-in type named {same.name!r} already exists (names are "
+                             f"compared ignoring case, spaces, '-' and '_'); choose another "
+                             "--name")
+        users = self.types[len(self._builtin):] if users is None else users
+        same = next((t for t in users if name_key(t.name) == key), None)
+        if same is not None and not force:
+            raise InputError(f"a type named {same.name!r} already exists (names are compared "
+                             "ignoring case, spaces, '-' and '_'); choose another --name, or "
+                             f"--force to replace {same.name!r}")
+        return same
+
+    def check_new_type(self, name: str, kind: str, force: bool = False) -> str:
+        """Refuse a name or kind a new user type cannot have (before any file is read);
+        return the name as it will be stored (normalised: NFC, outer spaces stripped)."""
         if kind not in ("aircraft", "drone"):
             raise InputError(f"kind must be 'aircraft' or 'drone', got {kind!r}")
-        if not name.strip() or name.strip().isdigit() or any(c in name for c in "/\\\0"):
-            raise InputError(f"type name {name!r} not accepted: it must be non-empty, not a "
-                             "number (numbers are catalog indices) and have no '/' or '\\'")
+        clean = normalize_name(name)
+        if not name_key(clean) or clean.isdigit() or any(c in clean for c in "/\\\0"):
+            raise InputError(f"type name {name!r} not accepted: it must have a letter or "
+                             "digit, not be a number (numbers are catalog indices) and have "
+                             "no '/' or '\\'")
+        if any(unicodedata.category(c) == "Cc" for c in clean):
+            raise InputError(f"type name {name!r} not accepted: it holds a control character")
+        self._conflict(clean, force)
+        return clean
 
     def add_user_type(self, name: str, mesh: Mesh, kind: str, category: str,
                       source: str, force: bool = False,
@@ -199,44 +386,51 @@ class Catalog:
         """Register an imported model as a new type (stored under :attr:`user_path`).
 
         A size implausible for ``kind`` (checks.SIZE_LIMITS_M) is refused, with the likely unit
-        (``unit_scale``: the metres per file unit the mesh was scaled by), unless ``force``."""
-        from .checks import check_size
-
-        self.check_new_type(name, kind)
+        (``unit_scale``: the metres per file unit the mesh was scaled by), unless ``force``;
+        a user type of the same name (:func:`name_key`) is refused unless ``force``, which
+        replaces it (its index kept)."""
+        name = self.check_new_type(name, kind, force)
         check_size(mesh.extents, kind, force, unit_scale, name=repr(name))
-        users = [t for t in self.types if t.source != "builtin"]
-        index = max([USER_INDEX_START - 1] + [t.index for t in users]) + 1
         ext = mesh.extents
         band = "near" if kind == "drone" and max(ext[0], ext[1]) < 5.0 else "far"
-        t = AircraftType(index=index, name=name, kind=kind, range_band=band,
-                         category=category, length_m=float(ext[0]), span_m=float(ext[1]),
-                         height_m=float(ext[2]), source=str(source))
-        self.user_path.mkdir(parents=True, exist_ok=True)
-        tmp = self._user_mesh_file(name).with_suffix(".tmp.npz")
-        np.savez(tmp, vertices=mesh.vertices, faces=mesh.faces)
-        os.replace(tmp, self._user_mesh_file(name))
-        entries = [asdict(u) for u in users] + [asdict(t)]
-        tmp = self._registry().with_suffix(".tmp")
-        tmp.write_text(json.dumps(entries, indent=1))
-        os.replace(tmp, self._registry())  # atomic: never a half-written registry
-        self.types.append(t)
-        self._by_name[name.lower()] = t
-        self._by_index[index] = t
+        with self._changing() as users:
+            old = self._conflict(name, force, users)
+            index = old.index if old is not None else \
+                max([USER_INDEX_START - 1] + [t.index for t in users]) + 1
+            t = AircraftType(index=index, name=name, kind=kind, range_band=band,
+                             category=category, length_m=float(ext[0]), span_m=float(ext[1]),
+                             height_m=float(ext[2]), source=str(source))
+            with atomic_path(self._user_mesh_file(name), suffix=".part.npz") as tmp:
+                np.savez(tmp, vertices=mesh.vertices, faces=mesh.faces)
+            if old is not None:
+                users[users.index(old)] = t
+            else:
+                users.append(t)
+            self._write_registry(users)
+            if old is not None and self._legacy_mesh_file(old.name) != \
+                    self._user_mesh_file(name):
+                self._legacy_mesh_file(old.name).unlink(missing_ok=True)
+        self._meshes.pop(index, None)
+        self.last_replaced = old
         return t
 
-
-def sample_surface(mesh: Mesh, n: int, seed: int = 0, return_faces: bool = False):
-    """n points uniformly on the surface (faces chosen by area, uniform barycentrics);
-    with ``return_faces`` also the face each point lies on."""
-    rng = np.random.default_rng(seed)
-    areas = mesh.face_areas
-    face = rng.choice(len(areas), size=n, p=areas / areas.sum())
-    u, v = rng.random(n), rng.random(n)
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    tri = mesh.vertices[mesh.faces[face]]
-    pts = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
-    return (pts, face) if return_faces else pts
+    def remove_user_type(self, name: str) -> AircraftType:
+        """Remove a user type (its registry entry, then its mesh); built-in types stay."""
+        with self._changing() as users:
+            key = name_key(name)
+            t = next((u for u in users if name_key(u.name) == key), None)
+            if t is None:
+                if any(name_key(b.name) == key for b in self._builtin):
+                    raise InputError(f"{name!r} is a built-in type; only your own types can "
+                                     "be removed")
+                known = ", ".join(repr(u.name) for u in users) or "none"
+                raise InputError(f"no user type named {name!r}; your types: {known}")
+            users.remove(t)
+            self._write_registry(users)
+            for f in {self._user_mesh_file(t.name), self._legacy_mesh_file(t.name)}:
+                f.unlink(missing_ok=True)
+        self._meshes.pop(t.index, None)
+        return t
 
 
 @functools.lru_cache(maxsize=1)

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import InputError
-from .mesh import Mesh
+from .mesh import Mesh, sample_surface
 
 SIZE_LIMITS_M = {"aircraft": (1.0, 100.0), "drone": (0.02, 10.0)}
 TYPICAL_SIZE_M = {"aircraft": 20.0, "drone": 0.6}
@@ -103,8 +103,6 @@ def guess_axes(mesh: Mesh, n: int = 4000) -> AxesGuess:
     27 of 30 models tried (the catalog's every fourth type, the shared reference meshes and
     the tests' box aircraft; wrong for one helicopter and two multirotors, which look alike
     from every side). Check it with ``catalog add --preview``."""
-    from .catalog import sample_surface
-
     pts = sample_surface(mesh, n, seed=0)
     other = sample_surface(mesh, n, seed=1)
     ext = pts.max(axis=0) - pts.min(axis=0)
@@ -122,6 +120,44 @@ def guess_axes(mesh: Mesh, n: int = 4000) -> AxesGuess:
     why = (f"smallest extent along {names[up]}, mirror-symmetric across {names[span]} "
            f"(asymmetry {errs[span]:.3f} against {errs[fwd]:.3f}), highest parts aft")
     return AxesGuess(forward, upname, why, errs[span] < 0.5 * errs[fwd] - 1e-4)
+
+
+def axes_fix(guess: AxesGuess | None, forward: str, up: str, forward_given: bool = False,
+             up_given: bool = False, default_forward=None) -> dict[str, str]:
+    """The axis options that would turn ``forward`` / ``up`` (the file axes used) into the
+    ones a *confident* ``guess`` from the shape suggests, where they contradict it: ``{"up":
+    "Z"}``, ``{"forward": "-Y"}``, both, or ``{}`` when they agree (or the guess is unsure).
+
+    Only axes are compared, not their signs (the guess's sign of forward, from the tallest
+    parts lying aft, is a weaker cue; up is taken as +). Axes the user gave
+    (``forward_given`` / ``up_given``) are not questioned. ``default_forward(up)``: the forward
+    that a changed up would bring with it when forward is not given (the importer's rule)."""
+    if guess is None or not guess.confident:
+        return {}
+    fix = {}
+    if not up_given and up.lstrip("-").upper() != guess.up.lstrip("-"):
+        fix["up"] = guess.up
+        if not forward_given and default_forward is not None:
+            forward = default_forward(guess.up)
+    if not forward_given and forward.lstrip("-").upper() != guess.forward.lstrip("-"):
+        fix["forward"] = guess.forward
+    return fix
+
+
+def axes_warning(guess: AxesGuess | None, forward: str, up: str, used: str = "",
+                 option=lambda k, v: f"--{k} {v}", **kwargs) -> str | None:
+    """One line when the axes used contradict a confident guess from the shape (see
+    :func:`axes_fix`), naming the option(s) that fix it: ``option(name, axis)`` spells one
+    for the caller (the command line's ``--up Z``, the add-on's ``Up Z``). ``used``: the
+    axes used and where they came from, as the caller shows them."""
+    fix = axes_fix(guess, forward, up, **kwargs)
+    if not fix:
+        return None
+    fixes = " ".join(option(k, v) for k, v in sorted(fix.items(), reverse=True))
+    used = used or f"forward {forward.upper()}, up {up.upper()}"
+    return (f"the axes used ({used}) contradict the shape, which looks like forward "
+            f"{guess.forward}, up {guess.up} ({guess.why}): the model would lie on its side "
+            f"or turned; use {fixes} (check with a preview)")
 
 
 def _directions() -> np.ndarray:

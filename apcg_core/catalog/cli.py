@@ -58,13 +58,22 @@ def register(sub) -> None:
                          "comma-separated, e.g. 'Fuselage*,Wing*')")
     ad.add_argument("--kind", choices=("aircraft", "drone"), default="aircraft")
     ad.add_argument("--category", default="user")
-    ad.add_argument("--preview", metavar="PNG",
-                    help="draw top / side / front views of the imported model into PNG")
     ad.add_argument("--dry-run", action="store_true",
                     help="import, check and report (and --preview) without adding the type")
     ad.add_argument("--force", action="store_true",
-                    help="add a model whose size is implausible for its kind (with a warning)")
+                    help="add a model whose size is implausible for its kind (with a "
+                         "warning); replace your type of the same name (names are compared "
+                         "ignoring case, spaces, '-' and '_'); replace an existing --preview")
+    add_output(ad, "--preview", kind=FILE, suffixes=PICTURE_SUFFIXES, metavar="PNG",
+               help="draw top / side / front views of the imported model into PNG (or .pdf, "
+                    ".svg)")
     ad.set_defaults(func=_add)
+
+    rm = cs.add_parser("remove", help="remove one of your types from the catalog",
+                       description="Remove a type you added (its entry and its mesh); "
+                                   "built-in types stay.")
+    rm.add_argument("name", help="the type's name")
+    rm.set_defaults(func=_remove)
 
 
 def _catalog():
@@ -104,10 +113,10 @@ def _show(args) -> int:
 def _add(args) -> int:
     import sys
 
-    from .checks import hole_entry_share, size_problem
-    from .importer import import_model
+    from .checks import axes_warning, hole_entry_share, size_problem
+    from .importer import _default_forward, import_model
 
-    _catalog().check_new_type(args.name, args.kind)
+    name = _catalog().check_new_type(args.name, args.kind, args.force)
     mesh, rep = import_model(args.file, forward=args.forward, up=args.up,
                              unit_scale=args.unit_scale, length_m=args.length_m,
                              objects=args.objects, guess=args.forward is None or args.up is None)
@@ -118,12 +127,16 @@ def _add(args) -> int:
         + (f"; skipped: {', '.join(rep.skipped)}" if rep.skipped else ""))
     say(f"  unit: {rep.unit} (x{rep.scale:g})")
     say(f"  axes: {rep.axes}")
-    g = rep.guess
-    if g and g.confident and (g.forward, g.up) != (rep.forward.upper(), rep.up.upper()):
-        say(f"  the shape suggests --forward {g.forward} --up {g.up} ({g.why}); check with "
-            "--preview")
     say(f"  extents: length {rep.extents_m[0]:.4g} m, span {rep.extents_m[1]:.4g} m, "
         f"height {rep.extents_m[2]:.4g} m")
+    if rep.n_dropped:
+        print(f"warning: {args.file}: {rep.n_dropped} degenerate (zero-area) triangles "
+              "dropped; the rest is the model", file=sys.stderr)
+    warn = axes_warning(rep.guess, rep.forward, rep.up, rep.axes,
+                        forward_given=args.forward is not None, up_given=args.up is not None,
+                        default_forward=None if rep.forward_declared else _default_forward)
+    if warn:
+        print(f"warning: {args.file}: {warn}", file=sys.stderr)
     holes = hole_entry_share(mesh)
     if holes["share"] > 0.01:
         print(f"warning: {holes['share']:.1%} of lidar rays enter {args.file} through holes "
@@ -132,17 +145,28 @@ def _add(args) -> int:
               "--objects (docs/IMPORT.md).", file=sys.stderr)
     if args.preview:
         from .sheet import three_views
-        say(f"wrote {three_views(mesh, args.preview, title=args.name)}")
+        say(f"wrote {three_views(mesh, args.preview, title=name)}")
     problem = size_problem(mesh.extents, args.kind, rep.scale)
     if args.dry_run:
         if problem:
-            print(f"warning: {args.name!r}: {problem}", file=sys.stderr)
+            print(f"warning: {name!r}: {problem}", file=sys.stderr)
         say("dry run: nothing added")
         return 0
-    # add_user_type refuses an implausible size unless --force
-    t = _catalog().add_user_type(args.name, mesh, args.kind, args.category, source=args.file,
-                                 force=args.force, unit_scale=rep.scale)
+    cat = _catalog()
+    # add_user_type refuses an implausible size unless --force, and takes the catalog's lock
+    t = cat.add_user_type(name, mesh, args.kind, args.category, source=args.file,
+                          force=args.force, unit_scale=rep.scale)
+    replaced = cat.last_replaced
     if problem:
-        print(f"warning: {args.name!r}: {problem}; added anyway (--force)", file=sys.stderr)
-    say(f"added {t.name!r} as type index {t.index}")
+        print(f"warning: {name!r}: {problem}; added anyway (--force)", file=sys.stderr)
+    if replaced is not None:
+        say(f"replaced {replaced.name!r} by {t.name!r} as type index {t.index} (--force)")
+    else:
+        say(f"added {t.name!r} as type index {t.index}")
+    return 0
+
+
+def _remove(args) -> int:
+    t = _catalog().remove_user_type(args.name)
+    print(f"removed {t.name!r} (type index {t.index})")
     return 0

@@ -268,6 +268,10 @@ def read_model(path, objects: str | None = None) -> RawModel:
             raise
         raise InputError(f"{path}: {exc}") from exc
     m = raw.mesh
-    if len(m.faces) == 0 or not np.isfinite(m.vertices).all():
-        raise InputError(f"{path}: the mesh is empty or has non-finite coordinates")
+    if len(m.faces) == 0:
+        raise InputError(f"{path}: the file holds no triangles: there is no surface to import")
+    bad = ~np.isfinite(m.vertices[np.unique(m.faces)]).all(axis=1)
+    if bad.any():
+        raise InputError(f"{path}: {int(bad.sum())} vertices of its triangles have non-finite "
+                         "coordinates (NaN or infinite); fix or remove them in a modeller")
     return raw

@@ -40,6 +40,9 @@ class ImportReport:
     guess: object = None  # checks.AxesGuess: the file axes the shape suggests
     forward: str = "X"  # the file axes used
     up: str = "Z"
+    axes_declared: bool = False  # the file declares its axes (glTF, COLLADA, Blender-read)
+    forward_declared: bool = False
+    n_dropped: int = 0  # degenerate (zero-area) triangles dropped
 
 
 def read_mesh(path) -> Mesh:
@@ -75,6 +78,42 @@ def _merge_close(mesh: Mesh) -> Mesh:
     return Mesh(mesh.vertices[first], faces[keep])
 
 
+DEGENERATE_AREA = 1e-12  # a triangle's area, relative to the model's size squared
+
+
+def drop_degenerate(mesh: Mesh, path) -> tuple[Mesh, int]:
+    """The mesh without its zero-area triangles (three points on a line, or two in one
+    place), and how many were dropped; a mesh with nothing else is refused by name.
+    Non-finite coordinates are refused too (docs/IMPORT.md)."""
+    bad = ~np.isfinite(mesh.vertices).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"{path}: {int(bad.sum())} vertices have non-finite coordinates "
+                         f"(the first, vertex {i + 1}: {mesh.vertices[i].tolist()}); fix or "
+                         "remove them in a modeller")
+    used = mesh.vertices[np.unique(mesh.faces)] if len(mesh.faces) else mesh.vertices[:0]
+    size = float(np.max(used.max(axis=0) - used.min(axis=0))) if len(used) else 0.0
+    areas = mesh.face_areas
+    with np.errstate(over="ignore", invalid="ignore"):
+        keep = areas > DEGENERATE_AREA * size * size
+    if not np.isfinite(areas).all():
+        raise InputError(f"{path}: coordinates too large to compute with (up to "
+                         f"{float(np.abs(used).max()):.3g}); scale the model down in a modeller")
+    if not keep.any():
+        raise InputError(f"{path}: every one of its {len(mesh.faces)} triangles has zero area "
+                         "(its points lie on a line or a point): there is no surface to "
+                         "import")
+    return used_only(Mesh(mesh.vertices, mesh.faces[keep])), int((~keep).sum())
+
+
+def used_only(mesh: Mesh) -> Mesh:
+    """The mesh without vertices that no triangle uses (they would count in its extents)."""
+    used, faces = np.unique(mesh.faces, return_inverse=True)
+    if len(used) == len(mesh.vertices):
+        return mesh
+    return Mesh(mesh.vertices[used], faces.reshape(-1, 3))
+
+
 def _default_forward(up: str) -> str:
     return "X" if up.upper().lstrip("-") != "X" else "Y"
 
@@ -95,7 +134,10 @@ def import_model(path, forward: str | None = None, up: str | None = None,
     if unit_scale is not None and length_m is not None:
         raise InputError("give either unit_scale or length_m, not both")
     raw = read_model(path, objects)
-    mesh = _merge_close(raw.mesh)
+    n_read = len(raw.mesh.faces)
+    mesh = _merge_close(used_only(raw.mesh))
+    mesh, _ = drop_degenerate(mesh, path)
+    n_dropped = n_read - len(mesh.faces)
     guessed = None
     if guess:
         from .checks import guess_axes
@@ -143,19 +185,26 @@ def import_model(path, forward: str | None = None, up: str | None = None,
     report = ImportReport(str(path), len(mesh.vertices), len(mesh.faces), rep.n_bodies,
                           rep.watertight, how, scale, tuple(float(e) for e in mesh.extents),
                           unit, ", ".join(reversed(axes_from)), raw.objects, raw.skipped,
-                          guessed, forward, up)
+                          guessed, forward, up, raw.up is not None or raw.forward is not None,
+                          raw.forward is not None, n_dropped)
     return mesh, report
 
 
 def export_mesh(mesh: Mesh, path) -> Path:
-    """Write the mesh (body frame, metres) as PLY, OBJ, STL or GLB, by the file's suffix."""
+    """Write the mesh (body frame, metres) as PLY, OBJ, STL or GLB, by the file's suffix:
+    PLY, OBJ and STL in the body frame's own axes (x nose, z up), glTF in the axes its
+    specification states (+Y up, +Z forward, metres), so `catalog add` reads each back at the
+    same size and attitude."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in EXPORT_SUFFIXES:
         raise InputError(f"{path}: unsupported export format {suffix!r}; accepted: "
                          f"{', '.join(EXPORT_SUFFIXES)}")
     trimesh = _trimesh()
-    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    vertices = mesh.vertices
+    if suffix in FILE_AXES:  # the format's own axes (glTF: +Y up, +Z forward, +X left)
+        vertices = vertices @ axis_matrix(*FILE_AXES[suffix])  # body = A @ file
+    tm = trimesh.Trimesh(vertices, mesh.faces, process=False)
     data = tm.export(file_type=suffix[1:])
     with atomic_path(path) as tmp:
         tmp.write_bytes(data.encode() if isinstance(data, str) else data)
@@ -163,3 +212,6 @@ def export_mesh(mesh: Mesh, path) -> Path:
 
 
 EXPORT_SUFFIXES = (".ply", ".obj", ".stl", ".glb")
+# (forward, up) of export formats whose specification fixes their axes; the others declare
+# none and are read back as written (x forward, z up), so every export reads back as it was.
+FILE_AXES = {".glb": ("Z", "Y")}

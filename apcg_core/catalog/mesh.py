@@ -130,3 +130,17 @@ class Mesh:
             label = new
         used = np.unique(self.faces)
         return int(len(np.unique(label[used])))
+
+
+def sample_surface(mesh: Mesh, n: int, seed: int = 0, return_faces: bool = False):
+    """n points uniformly on the surface (faces chosen by area, uniform barycentrics);
+    with ``return_faces`` also the face each point lies on."""
+    rng = np.random.default_rng(seed)
+    areas = mesh.face_areas
+    face = rng.choice(len(areas), size=n, p=areas / areas.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    tri = mesh.vertices[mesh.faces[face]]
+    pts = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    return (pts, face) if return_faces else pts
