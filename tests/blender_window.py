@@ -3,35 +3,42 @@ legacy add-on installed, a script driving it and writing a JSON report."""
 
 import json
 import os
+import select
 import shutil
 import subprocess
 import sys
-import time
 import zipfile
 from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from conftest import blender_or_skip
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @contextmanager
-def virtual_display(base: int, size: str):
-    """An Xvfb display (``size`` "WxH"), numbered from ``base`` so that tests side by side
-    do not share one."""
+def virtual_display(size: str):
+    """An Xvfb display (``size`` "WxH") on a free number, yielded once Xvfb says it is ready
+    (``-displayfd``: it writes its number when it accepts clients, however loaded the machine)."""
+    blender_or_skip()
     xvfb = shutil.which("Xvfb")
-    if xvfb is None or shutil.which("blender") is None:
-        pytest.skip("needs Xvfb and blender (apt-get install xvfb blender python3-numpy)")
-    num = f":{base + os.getpid() % 9}"
-    proc = subprocess.Popen([xvfb, num, "-screen", "0", f"{size}x24", "+extension", "GLX"],
+    if xvfb is None:
+        pytest.skip("needs Xvfb: apt-get install -y xvfb (the README's set-up)")
+    read_end, write_end = os.pipe()
+    proc = subprocess.Popen([xvfb, "-displayfd", str(write_end), "-screen", "0", f"{size}x24",
+                             "+extension", "GLX"], pass_fds=(write_end,),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    time.sleep(1.0)
+    os.close(write_end)
     try:
-        yield num
+        ready, _, _ = select.select([read_end], [], [], 120)
+        number = os.read(read_end, 64).decode().strip() if ready else ""
+        assert number.isdigit(), f"Xvfb gave no display number in 120 s (exit {proc.poll()})"
+        yield f":{number}"
     finally:
+        os.close(read_end)
         proc.terminate()
-        proc.wait(timeout=10)
+        proc.wait(timeout=60)
 
 
 def run_in_window(tmp_path: Path, display: str, script: str, *args: str,

@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture
 def display():
-    with virtual_display(90, "1280x800") as num:
+    with virtual_display("1280x800") as num:
         yield num
 
 

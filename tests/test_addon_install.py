@@ -4,7 +4,6 @@ binary, scanning the same cells and ranges as `apcg simulate`."""
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import zipfile
@@ -65,10 +64,8 @@ print(json.dumps({{"addons": list(bpy.context.preferences.addons.keys()),
     assert len(cloud) > 20 and meta["backend"] == "blender"
 
 
-def test_legacy_addon_in_blender_binary_matches_apcg_simulate(tmp_path):
-    blender = shutil.which("blender")
-    if blender is None:
-        pytest.skip("no blender binary (apt-get install blender python3-numpy)")
+def test_legacy_addon_in_blender_binary_matches_apcg_simulate(tmp_path, blender_binary):
+    blender = blender_binary
     dist = tmp_path / "dist"
     _run([*BUILD, "--out", dist, "--legacy-only"])
     (legacy,) = sorted(dist.glob("apcg-legacy-*.zip"))

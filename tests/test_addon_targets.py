@@ -288,7 +288,7 @@ def test_add_to_catalog_refuses_an_implausible_size_unless_forced(scene, tmp_pat
 
 @pytest.fixture
 def big_display():
-    with virtual_display(80, "1600x900") as num:
+    with virtual_display("1600x900") as num:
         yield num
 
 

@@ -174,9 +174,8 @@ def test_bpy_module_build_matches_embree(reference, tmp_path):
     assert same >= 0.995 and worst < 2e-3, (same, worst)
 
 
-def test_blender_binary_build_matches_embree(reference, tmp_path):
-    blender = shutil.which("blender")
-    assert blender, "the blender binary is needed (apt-get install blender python3-numpy)"
+def test_blender_binary_build_matches_embree(reference, tmp_path, blender_binary):
+    blender = blender_binary
     out = tmp_path / "bin"
     cmd = [blender, "-b", "--factory-startup", "--python-exit-code", "1", "-P",
            str(ROOT / "dataset_builder" / "blender_entry.py"), "--", "dataset", "build",

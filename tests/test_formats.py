@@ -220,11 +220,11 @@ bpy.ops.wm.collada_export(filepath=out)
 """
 
 
-def test_collada_from_blenders_own_exporter(tmp_path):
+def test_collada_from_blenders_own_exporter(tmp_path, blender_binary):
     """Blender 3.4 (the last with COLLADA) writes the scene's unit: centimetres here."""
     script, dae = tmp_path / "make.py", tmp_path / "box_cm.dae"
     script.write_text(MAKE_34)
-    proc = subprocess.run(["blender", "-b", "--factory-startup", "--python-exit-code", "1",
+    proc = subprocess.run([blender_binary, "-b", "--factory-startup", "--python-exit-code", "1",
                            "-P", str(script), "--", str(dae)], capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0 and dae.exists(), proc.stderr[-2000:]
@@ -239,9 +239,9 @@ def test_usd_declaring_inches_and_y_up(files):
     assert rep.objects == ["Fuselage"] and any("camera" in s for s in rep.skipped)
 
 
-def test_the_blender_binary_reads_fbx_too(files, monkeypatch):
+def test_the_blender_binary_reads_fbx_too(files, monkeypatch, blender_binary):
     """Without bpy in this Python the Blender-read formats go through `blender -b`."""
-    monkeypatch.setenv("APCG_BLENDER", "blender")
+    monkeypatch.setenv("APCG_BLENDER", blender_binary)
     mesh, rep = import_model(files / "plane_cm.fbx", forward="-Y")
     _is_test_aircraft(mesh)
 
