@@ -252,3 +252,46 @@ class ConditionSpace:
                 d[name] = tuple(d[name])
         d["drone_types"] = tuple(d.get("drone_types", ()))
         return cls(**d)
+
+
+# A conditions CSV (generate --conditions): these columns, the type by catalog name or index;
+# a dataset's conditions.csv (its type_name column) reads as it is.
+CSV_COLUMNS = ("type", "range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg")
+_CSV_FIELD = {"range_m": "range_m", "elevation": "elevation_deg", "pitch": "pitch_deg",
+              "yaw": "yaw_deg", "roll": "roll_deg"}
+
+
+def read_conditions_csv(path, type_name=str) -> tuple[list[str], np.ndarray]:
+    """The rows of a conditions CSV: (type names, poses ``(N, 5)``: range in metres, then
+    elevation, pitch, yaw, roll in radians). ``type_name(text)`` turns a row's type cell into
+    a type name (raising InputError for an unknown one). Read by the project's one CSV reader
+    (a byte-order mark, CRLF, quotes, blank lines accepted); every refusal names the file, the
+    line, the column and the value."""
+    from .io.csv_table import read_csv
+
+    table = read_csv(path, required=CSV_COLUMNS[1:], any_of=[("type", "type_name")],
+                     what="conditions CSV")
+    if not table.rows:
+        raise InputError(f"{path} has no conditions: only a header (line {table.header_line})")
+    type_col = "type" if "type" in table.header else "type_name"
+    known: dict = {}
+    names, pose = [], np.empty((len(table.rows), 5))
+    for i, row in enumerate(table.rows):
+        key = row.text(type_col)
+        if key not in known:
+            try:
+                known[key] = type_name(key)
+            except InputError as exc:
+                raise row.error(type_col, f"is not a type this model knows: {exc}") from None
+        names.append(known[key])
+        pose[i] = [row.float(c) for c in CSV_COLUMNS[1:]]
+    pose[:, 1:] *= DEG
+    bad = (pose[:, 0] <= 0) | (np.abs(pose[:, 1]) >= np.pi / 2) \
+        | (np.abs(pose[:, 2]) > np.pi / 2) | (np.abs(pose[:, 3:]) > np.pi).any(axis=1)
+    for i in np.flatnonzero(bad)[:1]:  # the first bad row, with the physical check's words
+        try:
+            Condition(0, *pose[i])
+        except InputError as exc:
+            column = _CSV_FIELD.get(str(exc).split(" ", 1)[0], "range_m")
+            raise table.rows[i].error(column, f"is not accepted: {exc}") from None
+    return names, pose

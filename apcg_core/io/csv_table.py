@@ -134,7 +134,7 @@ def read_csv(path, required: Iterable[str] = (), what: str = "CSV file",
     last column, is refused by line. ``what`` names the file's role in messages."""
     path = Path(path)
     text = _text(path, what)
-    reader = csv.reader(io.StringIO(text, newline=""))
+    reader = csv.reader(io.StringIO(text, newline=""), skipinitialspace=True)
     table = None
     start = 1
     try:
