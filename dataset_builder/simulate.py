@@ -19,7 +19,7 @@ from apcg_core.errors import InputError
 from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian
 from apcg_core.lidar import LidarParams
 
-from .backends import check_backend, make_caster
+from .backends import check_backend, make_caster, surface_hits
 from .rays import (
     angular_boxes,
     bounding_radius,
@@ -99,6 +99,7 @@ class Simulator:
         self.fine_cloud_seed = int(fine_cloud_seed)
         self._casters: OrderedDict = OrderedDict()  # most recently used last
         self._fine: dict = {}
+        self._normal_cache: dict = {}
 
     # --- public ------------------------------------------------------------------------------
     def simulate(self, mesh, conditions, key=None) -> SimResult:
@@ -138,6 +139,63 @@ class Simulator:
     def simulate_cells_type(self, catalog, type_key, conditions) -> SimCells:
         t = catalog.get(type_key)
         return self.simulate_cells(catalog.mesh(t), conditions, key=("type", t.index))
+
+    def sub_ray_hits(self, mesh, conditions, key=None):
+        """Every sub-ray (k x k per cell of each sample's box) that meets the target: sample,
+        cell, unquantized float64 range and the cosine of its incidence, for the photon stage
+        (``apcg_core.sensor``). Ray-casting backends only."""
+        from apcg_core.sensor import SubRayHits
+        if self.backend == "points":
+            raise InputError("a sensor needs a ray-casting backend (the photon stage takes "
+                             "every sub-ray's range and incidence); accepted: "
+                             "embree, blender, blender-bvh")
+        radius = bounding_radius(mesh.vertices)
+        table = check_conditions(conditions, radius)
+        key = id(mesh) if key is None else key
+        caster = self._caster(mesh, key)
+        normals = self._normals(mesh, key)
+        lidar = self.lidar
+        m, c = sample_frames(table)
+        boxes = angular_boxes(mesh.vertices, table, lidar, m, c)
+        rays_per_sample = boxes.n_cells * self.supersample**2
+        parts = []
+        start, n = 0, len(table)
+        while start < n:  # chunks of whole samples, about RAYS_PER_CALL rays each
+            stop = min(n, start + max(1, int(np.searchsorted(
+                np.cumsum(rays_per_sample[start:]), RAYS_PER_CALL, side="right"))))
+            sl = slice(start, stop)
+            rays = make_rays(table[sl], boxes[sl], lidar, m[sl], c[sl], radius, self.supersample)
+            t, tri = surface_hits(caster, rays.origin, rays.direction, rays.t_max)
+            hit = np.flatnonzero(np.isfinite(t))
+            cell = hit // rays.k
+            s = rays.sample[cell]
+            # A hit whose triangle the caster could not name (float32 disagreement between two
+            # queries, rare) is taken as facing the lidar.
+            cos = np.ones(len(hit))
+            named = tri[hit] >= 0
+            cos[named] = np.abs((normals[tri[hit][named]] * rays.direction[hit][named]).sum(1))
+            parts.append((s + start, rays.w[cell], rays.h[cell], rays.t_start[s] + t[hit], cos))
+            start = stop
+        cols = [np.concatenate([p[i] for p in parts]) if parts else np.zeros(0)
+                for i in range(5)]
+        return SubRayHits(cols[0].astype(np.int64), cols[1].astype(np.int32),
+                          cols[2].astype(np.int32), cols[3].astype(np.float64),
+                          np.clip(cols[4], 0.0, 1.0), n, self.supersample**2)
+
+    def _normals(self, mesh, key) -> np.ndarray:
+        """Unit face normals (float64) of a mesh, cached with its caster (zero for a
+        degenerate triangle)."""
+        cache = self._normal_cache
+        if key not in cache:
+            v = np.asarray(mesh.vertices, np.float64)
+            f = np.asarray(mesh.faces, np.int64)
+            n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+            length = np.sqrt((n**2).sum(axis=1))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                cache[key] = np.where(length[:, None] > 0, n / length[:, None], 0.0)
+            while len(cache) > MAX_CASTERS:
+                cache.pop(next(iter(cache)))
+        return cache[key]
 
     def close(self) -> None:
         """Release the backends' resources (Blender objects and scenes) now."""

@@ -50,6 +50,24 @@ def is_hit(t: np.ndarray, limit) -> np.ndarray:
     return t < float(limit) * (1.0 - 1e-6)
 
 
+def surface_hits(caster, origin: np.ndarray, direction: np.ndarray,
+                 t_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (float64, inf where none) and triangle index (-1 where none) of each ray's
+    first surface: what the photon stage needs (range and incidence). A caster answers both at
+    once where it can (``surfaces``); otherwise ``cast`` gives the distances and ``triangles``
+    the hit rays' triangles."""
+    if hasattr(caster, "surfaces"):
+        return caster.surfaces(origin, direction, t_max)
+    t = caster.cast(origin, direction, t_max)
+    tri = np.full(len(t), -1, np.int64)
+    hit = np.flatnonzero(np.isfinite(t))
+    if len(hit):
+        o = np.ascontiguousarray(origin[hit], dtype=np.float32)
+        d = np.ascontiguousarray(direction[hit], dtype=np.float32)
+        tri[hit] = caster.triangles(o, d, np.float32(t_max))
+    return t, tri
+
+
 def check_backend(name: str) -> str:
     if name not in BACKENDS:
         raise InputError(f"unknown backend {name!r}; accepted: {', '.join(BACKENDS)}")

@@ -67,6 +67,24 @@ class EmbreeCaster:
         out.fill(limit)
         return self._scene.run(origin, direction, dists=out, query="DISTANCE")
 
+    def surfaces(self, origin: np.ndarray, direction: np.ndarray,
+                 t_max: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`cast`'s distances and the triangle each ray hits (-1 where none), from one
+        embree intersection query."""
+        if len(origin) == 0:
+            return np.zeros(0), np.zeros(0, np.int64)
+        o = np.ascontiguousarray(origin, dtype=np.float32)
+        d = np.ascontiguousarray(direction, dtype=np.float32)
+        limit = np.float32(t_max)
+        res = self._scene.run(o, d, dists=np.full(len(o), limit, np.float32),
+                              query="INTERSECT", output=1)
+        tri = np.asarray(res["primID"], dtype=np.int64)
+        t = res["tfar"].astype(np.float64) * np.sqrt((d.astype(np.float64) ** 2).sum(axis=1))
+        miss = (tri < 0) | ~is_hit(t, limit)
+        t[miss] = np.inf
+        tri[miss] = -1
+        return t, tri
+
     def triangles(self, origin: np.ndarray, direction: np.ndarray,
                   limit: np.float32) -> np.ndarray:
         """Index of the triangle each float32 ray hits first before ``limit``, -1 where none

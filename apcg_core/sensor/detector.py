@@ -1,0 +1,383 @@
+"""The Geiger-mode detector (SPEC section 8): events of many pulses in a range gate, their
+histogram per cell, and the cloud a single-photon lidar reports.
+
+Time inside the gate is measured in range bins, t in [0, n_bins). Each cell sees a
+piecewise-constant count intensity: ``noise`` per bin everywhere, plus the signal's mean in the
+few bins its returns reach. A pulse's first event is where the cumulative intensity C(t) first
+exceeds an Exp(1) draw (a Poisson process's first arrival), so
+
+    P(first event in bin i) = (1 - exp(-mu_i)) exp(-sum_{k<i} mu_k)
+
+holds exactly. After an event at t the detector is blind until t + dead time; the next event is
+the next arrival after that.
+
+Cost follows the events, not the window. In the cells the signal reaches ("loud" cells) the
+number of pulses that fire is Binomial(pulses, 1 - exp(-C(n_bins))) per cell and only those are
+followed. The rest of the window ("quiet" cells) has noise alone, the same law everywhere:
+its fired (cell, pulse) pairs are found by geometric skipping. For the ``points`` output with a
+dead time at least the gate (one event per pulse), quiet cells cost even less: a bin can only
+hold ``threshold`` first events if at least ``threshold`` pulses had an arrival in it, and
+those arrival counts are independent Binomial(pulses, 1 - exp(-noise)) per (cell, bin); only
+the few cells with such a bin are then followed, arrival by arrival, exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class SignalBins:
+    """The signal's mean counts per pulse in the bins it reaches, flat and sorted by (cell, bin):
+    cell ``cell[i]`` (an index into the window's cells) has ``mean[i]`` in gate bin ``bin[i]``."""
+
+    cell: np.ndarray  # int64
+    bin: np.ndarray  # int64, 0 <= bin < n_bins
+    mean: np.ndarray  # float64 > 0
+
+
+@dataclass
+class Events:
+    """Every detector event of one window: its cell, gate bin, whether it was signal, and (when
+    asked for) the pulse it belongs to."""
+
+    cell: np.ndarray  # int64
+    bin: np.ndarray  # int64
+    signal: np.ndarray  # bool
+    pulse: np.ndarray | None = None  # int32, events output only
+
+
+def _bisect(keys: np.ndarray, lo: np.ndarray, hi: np.ndarray, x: np.ndarray,
+            right: bool) -> np.ndarray:
+    """Per query, ``numpy.searchsorted(keys[lo:hi], x, side)`` + lo, all queries at once (each
+    cell's keys are its own sorted run of the flat array)."""
+    lo = lo.copy()
+    hi = hi.copy()
+    while True:
+        active = lo < hi
+        if not active.any():
+            return lo
+        mid = (lo + hi) // 2
+        k = keys[np.minimum(mid, len(keys) - 1)] if len(keys) else np.zeros(len(mid))
+        go_right = (k <= x) if right else (k < x)
+        go_right &= active
+        lo = np.where(go_right, mid + 1, lo)
+        hi = np.where(active & ~go_right, mid, hi)
+
+
+class Intensity:
+    """C(t) of every cell of a window and its inverse: noise per bin everywhere plus the signal
+    bins. Cells without signal have C(t) = noise t."""
+
+    def __init__(self, signal: SignalBins, n_cells: int, n_bins: int, noise: float) -> None:
+        self.noise = float(noise)
+        self.n_bins = int(n_bins)
+        self.bin = signal.bin
+        self.mean = signal.mean
+        self.start = np.searchsorted(signal.cell, np.arange(n_cells + 1)).astype(np.int64)
+        before = np.concatenate([[0.0], np.cumsum(signal.mean)])  # signal before flat index i
+        self.before = before[:-1] - before[self.start[signal.cell]]  # ... within the cell
+        self.total_signal = before[self.start[1:]] - before[self.start[:-1]]
+        # C at the end of each signal bin, a sorted run per cell
+        self.end_c = self.noise * (self.bin + 1) + self.before + self.mean
+
+    def total(self) -> np.ndarray:
+        """C(n_bins) per cell: the mean counts of a whole gate."""
+        return self.noise * self.n_bins + self.total_signal
+
+    def inverse(self, cell: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The time t (bins) where C of ``cell`` reaches ``e`` (e < the cell's total), and the
+        flat index of the signal bin holding it (-1 in a stretch of noise alone)."""
+        lo, hi = self.start[cell], self.start[cell + 1]
+        k = _bisect(self.end_c, lo, hi, e, right=True)  # first signal bin ending above e
+        inside = k < hi
+        kk = np.where(inside, k, 0)
+        if len(self.bin) == 0:
+            kk = np.zeros(len(e), np.int64)
+            inside = np.zeros(len(e), bool)
+            b = np.zeros(len(e))
+            c_start = np.zeros(len(e))
+            before = np.zeros(len(e))
+        else:
+            b = self.bin[kk].astype(np.float64)
+            before = self.before[kk]
+            c_start = self.noise * b + before
+        before_all = np.where(inside, before, self.total_signal[cell])
+        in_bin = inside & (e >= c_start)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_noise = (e - before_all) / self.noise if self.noise > 0 else np.full(len(e), np.inf)
+            t_bin = b + (e - c_start) / (self.noise + (self.mean[kk] if len(self.mean) else 0.0))
+        t = np.where(in_bin, t_bin, t_noise)
+        return t, np.where(in_bin, kk, -1)
+
+    def at(self, cell: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """C(t) of ``cell`` at times t (bins)."""
+        lo, hi = self.start[cell], self.start[cell + 1]
+        j = _bisect(self.bin.astype(np.float64), lo, hi, t, right=True)  # bins starting <= t
+        c = self.noise * t
+        has = j > lo
+        if has.any():
+            k = j[has] - 1
+            part = np.clip(t[has] - self.bin[k], 0.0, 1.0)
+            c[has] += self.before[k] + self.mean[k] * part
+        return c
+
+
+def _skip(rng: np.random.Generator, n: int, p: float) -> np.ndarray:
+    """Indices of the successes among ``n`` independent trials of chance ``p`` each: the gaps
+    between successes are geometric, so the cost is the number of successes, not of trials."""
+    if n == 0 or p <= 0.0:
+        return np.zeros(0, np.int64)
+    if p >= 1.0:
+        return np.arange(n, dtype=np.int64)
+    parts = []
+    last = -1
+    log_q = np.log1p(-p)
+    while last < n - 1:
+        need = (n - 1 - last) * p
+        u = rng.random(int(need + 6.0 * np.sqrt(need) + 16))
+        # geometric gaps by inversion (numpy's own sampler is several times slower)
+        more = last + np.cumsum(np.floor(np.log1p(-u) / log_q).astype(np.int64) + 1)
+        parts.append(more)
+        last = int(more[-1])
+    pos = np.concatenate(parts)
+    return pos[pos < n]
+
+
+def _loud_events(rng: np.random.Generator, inten: Intensity, pulses: int, dead_bins: float):
+    """(cell, bin, time, signal-bin index or -1, fired-pulse index) of every event of the loud
+    cells (``inten``'s own cell numbers), and the fired pulses per cell."""
+    n_bins = inten.n_bins
+    total = inten.total()
+    p_fire = -np.expm1(-total)
+    fired = rng.binomial(pulses, p_fire)
+    cell = np.repeat(np.arange(len(total), dtype=np.int64), fired)
+    u = rng.random(len(cell))
+    # the first event: an Exp(1) draw conditioned on falling inside the gate
+    e = np.minimum(-np.log1p(-u * p_fire[cell]), np.nextafter(total[cell], 0))
+    t, k = inten.inverse(cell, e)
+    owner = np.arange(len(cell), dtype=np.int64)
+    if dead_bins < n_bins:  # the detector re-arms inside the gate: later events of a pulse
+        cells, ts, ks, owners = [cell], [t], [k], [owner]
+        cur_cell, cur_t, cur_owner = cell, t, owner
+        while len(cur_cell):
+            start = cur_t + dead_bins
+            go = start < n_bins
+            cur_cell, start, cur_owner = cur_cell[go], start[go], cur_owner[go]
+            e = inten.at(cur_cell, start) + rng.standard_exponential(len(cur_cell))
+            go = e < total[cur_cell]
+            cur_cell, e, cur_owner = cur_cell[go], e[go], cur_owner[go]
+            cur_t, cur_k = inten.inverse(cur_cell, e)
+            cells.append(cur_cell)
+            ts.append(cur_t)
+            ks.append(cur_k)
+            owners.append(cur_owner)
+        cell, t, k, owner = (np.concatenate(x) for x in (cells, ts, ks, owners))
+    b = np.minimum(np.floor(t).astype(np.int64), n_bins - 1)
+    return cell, b, t, k, owner, fired
+
+
+def _quiet_events(rng: np.random.Generator, n_quiet: int, n_bins: int, noise: float,
+                  pulses: int, dead_bins: float):
+    """(quiet cell, bin, time, pulse) of every event of ``n_quiet`` cells of noise alone."""
+    p = float(-np.expm1(-noise * n_bins))
+    pos = _skip(rng, n_quiet * pulses, p)  # fired (cell, pulse) pairs
+    cell, pulse = pos // pulses, pos % pulses
+    u = rng.random(len(pos))
+    t = np.minimum(-np.log1p(-u * p) / noise if len(u) else u, np.nextafter(float(n_bins), 0))
+    if dead_bins < n_bins:
+        cells, ts, ps = [cell], [t], [pulse]
+        cur_cell, cur_t, cur_pulse = cell, t, pulse
+        while len(cur_cell):
+            nxt = cur_t + dead_bins + rng.standard_exponential(len(cur_cell)) / noise
+            go = nxt < n_bins
+            cur_cell, cur_t, cur_pulse = cur_cell[go], nxt[go], cur_pulse[go]
+            cells.append(cur_cell)
+            ts.append(cur_t)
+            ps.append(cur_pulse)
+        cell, t, pulse = (np.concatenate(x) for x in (cells, ts, ps))
+    return cell, np.floor(t).astype(np.int64), t, pulse
+
+
+def _binomial_pmf(n: int, p: float) -> np.ndarray:
+    """P(Binomial(n, p) = z) for z = 0..n, in logs (no overflow for large n)."""
+    z = np.arange(n + 1, dtype=np.float64)
+    log_choose = np.concatenate([[0.0], np.cumsum(np.log((n - z[1:] + 1) / z[1:]))])
+    with np.errstate(divide="ignore"):
+        return np.exp(log_choose + z * np.log(p) + (n - z) * np.log1p(-p))
+
+
+def _draw_from(rng: np.random.Generator, pmf: np.ndarray, offset: int, size: int) -> np.ndarray:
+    """``size`` draws of offset + i with chances pmf[i] / sum(pmf)."""
+    cdf = np.cumsum(pmf)
+    cdf /= cdf[-1]
+    return offset + np.minimum(np.searchsorted(cdf, rng.random(size), side="right"),
+                               len(pmf) - 1)
+
+
+def _subsets(rng: np.random.Generator, sizes: np.ndarray, pulses: int) -> np.ndarray:
+    """For each slot, ``sizes[i]`` distinct pulses drawn uniformly (flat, slot by slot)."""
+    if len(sizes) == 0:
+        return np.zeros(0, np.int64)
+    order = np.argsort(rng.random((len(sizes), pulses)), axis=1)
+    take = np.arange(pulses)[None, :] < sizes[:, None]
+    return order[take].astype(np.int64)
+
+
+def quiet_point_rate(n_bins: int, noise: float, pulses: int, threshold: int) -> float:
+    """The chance that one (cell, bin) of noise alone has at least ``threshold`` pulses with an
+    arrival in it: the candidates :func:`_quiet_points` follows."""
+    pmf = _binomial_pmf(pulses, float(-np.expm1(-noise)))
+    return float(pmf[threshold:].sum())
+
+
+def _quiet_points(rng: np.random.Generator, n_quiet: int, n_bins: int, noise: float,
+                  pulses: int, threshold: int):
+    """(quiet cell, bin, count) of the quiet cells whose histogram peaks at ``threshold`` or
+    more, for one event per pulse (the dead time covers the gate).
+
+    Arrivals (not events) of a pulse in a bin: Poisson(noise), independent over (cell, pulse,
+    bin); a pulse's event is its first arrival. Z = pulses with an arrival in a (cell, bin) is
+    Binomial(pulses, 1 - exp(-noise)), independent over (cell, bin), and a bin's count of
+    events is at most its Z. So: the (cell, bin) with Z >= threshold are drawn by skipping;
+    in their cells every other bin's Z is drawn given Z < threshold (most are 0, skipped too);
+    each Z gets a uniform subset of pulses; a pulse's event is its first arrival bin."""
+    alpha = float(-np.expm1(-noise))
+    pmf = _binomial_pmf(pulses, alpha)
+    heavy = float(pmf[threshold:].sum())
+    slot = _skip(rng, n_quiet * n_bins, heavy)
+    if len(slot) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    z_heavy = _draw_from(rng, pmf[threshold:], threshold, len(slot))
+    cells = np.unique(slot // n_bins)
+    light = float(pmf[1:threshold].sum()) / float(pmf[:threshold].sum())
+    other = _skip(rng, len(cells) * n_bins, light)  # bins of those cells with 0 < Z < thr
+    other_cell = cells[other // n_bins]
+    other_slot = other_cell * n_bins + other % n_bins
+    keep = ~np.isin(other_slot, slot)  # a heavy bin's Z is already drawn
+    other_slot = other_slot[keep]
+    z_other = _draw_from(rng, pmf[1:threshold], 1, len(other_slot))
+    slots = np.concatenate([slot, other_slot])
+    sizes = np.concatenate([z_heavy, z_other])
+    pulse = _subsets(rng, sizes, pulses)
+    s = np.repeat(slots, sizes)
+    cell, b = s // n_bins, s % n_bins
+    first = np.lexsort((b, pulse, cell))  # per (cell, pulse), earliest arrival first
+    cell, b, pulse = cell[first], b[first], pulse[first]
+    is_first = np.ones(len(cell), bool)
+    is_first[1:] = (cell[1:] != cell[:-1]) | (pulse[1:] != pulse[:-1])
+    hist = peaks(Events(cell[is_first], b[is_first], np.zeros(int(is_first.sum()), bool)),
+                 n_bins)
+    keep = hist.count >= threshold
+    return hist.cell[keep], hist.bin[keep], hist.count[keep]
+
+
+def _signal_share(signal: SignalBins, k: np.ndarray, noise: float) -> np.ndarray:
+    """The chance that an event is signal: the signal's part of its bin's mean (0 in a bin the
+    signal does not reach)."""
+    share = np.zeros(len(k))
+    sig = k >= 0
+    if sig.any():
+        share[sig] = signal.mean[k[sig]] / (signal.mean[k[sig]] + noise)
+    return share
+
+
+class Window:
+    """The loud cells (those the signal reaches) and the quiet rest of a window of ``n_cells``,
+    with the loud cells' intensity in their own numbering."""
+
+    def __init__(self, signal: SignalBins, n_cells: int, n_bins: int, noise: float) -> None:
+        self.loud = np.unique(signal.cell)
+        local = SignalBins(np.searchsorted(self.loud, signal.cell), signal.bin, signal.mean)
+        self.signal = local
+        self.inten = Intensity(local, len(self.loud), n_bins, noise)
+        self.n_quiet = n_cells - len(self.loud)
+        # the j-th quiet cell is j plus the loud cells at or below it
+        self._gaps = self.loud - np.arange(len(self.loud))
+
+    def quiet_cell(self, j: np.ndarray) -> np.ndarray:
+        return j + np.searchsorted(self._gaps, j, side="right")
+
+
+def detect(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_bins: int,
+           noise_per_bin: float, dead_bins: float, pulses: int, with_pulse: bool) -> Events:
+    """Every event of ``pulses`` pulses in each of ``n_cells`` cells (SPEC section 8), labelled
+    signal or noise, with its pulse number when ``with_pulse``; ordered by cell, pulse, time."""
+    win = Window(signal, n_cells, n_bins, noise_per_bin)
+    cell, b, t, k, owner, fired = _loud_events(rng, win.inten, pulses, dead_bins)
+    is_signal = rng.random(len(cell)) < _signal_share(win.signal, k, noise_per_bin)
+    pulse = _pulse_numbers(rng, fired, pulses)[owner] if with_pulse else owner
+    q_cell, q_b, q_t, q_pulse = _quiet_events(rng, win.n_quiet, n_bins, noise_per_bin, pulses,
+                                              dead_bins)
+    cell = np.concatenate([win.loud[cell], win.quiet_cell(q_cell)])
+    b = np.concatenate([b, q_b])
+    t = np.concatenate([t, q_t])
+    pulse = np.concatenate([pulse, q_pulse])
+    is_signal = np.concatenate([is_signal, np.zeros(len(q_cell), bool)])
+    order = np.lexsort((t, pulse, cell))
+    ev = Events(cell[order], b[order], is_signal[order])
+    if with_pulse:
+        ev.pulse = pulse[order].astype(np.int32)
+    return ev
+
+
+def detect_points(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_bins: int,
+                  noise_per_bin: float, dead_bins: float, pulses: int,
+                  threshold: int) -> Histogram:
+    """The peak bin (nearest of equal peaks) of each cell whose histogram reaches ``threshold``
+    counts there, and how many of its counts were signal."""
+    win = Window(signal, n_cells, n_bins, noise_per_bin)
+    cell, b, _, k, _, _ = _loud_events(rng, win.inten, pulses, dead_bins)
+    is_signal = rng.random(len(cell)) < _signal_share(win.signal, k, noise_per_bin)
+    loud = peaks(Events(win.loud[cell], b, is_signal), n_bins)
+    if dead_bins >= n_bins:
+        q_cell, q_b, q_count = _quiet_points(rng, win.n_quiet, n_bins, noise_per_bin, pulses,
+                                             threshold)
+        quiet = Histogram(q_cell, q_b, q_count, np.zeros(len(q_cell), np.int64))
+    else:
+        q_cell, q_b, _, _ = _quiet_events(rng, win.n_quiet, n_bins, noise_per_bin, pulses,
+                                          dead_bins)
+        quiet = peaks(Events(q_cell, q_b, np.zeros(len(q_cell), bool)), n_bins)
+    quiet.cell = win.quiet_cell(quiet.cell)
+    out = [h for h in (loud, quiet)]
+    cat = [np.concatenate([getattr(h, f) for h in out]) for f in
+           ("cell", "bin", "count", "signal_count")]
+    keep = cat[2] >= threshold
+    order = np.argsort(cat[0][keep], kind="stable")
+    return Histogram(*(c[keep][order] for c in cat))
+
+
+def _pulse_numbers(rng: np.random.Generator, fired: np.ndarray, pulses: int) -> np.ndarray:
+    """For each fired pulse of the loud cells (grouped by cell), its number among the cell's
+    ``pulses``: a uniformly random subset of that size (pulses of a static scene are
+    exchangeable)."""
+    ranks = np.argsort(np.argsort(rng.random((len(fired), pulses)), axis=1), axis=1)
+    chosen = ranks < fired[:, None]  # row-major: each cell's subset in pulse order
+    return np.nonzero(chosen)[1].astype(np.int64)
+
+
+@dataclass
+class Histogram:
+    """Per cell with any event: its peak bin (the nearest of equal peaks), the counts there, and
+    how many of them were signal."""
+
+    cell: np.ndarray
+    bin: np.ndarray
+    count: np.ndarray
+    signal_count: np.ndarray
+
+
+def peaks(events: Events, n_bins: int) -> Histogram:
+    """The histogram of every cell's events, reduced to its peak bin."""
+    key = events.cell * n_bins + events.bin
+    uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    sig = np.bincount(inv, weights=events.signal, minlength=len(uniq)).astype(np.int64)
+    cell = uniq // n_bins
+    b = uniq % n_bins
+    order = np.lexsort((b, -counts, cell))  # per cell: most counts first, then nearest
+    first = np.ones(len(order), bool)
+    first[1:] = cell[order][1:] != cell[order][:-1]
+    pick = order[first]
+    return Histogram(cell[pick], b[pick], counts[pick].astype(np.int64), sig[pick])

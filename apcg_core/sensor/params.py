@@ -1,0 +1,169 @@
+"""The ``[sensor]`` table: what the detector and the link budget need (SPEC section 8).
+
+A sensor is a TOML file with a ``[sensor]`` table, or one of the presets shipped beside this
+module (``apcg_core/sensor/presets/*.toml``, each value with its source). ``ideal`` is today's
+standard cloud: no photon stage at all. Every value is checked here, once, with a named error.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+from ..errors import InputError
+
+PRESET_DIR = Path(__file__).with_name("presets")
+OUTPUTS = ("points", "events")
+IDEAL = "ideal"
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """One single-photon lidar's detector and link budget. SI units inside the names."""
+
+    name: str
+    wavelength_nm: float
+    pulse_energy_j: float
+    cells_per_pulse: int
+    aperture_m: float
+    optics_efficiency: float
+    detector_efficiency: float
+    visibility_km: float
+    background_hz: float
+    dark_count_hz: float
+    pulse_fwhm_ps: float
+    jitter_ps: float
+    gate_m: float
+    dead_time_ns: float
+    pulses: int
+    threshold: int
+    output: str = "points"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @property
+    def noise_hz(self) -> float:
+        """Detector counts per second that carry no signal (efficiency already included)."""
+        return self.background_hz + self.dark_count_hz
+
+    def with_output(self, output: str) -> SensorParams:
+        return check_sensor({**self.to_dict(), "output": output})
+
+
+# name: (kind, lower bound, upper bound, lower bound open?) -- what every value accepts.
+_RULES = {
+    "wavelength_nm": ("float", 200.0, 20000.0, False),
+    "pulse_energy_j": ("float", 0.0, 10.0, True),
+    "cells_per_pulse": ("int", 1, 10**8, False),
+    "aperture_m": ("float", 0.0, 10.0, True),
+    "optics_efficiency": ("float", 0.0, 1.0, True),
+    "detector_efficiency": ("float", 0.0, 1.0, True),
+    "visibility_km": ("float", 0.05, 1000.0, False),
+    "background_hz": ("float", 0.0, 1e10, False),
+    "dark_count_hz": ("float", 0.0, 1e10, False),
+    "pulse_fwhm_ps": ("float", 0.0, 1e6, False),
+    "jitter_ps": ("float", 0.0, 1e6, False),
+    "gate_m": ("float", 0.0, 1e5, True),
+    "dead_time_ns": ("float", 0.0, 1e7, False),
+    "pulses": ("int", 1, 100_000, False),
+    "threshold": ("int", 1, 100_000, False),
+}
+KEYS = tuple(f.name for f in fields(SensorParams) if f.name != "name")
+
+
+def _check_value(key: str, value, source: str):
+    kind, lo, hi, open_lo = _RULES[key]
+    where = f"sensor value {key} in {source}" if source else f"sensor value {key}"
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+            raise InputError(f"{where} must be an integer in {lo}..{hi}, got {value!r}")
+        return int(value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"{where} must be a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise InputError(f"{where} must be finite, got {value!r}")
+    ok = (lo < v if open_lo else lo <= v) and v <= hi
+    if not ok:
+        br = "(" if open_lo else "["
+        raise InputError(f"{where} = {v:g} is out of range; accepted: {br}{lo:g}, {hi:g}]")
+    return v
+
+
+def check_sensor(table: dict, source: str = "", name: str = "") -> SensorParams:
+    """A :class:`SensorParams` from a ``[sensor]`` table, every value checked by name."""
+    if not isinstance(table, dict):
+        raise InputError(f"the [sensor] table{' in ' + source if source else ''} must be a "
+                         f"table of keys, got {table!r}")
+    table = dict(table)
+    name = str(table.pop("name", name) or "custom")
+    unknown = sorted(set(table) - set(KEYS))
+    if unknown:
+        raise InputError(f"unknown sensor key(s) {', '.join(map(repr, unknown))}"
+                         f"{' in ' + source if source else ''}; accepted: {', '.join(KEYS)}")
+    missing = [k for k in KEYS if k not in table and k != "output"]
+    if missing:
+        raise InputError(f"the [sensor] table{' in ' + source if source else ''} lacks "
+                         f"{', '.join(missing)}; start from a preset file: "
+                         f"{', '.join(preset_names())} ({PRESET_DIR})")
+    values = {k: _check_value(k, table[k], source) for k in _RULES}
+    output = table.get("output", "points")
+    if output not in OUTPUTS:
+        raise InputError(f"sensor value output must be one of {', '.join(OUTPUTS)}, "
+                         f"got {output!r}")
+    return SensorParams(name=name, output=output, **values)
+
+
+def check_gate(sensor: SensorParams, r_r_m: float) -> int:
+    """Bins of the range gate at this lidar's range resolution; a gate shorter than one bin is
+    refused (it could hold no event)."""
+    if sensor.gate_m < r_r_m:
+        raise InputError(f"sensor value gate_m = {sensor.gate_m:g} m is shorter than one range "
+                         f"bin of the lidar (r_r_m = {r_r_m:g} m); accepted: gate_m >= {r_r_m:g}")
+    return int(math.ceil(sensor.gate_m / r_r_m - 1e-9))
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+
+
+def load_sensor(ref: str | Path | None) -> SensorParams | None:
+    """A sensor from a preset name or a TOML file (its ``[sensor]`` table); None for the ideal
+    lidar (no ``ref``, ``ideal``, or a file whose table says ``model = "ideal"``)."""
+    if ref is None:
+        return None
+    ref_s = str(ref).strip()
+    path = PRESET_DIR / f"{ref_s}.toml"
+    if not path.is_file():
+        path = Path(ref_s).expanduser()
+        if not path.is_file():
+            raise InputError(f"unknown sensor {ref_s!r}: not a preset and no such file; "
+                             f"presets: {', '.join(preset_names())}, or a TOML file with a "
+                             f"[sensor] table")
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not a readable TOML file ({exc})") from exc
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror})") from exc
+    if "sensor" not in doc:
+        raise InputError(f"{path} has no [sensor] table; see the presets in {PRESET_DIR}")
+    return sensor_from_table(doc["sensor"], source=str(path), name=path.stem)
+
+
+def sensor_from_table(table, source: str = "", name: str = "") -> SensorParams | None:
+    """A ``[sensor]`` table (a config's, a file's, a dataset manifest's) as a sensor, None when
+    it describes the ideal lidar."""
+    if isinstance(table, dict) and table.get("model") == IDEAL:
+        if set(table) - {"model", "name"}:
+            raise InputError(f"the ideal sensor{' in ' + source if source else ''} takes no "
+                             f"other key, got {sorted(set(table) - {'model', 'name'})}")
+        return None
+    if isinstance(table, dict) and "model" in table:
+        if (m := table["model"]) != "photon":
+            raise InputError(f"sensor model must be 'ideal' or 'photon', got {m!r}")
+        table = {k: v for k, v in table.items() if k != "model"}
+    return check_sensor(table, source, name)

@@ -1,0 +1,195 @@
+"""The photon stage (SPEC section 8): from the geometry the simulator found (every sub-ray's
+range and incidence) to what a single-photon lidar records. One function, :func:`photon_cloud`,
+that simulate, the dataset builder and the add-on call the same way; numpy only.
+
+Randomness: each sample draws from its own generator, ``numpy.random.default_rng([seed,
+sample_id])``, so a sample's photons do not depend on which batch, worker or engine made it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from ..errors import InputError
+from ..lidar import LidarParams
+from .detector import SignalBins, detect, detect_points
+from .link import (
+    LIGHT_M_S,
+    bin_seconds,
+    noise_per_bin,
+    normal_cdf,
+    range_sigma_m,
+    signal_photoelectrons,
+)
+from .params import SensorParams, check_gate
+
+# A return's Gaussian is cut this many sigmas either side (the mass beyond is ~1e-7, the
+# accuracy of the table below).
+SIGMA_CUT = 5.3
+# Rows of the spread table: the fraction of a bin at which a return's window starts, in steps
+# of 1 / SPREAD_ROWS (linear interpolation between rows errs by < 2e-7 of a return's mean).
+SPREAD_ROWS = 2048
+
+
+@lru_cache(maxsize=16)
+def spread_table(sigma_bins: float) -> tuple[float, np.ndarray]:
+    """How a return of sigma ``sigma_bins`` (bins) spreads over the bins its Gaussian reaches:
+    ``half`` = SIGMA_CUT sigma, and weights[r, j] = the mass in bin lo + j of a return at
+    u = lo + half + r / SPREAD_ROWS. Weights below the error function's accuracy (~1e-7) are 0."""
+    half = SIGMA_CUT * sigma_bins
+    nb = int(np.ceil(2.0 * half)) + 1
+    f = np.arange(SPREAD_ROWS + 1) / SPREAD_ROWS
+    edges = np.arange(nb + 1)[None, :] - f[:, None] - half  # bin edges - u, in bins
+    w = np.diff(normal_cdf(edges / sigma_bins), axis=1)
+    return half, np.where(w > 1e-7, w, 0.0)
+
+@dataclass
+class SubRayHits:
+    """What the ray caster found for the K x K sub-rays of N samples' cells: one entry per
+    sub-ray that hit (sample, cell, unquantized float64 range, cosine of incidence)."""
+
+    sample: np.ndarray  # int64
+    w: np.ndarray  # int32, centred cell indices
+    h: np.ndarray
+    range_m: np.ndarray  # float64
+    cos: np.ndarray  # float64 in [0, 1]
+    n_samples: int
+    sub_rays: int  # K^2
+
+
+@dataclass
+class PhotonCells:
+    """A photon cloud of N samples as the lidar records it: cell and bin-centre range per point,
+    ``label`` 1 signal / 0 noise, ``count`` the events in the point's bin (1 per event in events
+    output), ``pulse`` the event's pulse (events output; -1 in points output). Grouped by
+    sample. ``target_*`` give, per cell that any sub-ray hit, the expected signal
+    photo-electrons per pulse (what a learner needs to redo the stage)."""
+
+    sample: np.ndarray
+    w: np.ndarray
+    h: np.ndarray
+    range_m: np.ndarray
+    label: np.ndarray  # uint8
+    count: np.ndarray  # int32
+    pulse: np.ndarray  # int32
+    n_samples: int
+    target_sample: np.ndarray
+    target_w: np.ndarray
+    target_h: np.ndarray
+    target_signal_pe: np.ndarray
+
+
+def sample_rng(seed: int, sample_id: int) -> np.random.Generator:
+    """The generator of one sample's photons: the same for a sample however it is batched."""
+    return np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, int(sample_id)])
+
+
+def gate_first_bin(r0: np.ndarray, sensor: SensorParams, lidar: LidarParams) -> np.ndarray:
+    """Global index (floor(r / R_r), the ideal quantizer's bins) of each gate's first bin: the
+    gate of ``gate_m`` metres is centred on the target's range r0."""
+    return np.floor((np.asarray(r0, np.float64) - sensor.gate_m / 2.0) / lidar.r_r).astype(
+        np.int64)
+
+
+def signal_bins(cell: np.ndarray, range_m: np.ndarray, mean: np.ndarray, first_bin: int,
+                n_bins: int, sigma_bins: float, r_r: float) -> SignalBins:
+    """Spread each return's mean counts over the bins its Gaussian reaches (its range in bins,
+    sigma in bins) and add them up per (cell, bin); bins outside the gate are lost."""
+    u = range_m / r_r - first_bin  # position in the gate, in bins
+    if sigma_bins > 0:
+        half, weights = spread_table(sigma_bins)
+        # Bins lo .. lo + nb - 1 with lo = floor(u - half): their weights depend only on the
+        # fraction f = (u - half) - lo, tabulated; linear between table rows.
+        start = u - half
+        lo = np.floor(start)
+        pos = (start - lo) * (len(weights) - 1)
+        i = np.minimum(pos.astype(np.int64), len(weights) - 2)
+        frac = (pos - i)[:, None]
+        w = weights[i] * (1.0 - frac) + weights[i + 1] * frac
+        m = mean[:, None] * w
+        b = lo.astype(np.int64)[:, None] + np.arange(weights.shape[1])[None, :]
+        c = np.broadcast_to(cell[:, None], b.shape)
+        b, m, c = b.ravel(), m.ravel(), c.ravel()
+    else:
+        b, m, c = np.floor(u).astype(np.int64), mean, cell
+    keep = (b >= 0) & (b < n_bins) & (m > 0)
+    b, m, c = b[keep], m[keep], c[keep]
+    key = c * n_bins + b
+    # sub-rays come cell by cell, each a run of ascending bins: a stable sort merges the runs
+    order = np.argsort(key, kind="stable")
+    key, m = key[order], m[order]
+    new = np.ones(len(key), bool)
+    new[1:] = key[1:] != key[:-1]
+    uniq = key[new]
+    total = np.add.reduceat(m, np.flatnonzero(new)) if len(m) else m
+    return SignalBins(uniq // n_bins, uniq % n_bins, total)
+
+
+def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
+                 sensor: SensorParams, lidar: LidarParams, seed: int,
+                 sample_ids: np.ndarray | None = None) -> PhotonCells:
+    """The photon stage for N samples: every cell of each sample's W x H window is gated around
+    the sample's range r0, with noise everywhere and signal where sub-rays hit. ``reflectivity``
+    per sample; ``sample_ids`` (default 0..N-1) seed each sample's draws."""
+    n = hits.n_samples
+    r0 = np.asarray(r0, np.float64)
+    rho = np.broadcast_to(np.asarray(reflectivity, np.float64), (n,))
+    if len(r0) != n:
+        raise InputError(f"photon stage: {len(r0)} ranges for {n} samples")
+    if not (np.isfinite(rho) & (rho >= 0) & (rho <= 1)).all():
+        bad = rho[~(np.isfinite(rho) & (rho >= 0) & (rho <= 1))][0]
+        raise InputError(f"reflectivity must be in [0, 1], got {bad!r}")
+    ids = np.arange(n) if sample_ids is None else np.asarray(sample_ids, np.int64)
+    n_bins = check_gate(sensor, lidar.r_r)
+    n_cells = lidar.width * lidar.height
+    noise = noise_per_bin(sensor, lidar.r_r)
+    dead_bins = sensor.dead_time_ns * 1e-9 / bin_seconds(lidar.r_r)
+    sigma_bins = range_sigma_m(sensor) / lidar.r_r
+    first = gate_first_bin(r0, sensor, lidar)
+
+    pe = signal_photoelectrons(hits.range_m, hits.cos, rho[hits.sample], sensor,
+                               hits.sub_rays)
+    cell_all = ((hits.h.astype(np.int64) - lidar.h_min) * lidar.width
+                + (hits.w.astype(np.int64) - lidar.w_min))
+    bounds = np.searchsorted(hits.sample, np.arange(n + 1))
+    parts = []
+    for i in range(n):
+        sl = slice(bounds[i], bounds[i + 1])
+        sig = signal_bins(cell_all[sl], hits.range_m[sl], pe[sl], int(first[i]), n_bins,
+                          sigma_bins, lidar.r_r)
+        rng = sample_rng(seed, ids[i])
+        if sensor.output == "events":
+            ev = detect(rng, sig, n_cells, n_bins, noise, dead_bins, sensor.pulses, True)
+            m = len(ev.cell)
+            parts.append((np.full(m, i, np.int64), ev.cell, ev.bin, ev.signal.astype(np.uint8),
+                          np.ones(m, np.int32), ev.pulse))
+        else:
+            hist = detect_points(rng, sig, n_cells, n_bins, noise, dead_bins, sensor.pulses,
+                                 sensor.threshold)
+            m = len(hist.cell)
+            label = (2 * hist.signal_count >= hist.count).astype(np.uint8)
+            parts.append((np.full(m, i, np.int64), hist.cell, hist.bin, label,
+                          hist.count.astype(np.int32), np.full(m, -1, np.int32)))
+    cols = [np.concatenate([p[j] for p in parts]) if parts else np.zeros(0, np.int64)
+            for j in range(6)]
+    s, cell, b, label, count, pulse = cols
+    w = (cell % lidar.width + lidar.w_min).astype(np.int32)
+    h = (cell // lidar.width + lidar.h_min).astype(np.int32)
+    range_m = (first[s] + b + 0.5) * lidar.r_r if len(s) else np.zeros(0)
+    # per target cell: the expected signal photo-electrons per pulse
+    key = hits.sample.astype(np.int64) * n_cells + cell_all
+    uniq, inv = np.unique(key, return_inverse=True)
+    tpe = np.bincount(inv, weights=pe, minlength=len(uniq))
+    tcell = uniq % n_cells
+    return PhotonCells(s.astype(np.int64), w, h, range_m.astype(np.float64),
+                       label.astype(np.uint8), count.astype(np.int32), pulse.astype(np.int32),
+                       n, (uniq // n_cells).astype(np.int64),
+                       (tcell % lidar.width + lidar.w_min).astype(np.int32),
+                       (tcell // lidar.width + lidar.h_min).astype(np.int32), tpe)
+
+
+__all__ = ["LIGHT_M_S", "PhotonCells", "SubRayHits", "gate_first_bin", "photon_cloud",
+           "sample_rng", "signal_bins"]
