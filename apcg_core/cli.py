@@ -149,8 +149,8 @@ def register_condition(sub) -> None:
 
 def _run_condition(args) -> int:
     from .condition import Condition
+    from .families import ModelTypes
     from .frames import observation_to_blender, target_centre
-    from .generation import ModelTypes
     from .lidar import DEG
 
     model = ModelTypes(args.model)  # its type table and ranges; its network is not needed

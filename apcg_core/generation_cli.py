@@ -37,7 +37,7 @@ def register_generate(sub) -> None:
 
 def _run_generate(args) -> int:
     from .errors import InputError
-    from .generation import conditions_from_csv, load_model
+    from .families import conditions_from_csv, load_model
     from .lidar import DEG
 
     model = load_model(args.model, runtime=args.runtime)

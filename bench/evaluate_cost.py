@@ -17,7 +17,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from apcg_core.generation import APCGModel  # noqa: E402
+from apcg_core.families.cgan import APCGModel  # noqa: E402
 from apcg_core.metrics import jsd, mmd  # noqa: E402
 from training import evaluate as ev  # noqa: E402
 from training.data import DepthDataset  # noqa: E402

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from apcg_core.condition import ConditionSpace, scale_ratio  # noqa: E402
 from apcg_core.depth import denorm, im2pc  # noqa: E402
 from apcg_core.lidar import LidarParams  # noqa: E402
-from apcg_core.nn import Generator, NetConfig  # noqa: E402
+from apcg_core.nn.cgan import Generator, NetConfig  # noqa: E402
 
 
 def matmul_flops(dtype, n=1024, seconds=1.0) -> float:
@@ -80,7 +80,7 @@ def main() -> int:
     rng = np.random.default_rng(0)
     nets = {}
     if args.model:
-        from apcg_core.generation import APCGModel
+        from apcg_core.families.cgan import APCGModel
         nets["model"] = APCGModel(args.model, runtime="torch").torch_generator()
     else:
         torch.manual_seed(0)

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from apcg_core.families import register  # noqa: E402
 from training import protocol  # noqa: E402
-from training.plus import PlusFamily  # noqa: E402
+from training.families.apcg_plus import PlusFamily  # noqa: E402
 
 
 class _NoFilm(PlusFamily):
@@ -48,7 +48,7 @@ VARIANTS = {
 
 
 def run_variant(name: str, data: str, out: Path, steps: int, pairs) -> dict:
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
     from training.export import export_model
     from training.trainer import Trainer, config_from
     over = {"family": "apcg-plus", **VARIANTS[name]}

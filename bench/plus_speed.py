@@ -16,7 +16,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from apcg_core.generation import load_model  # noqa: E402
+from apcg_core.families import load_model  # noqa: E402
 from training.data import DepthDataset  # noqa: E402
 
 

@@ -80,7 +80,7 @@ def main() -> int:
     ap.add_argument("--json")
     ap.add_argument("--plot")
     args = ap.parse_args()
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
     models = [load_model(m) for m in (args.model or [None])]
     n_bands = 9
     pairs = protocol.draw_pairs(args.data, args.per_band * n_bands, args.seed, half="test")

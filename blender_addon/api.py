@@ -171,7 +171,7 @@ def _unoccluded(lidar, target, xyz_obs: np.ndarray, azimuth: float) -> np.ndarra
 
 def load_model(path=None, runtime: str = "auto"):
     """The model in ``path`` (default: the shipped one), whatever its family."""
-    from apcg_core.generation import load_model as load
+    from apcg_core.families import load_model as load
     return load(path, runtime=runtime)
 
 
@@ -181,7 +181,7 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
     directory or a loaded model of any family, is given): one object, ``count`` samples
     (attribute ``sample``). The target's type reaches the model by its catalog name.
     """
-    from apcg_core.generation import ModelTypes
+    from apcg_core.families import ModelTypes
     if not is_target(target):
         raise InputError(f"{getattr(target, 'name', target)!r} is not an APCG target")
     if not isinstance(model, ModelTypes):

@@ -25,7 +25,7 @@ def small_model(tmp_path_factory):
     torch = pytest.importorskip("torch")
     from apcg_core.catalog import default_catalog
     from apcg_core.lidar import LidarParams
-    from apcg_core.nn import Generator, NetConfig
+    from apcg_core.nn.cgan import Generator, NetConfig
     from training.export import export_onnx
     out = tmp_path_factory.mktemp("model")
     cat = default_catalog()
@@ -51,9 +51,9 @@ def plus_model(tmp_path_factory):
 
     from apcg_core.catalog import default_catalog
     from apcg_core.lidar import LidarParams
-    from apcg_core.nn.plus import PlusConfig, PlusNet
+    from apcg_core.nn.apcg_plus import PlusConfig, PlusNet
     from dataset_builder.rays import bounding_radius
-    from training.plus import export_sheets_onnx
+    from training.families.apcg_plus import export_sheets_onnx
     out = tmp_path_factory.mktemp("plus")
     cat = default_catalog()
     torch.manual_seed(0)

@@ -14,8 +14,8 @@ import torch
 from torch import nn
 
 from apcg_core.errors import InputError
-from apcg_core.generation import APCGModel
-from apcg_core.nn import Discriminator, Generator, NetConfig, SelfAttention
+from apcg_core.families.cgan import APCGModel
+from apcg_core.nn.cgan import Discriminator, Generator, NetConfig, SelfAttention
 from training.data import DepthDataset
 from training.export import export_model
 from training.trainer import Trainer, TrainingDiverged, config_from, gradient_penalty
@@ -459,7 +459,7 @@ def test_ablation_runs_all_eight_variants_under_one_budget(data, tmp_path):
                          "model.json").read_text())
     assert nonorm["norm"] is False and rep["rows"][-1]["norm"] is False
     assert all(r["norm"] for r in rep["rows"][:8])
-    from apcg_core.generation import APCGModel
+    from apcg_core.families.cgan import APCGModel
     TAUS = APCGModel.TAUS
     for r in rep["rows"]:  # each variant's own tau, chosen on the validation half
         saved_model = json.loads((tmp_path / "abl" / r["variant"] / "model" / "model.json")
@@ -482,8 +482,8 @@ def test_ablation_runs_all_eight_variants_under_one_budget(data, tmp_path):
 
 @pytest.mark.parametrize("family", ["point-gan", "voxel-gan", "diffusion"])
 def test_comparison_families_train_resume_export_and_generate(data, tmp_path, family):
-    from apcg_core.generation import load_model as load_any
-    from training.baselines.model import BaselineModel
+    from apcg_core.families import load_model as load_any
+    from apcg_core.families.baselines import BaselineModel
     cfg = config_from("tiny", steps=4, checkpoint_every=2, seed=11, family=family,
                       n_points=64, voxel_res=16, diffusion_steps=20)
     full = Trainer(data, tmp_path / "full", cfg, progress=False)
@@ -519,7 +519,7 @@ def test_training_memory_is_the_child_process_own_peak(data):
 
 
 def test_compare_lists_every_method_with_budget_memory_speed_and_bands(data, tmp_path):
-    from apcg_core.generation import load_model as load_any
+    from apcg_core.families import load_model as load_any
     from training.compare import compare, markdown, method_names, write
     runs = {}
     for name, family, steps in (("cgan", "cgan", 3), ("point-gan", "point-gan", 2)):

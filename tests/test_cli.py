@@ -24,7 +24,7 @@ def test_version_and_help():
 
 
 def test_condition_json_codes_the_type_in_the_model_table():
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
     last = load_model(runtime="onnx").types.names[-1]  # the default model's last type
     out = run("condition", "--type", last, "--range-m", "18000",
               "--elevation-deg", "4", "--pitch-deg", "5", "--yaw-deg", "60", "--roll-deg", "5",

@@ -131,7 +131,7 @@ def test_check_int_accepts_whole_numbers_in_range_only():
 
 
 def test_generation_refuses_a_bad_count_for_every_model_kind():
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
     model = load_model(runtime="onnx")
     row = model.condition("A320neo", 4500.0, math.radians(3.4), math.radians(2.3),
                           math.radians(13.2), 0.0)

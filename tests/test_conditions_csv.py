@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from apcg_core.errors import InputError
-from apcg_core.generation import ModelTypes, conditions_from_csv
+from apcg_core.families import ModelTypes, conditions_from_csv
 
 HEAD = "type,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg\n"
 

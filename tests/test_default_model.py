@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from apcg_core.catalog.catalog import default_catalog
-from apcg_core.generation import APCGModel, default_model_dir, load_model
+from apcg_core.families import default_model_dir, load_model
+from apcg_core.families.cgan import APCGModel
 from apcg_core.typetable import Conditions
 from dataset_builder.simulate import Simulator
 from training import faithfulness, protocol

@@ -200,7 +200,7 @@ def test_apcg_evaluate_reports_faithfulness_and_can_skip_it(data, tmp_path):
 
 
 def test_compare_shows_each_methods_faithfulness_beside_the_references(data):
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
     from training.compare import compare, markdown
     model = load_model(runtime="onnx")
     rep = compare([("one", model), ("two", model)], data, n_pairs=30, memory_steps=0,

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from apcg_core.generation import load_model as load_any
+from apcg_core.families import load_model as load_any
 from training import protocol
 from training.data import DepthDataset
 from training.export import export_model
@@ -46,7 +46,7 @@ def test_diffusion_sampling_stays_bounded_when_the_noise_prediction_is_wrong():
     to NaN; the update from the clipped x0 keeps every step finite, the result in the clip."""
     import torch
 
-    from training.baselines.nets import Schedule
+    from apcg_core.nn.baselines import Schedule
 
     class Overshooting(torch.nn.Module):
         def forward(self, x, t, nu):
@@ -118,7 +118,7 @@ def test_apcg_generate_runs_a_comparison_family_model(data, tmp_path, capsys):
 
     from apcg_core.cli import main
     from apcg_core.errors import InputError
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
     from apcg_core.io import read_cloud
 
     cfg = config_from("tiny", steps=1, seed=1, family="point-gan", checkpoint_every=10**6,

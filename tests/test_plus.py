@@ -1,5 +1,6 @@
-"""APCG+ (apcg_core/plus.py, training/plus.py): its geometry agrees with torch and with the
-simulator's box, it trains, exports, loads and generates like every family, and it learns."""
+"""APCG+ (apcg_core/families/apcg_plus.py, training/families/apcg_plus.py): its geometry agrees
+with torch and with the simulator's box, it trains, exports, loads and generates like every
+family, and it learns."""
 
 import json
 import subprocess
@@ -10,8 +11,14 @@ import numpy as np
 import pytest
 
 from apcg_core.errors import InputError
-from apcg_core.generation import load_model
-from apcg_core.plus import PlusModel, box_cells, box_half_cells, sample_sheets, sheet_coords
+from apcg_core.families import load_model
+from apcg_core.families.apcg_plus import (
+    PlusModel,
+    box_cells,
+    box_half_cells,
+    sample_sheets,
+    sheet_coords,
+)
 from training import protocol
 from training.data import DepthDataset
 from training.export import export_model
@@ -153,7 +160,7 @@ def test_generate_command_writes_its_clouds(trained, tmp_path):
 
 
 def test_sheet_size_is_checked():
-    from apcg_core.nn.plus import PlusConfig
+    from apcg_core.nn.apcg_plus import PlusConfig
     for bad in (0, 48, 100, 4096):
         with pytest.raises(InputError, match="sheet"):
             PlusConfig(n_types=2, sheet=bad)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from apcg_core.errors import InputError
-from apcg_core.generation import default_model_dir, load_model
+from apcg_core.families import default_model_dir, load_model
 from apcg_core.metrics import jsd, mmd
 from apcg_core.typetable import Conditions, TypeTable
 from dataset_builder.build import build_dataset

@@ -35,7 +35,7 @@ def variant_name(v: dict) -> str:
 def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encoder=None,
                  pairs: int = 400, seed: int = 0, progress: bool = True,
                  variants=VARIANTS, encoder_epochs: float = 4.0, no_norm: bool = True) -> dict:
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
 
     from . import protocol
     from .export import export_model

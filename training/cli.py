@@ -244,7 +244,7 @@ def add_protocol_arguments(p, pairs: bool = True) -> None:
 
 
 def add_runtime_argument(p) -> None:
-    from apcg_core.generation import RUNTIMES
+    from apcg_core.families import RUNTIMES
     p.add_argument("--runtime", choices=RUNTIMES, default="auto",
                    help="cGAN inference: auto (torch when installed, else onnxruntime), "
                         "onnx, torch; the same images either way")
@@ -278,7 +278,7 @@ def register_evaluate(sub) -> None:
 def _run_evaluate(args) -> int:
     from pathlib import Path
 
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
 
     from .evaluate import evaluate, jsd_bins_study, markdown, write_report
     model = load_model(args.model, runtime=args.runtime)
@@ -329,7 +329,7 @@ def _run_choose_tau(args) -> int:
     from pathlib import Path
 
     from apcg_core.errors import InputError
-    from apcg_core.generation import default_model_dir, load_model
+    from apcg_core.families import default_model_dir, load_model
     from apcg_core.io.dataset import json_bytes, write_atomic
 
     from .protocol import choose_tau
@@ -403,7 +403,7 @@ def _run_figure(args) -> int:
         fig14(runs, args.data, args.output, n_pairs=args.pairs, tau=args.tau,
               max_checkpoints=args.max_checkpoints)
     else:
-        from apcg_core.generation import load_model
+        from apcg_core.families import load_model
         model = load_model(args.model)
         if args.number == 16:
             fig16(model, args.output)
@@ -446,7 +446,7 @@ def _run_fd_train(args) -> int:
 
 
 def _run_fd_score(args) -> int:
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
 
     from .fd_depth import fd_depth
     print(json.dumps(fd_depth(args.encoder, load_model(args.model), args.data,
@@ -510,7 +510,7 @@ def register_compare(sub) -> None:
 
 
 def _run_compare(args) -> int:
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
 
     from .compare import compare, markdown, method_names, write
     models = [(name, load_model(path, runtime=args.runtime))

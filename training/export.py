@@ -16,8 +16,7 @@ from apcg_core.errors import InputError
 from apcg_core.families import get_family
 from apcg_core.io.atomic import atomic_path
 from apcg_core.io.dataset import read_header
-from apcg_core.nn import Generator
-from apcg_core.nn.models import COND_DIM, NOISE_DIM
+from apcg_core.nn.cgan import COND_DIM, NOISE_DIM, Generator
 from apcg_core.typetable import TypeTable
 
 from .data import DepthDataset
@@ -77,8 +76,9 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     ``raw`` or when it did not. ``sampling_steps`` (families that sample on a schedule) records
     how many of the schedule's steps generation takes by default (fewer: faster, coarser); a
     family without a schedule refuses it. What the model directory holds is the run's family's
-    (``training/families.py``); nothing is written when the family refuses. ``log_every`` keeps
-    every n-th step of the log (and the last), for a model that ships in the package."""
+    (``training/families/<family>.py``); nothing is written when the family refuses.
+    ``log_every`` keeps every n-th step of the log (and the last), for a model that ships in the
+    package."""
     from apcg_core.errors import check_int
     check_int("log_every", log_every, 1)
     run = Path(run_dir)

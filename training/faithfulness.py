@@ -12,10 +12,10 @@ type's catalog mesh found by name) makes two **decoy** standard clouds:
   is recorded.
 
 With MMD as the protocol computes it (``apcg_core.metrics.mmd``, clouds subsampled to
-``protocol.MAX_POINTS``, the pair's seed, the reference cloud first), the pair is **faithful**
+``scores.MAX_POINTS``, the pair's seed, the reference cloud first), the pair is **faithful**
 when MMD(own standard, gen) < MMD(decoy a, gen) **and** MMD(own standard, gen) < MMD(decoy b,
 gen). An empty decoy has no MMD and cannot be closer (that comparison passes). A pair whose own
-standard cloud has fewer than ``protocol.MIN_POINTS`` points is not scorable: counted
+standard cloud has fewer than ``scores.MIN_POINTS`` points is not scorable: counted
 (``standard_too_few``), not in the share. A generated cloud with fewer than ``MIN_POINTS``
 points (empty included) is **not faithful**, and counted (``too_few_points``). Per band:
 share = faithful / scorable pairs, and the shares of pairs closer than decoy (a) alone
@@ -38,6 +38,8 @@ from apcg_core.errors import InputError
 from apcg_core.metrics import mmd
 
 from .data import DepthDataset
+from .scores import MAX_POINTS, MIN_POINTS, band_mean, band_order, score_pair
+from .scores import summarise as summarise_band
 
 YAW_SHIFT_DEG = 45.0
 # name: (backend, rays per cell side)
@@ -139,7 +141,6 @@ def decoys(ds: DepthDataset, idx, seeds) -> Decoys:
 
 def judge(std, gen, yaw, other, seed: int, mmd_own: float | None = None) -> dict:
     """One pair's verdict (module docstring). ``mmd_own`` saves recomputing MMD(std, gen)."""
-    from .protocol import MAX_POINTS, MIN_POINTS
     row = {"faithful": None, "closer_than_yaw": None, "closer_than_other_type": None,
            "mmd_yaw": None, "mmd_other_type": None, "n_decoy_yaw": len(yaw),
            "n_decoy_other_type": len(other)}
@@ -211,13 +212,11 @@ class Prepared:
 
 def band_report(pairs, rows: list[dict], verdicts: list[dict]) -> dict:
     """Per band: the protocol's summary of ``rows`` with the faithfulness of ``verdicts``."""
-    from .protocol import band_order
-    from .protocol import summarise as protocol_summary
     bands = np.array(pairs.bands)
     out = {}
     for name in sorted(set(pairs.bands), key=band_order):
         sel = np.flatnonzero(bands == name)
-        out[name] = {**protocol_summary([rows[k] for k in sel]),
+        out[name] = {**summarise_band([rows[k] for k in sel]),
                      "faithfulness": summarise([verdicts[k] for k in sel])}
     return out
 
@@ -225,7 +224,6 @@ def band_report(pairs, rows: list[dict], verdicts: list[dict]) -> dict:
 def prepare(pairs, standards=None) -> Prepared:
     """Decoys of ``pairs`` and the reference methods scored on them (MMD / JSD / points ratio
     per band by the protocol, and faithfulness)."""
-    from .protocol import band_mean, score_pair
     t0 = time.perf_counter()
     ds = pairs.ds
     stds = standards if standards is not None else [ds.standard_cloud(int(i))

@@ -72,7 +72,7 @@ def fig14(runs, data_dir, out, n_pairs: int = 400, seed: int = 0, tau: float | N
     default); score a shipped model's run at the tau chosen for it. ``max_checkpoints`` scores at
     most that many per run, evenly spaced and always the last (a slow sampler with many kept
     checkpoints otherwise takes most of the time)."""
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
 
     from . import protocol
     from .export import export_model

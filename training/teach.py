@@ -46,7 +46,7 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
     """Teach the model in ``model_dir`` the catalog type ``type_name``; the new model goes to
     ``out_dir``. Returns the report (also written as ``out_dir/teach.json``)."""
     from apcg_core.catalog.catalog import default_catalog
-    from apcg_core.generation import load_model
+    from apcg_core.families import load_model
     from dataset_builder.build import build_dataset
 
     from . import protocol

@@ -1,7 +1,7 @@
 """Training of every model family (the improved cGAN of SPEC section 7 and the comparison
 families), with exact resume and data parallelism. What a step computes belongs to the family
-(``training/families.py``, found through ``apcg_core.families``); the trainer keeps the loop,
-the optimisers, the checkpoints, the logs and the clock, and never asks which family it runs.
+(``training/families/<family>.py``, found through ``apcg_core.families``); the trainer keeps the
+loop, the optimisers, the checkpoints, the logs and the clock, and never asks which family it runs.
 
 Exactness: the batch order is a pure function of (seed, batch counter) and every random draw of a
 step (noise, gradient-penalty mixing) comes from a generator seeded by (seed, step, rank), so a

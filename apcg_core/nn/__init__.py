@@ -1,5 +1,3 @@
-"""The improved cGAN of the paper (SPEC section 7). Importing this package imports torch."""
-
-from .models import Discriminator, Generator, NetConfig, SelfAttention
-
-__all__ = ["Discriminator", "Generator", "NetConfig", "SelfAttention"]
+"""The torch networks of each model family, one module per family (``cgan``, ``apcg_plus``,
+``baselines``): what training fits and what a torch runtime runs. Importing a module of this
+package imports torch; the rest of apcg_core never needs it."""

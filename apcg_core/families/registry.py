@@ -2,34 +2,47 @@
 
 A family is an object with a ``name`` and the parts it provides:
 
-* ``load(directory, runtime)`` -> a model (:class:`apcg_core.generation.ModelTypes`) whose
+* ``load(directory, runtime)`` -> a model (:class:`apcg_core.families.base.ModelTypes`) whose
   ``generate(conditions, count, seed)`` turns :class:`~apcg_core.typetable.Conditions` into
   clouds. Every family has it.
 * training parts (``networks``, ``train_step``, ``export``, ``untrained`` ...), provided by the
-  package that trains the family (``training``); see ``training/families.py``.
+  package that trains the family (``training/families/<family>.py``).
 
 Families register under the ``apcg.model_families`` entry points (value: the family object).
-The core registers the paper's cGAN's loader itself, so a model directory opens in a Python
-that has no entry-point metadata (Blender's legacy add-on folder) and the core keeps importing
-numpy alone. Nothing outside a family's own module branches on its name: it asks the registry.
+The core names its own loaders (:data:`BUILTIN`, ``module:attribute`` like an entry point,
+imported when first asked for), so a model directory opens in a Python that has no entry-point
+metadata (Blender's legacy add-on folder) and the core keeps importing numpy alone. Nothing
+outside a family's own modules branches on its name: it asks the registry.
 """
 
 from __future__ import annotations
 
 import json
+from importlib import import_module
 from pathlib import Path
 
-from .errors import InputError
+from ..errors import InputError
 
 ENTRY_POINTS = "apcg.model_families"
+# the loaders the core ships (model.json "family" -> "module:attribute")
+BUILTIN = {"cgan": "apcg_core.families.cgan:LOADER",
+           "apcg-plus": "apcg_core.families.apcg_plus:LOADER"}
 _BUILTIN: dict = {}
 _FROM_ENTRY_POINTS: dict | None = None
 
 
 def register(family):
-    """Register a family object built into the core (the entry points take precedence)."""
+    """Register a family object in this process (the entry points take precedence)."""
     _BUILTIN[family.name] = family
     return family
+
+
+def _builtin(name: str):
+    """The family registered in this process, or the core's own loader called ``name``."""
+    if name not in _BUILTIN and name in BUILTIN:
+        module, attr = BUILTIN[name].split(":")
+        _BUILTIN[name] = getattr(import_module(module), attr)
+    return _BUILTIN.get(name)
 
 
 def _entry_point_families() -> dict:
@@ -44,7 +57,7 @@ def _entry_point_families() -> dict:
 
 
 def family_names() -> list[str]:
-    return sorted(set(_BUILTIN) | set(_entry_point_families()))
+    return sorted(set(_BUILTIN) | set(BUILTIN) | set(_entry_point_families()))
 
 
 def get_family(name: str, need: str = "load"):
@@ -56,11 +69,11 @@ def get_family(name: str, need: str = "load"):
         try:
             fam = eps[name].load()
         except ImportError as exc:  # its package is installed without its extra (torch)
-            if name not in _BUILTIN:
+            if _builtin(name) is None:
                 raise InputError(f"model family {name!r} needs a package that is not "
                                  f"installed ({exc}); pip install 'apcg[train]'") from exc
     if fam is None:
-        fam = _BUILTIN.get(name)
+        fam = _builtin(name)
     if fam is None:
         raise InputError(f"unknown model family {name!r}; installed: "
                          f"{', '.join(family_names()) or 'none'}")
@@ -96,5 +109,5 @@ def family_of(directory) -> str:
     return str(read_model_meta(directory).get("family", "cgan"))
 
 
-__all__ = ["ENTRY_POINTS", "family_names", "family_of", "get_family", "read_model_meta",
+__all__ = ["BUILTIN", "ENTRY_POINTS", "family_names", "family_of", "get_family", "read_model_meta",
            "register"]

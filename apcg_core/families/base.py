@@ -1,9 +1,7 @@
-"""APCG generation (paper Fig. 1, SPEC sections 5-6): nu + noise -> generator -> DeNorm -> Im2PC.
-
-A model is a directory with ``model.json`` (network, condition space, lidar, types, tau) and
-``generator.onnx``. It runs through onnxruntime (no torch needed: this is how Blender runs it) or
-through torch, whose weights are read from the same ONNX file, so both give the same images.
-Noise is drawn with numpy from the seed, so the runtime never changes the result.
+"""What every model family's runtime shares: a model's type table and condition space read from
+its ``model.json`` (:class:`ModelTypes`, the base of every family's model), the result of
+generating, opening any model directory by the family that made it (:func:`load_model`), ONNX
+helpers, and conditions from a CSV file. Numpy alone; onnxruntime where a model runs.
 """
 
 from __future__ import annotations
@@ -13,15 +11,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .cloud import PointCloud
-from .condition import NOISE_DIM, Condition, ConditionSpace, scale_ratio
-from .depth import TAU_DEFAULT, denorm, im2pc
-from .errors import InputError, check_int
-from .families import family_of, get_family, read_model_meta, register
-from .lidar import LidarParams
-from .typetable import Conditions, TypeTable
+from ..cloud import PointCloud
+from ..condition import NOISE_DIM, Condition, ConditionSpace
+from ..errors import InputError, check_int
+from ..lidar import LidarParams
+from ..typetable import Conditions, TypeTable
+from .registry import family_of, get_family, read_model_meta
 
-DEFAULT_MODEL_DIR = Path(__file__).with_name("models") / "default"
+DEFAULT_MODEL_DIR = Path(__file__).parent.parent / "models" / "default"
 RUNTIMES = ("auto", "onnx", "torch")
 
 
@@ -75,7 +72,7 @@ class ModelTypes:
         if isinstance(key, str) and key.strip() in self.types:
             return key.strip()
         if isinstance(key, (int, np.integer)) or (isinstance(key, str) and key.strip().isdigit()):
-            from .catalog.catalog import default_catalog
+            from ..catalog.catalog import default_catalog
             return default_catalog().get(int(key)).name
         self.types.code(key)  # refuses, naming what the model knows
         return key
@@ -110,130 +107,13 @@ class ModelTypes:
         return GenerationResult(cloud, images, Conditions(self.types, table))
 
 
-class _CGANFamily:
-    """The paper's cGAN as the core knows it: its loader (training adds the rest)."""
-
-    name = "cgan"
-
-    @staticmethod
-    def load(directory, runtime: str = "auto"):
-        return APCGModel(directory, runtime=runtime)
-
-
 def load_model(directory=None, runtime: str = "auto"):
     """The model in ``directory`` (default: the shipped one), opened by the family that made
     it (model.json ``family``), whatever that family is."""
-    from . import plus  # noqa: F401 - registers the APCG+ loader (the core's second family)
     d = Path(directory) if directory else DEFAULT_MODEL_DIR
     if runtime not in RUNTIMES:
         raise InputError(f"runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")
     return get_family(family_of(d)).load(d, runtime=runtime)
-
-
-class APCGModel(ModelTypes):
-    """The paper's cGAN as exported: model.json + generator.onnx. ``tau`` is its Im2PC
-    threshold (SPEC section 6); ``TAUS`` the candidates `apcg choose-tau` sweeps."""
-
-    TAUS = (-0.99, -0.98, -0.95, -0.9, -0.8, -0.6, -0.3, 0.0)
-    DEFAULT_TAU = TAU_DEFAULT
-
-    @staticmethod
-    def check_tau(tau) -> float:
-        if not (isinstance(tau, (int, float, np.floating)) and np.isfinite(tau)
-                and -1.0 <= tau < 1.0):
-            raise InputError(f"tau = {tau!r} is out of range; accepted: -1 <= tau < 1 (the "
-                             "generator's tanh output, background -1)")
-        return float(tau)
-
-    def __init__(self, directory=None, runtime: str = "auto") -> None:
-        self._read_model_json(directory)
-        onnx_path = self.directory / "generator.onnx"
-        if not onnx_path.is_file():
-            raise InputError(f"{self.directory} is not a cGAN model (no generator.onnx; "
-                             "`apcg export` makes one from a training run)")
-        self.onnx_path = onnx_path
-        self.tau = float(self.meta.get("tau", TAU_DEFAULT))
-        self.norm = bool(self.meta.get("norm", True))
-        if runtime not in RUNTIMES:
-            raise InputError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
-        self.runtime = self._pick(runtime)
-        self._session = None
-        self._torch_g = None
-
-    # --- runtimes --------------------------------------------------------------------------------
-    @staticmethod
-    def _pick(runtime: str) -> str:
-        if runtime != "auto":
-            return runtime
-        try:
-            import onnx  # noqa: F401
-            import torch  # noqa: F401
-            return "torch"
-        except ImportError:
-            return "onnx"
-
-    def _onnx_session(self):
-        if self._session is None:
-            try:
-                import onnxruntime as ort
-            except ImportError as exc:
-                raise InputError("generation without torch needs onnxruntime: "
-                                 "pip install onnxruntime") from exc
-            self._session = onnx_session(self.onnx_path, ort.SessionOptions())
-        return self._session
-
-    def torch_generator(self):
-        """The generator as a torch module (eval mode), weights read from the ONNX file."""
-        if self._torch_g is None:
-            import torch
-
-            from .nn import Generator, NetConfig
-            g = Generator(NetConfig(**self.meta["net"]))
-            state = onnx_weights(self.onnx_path)
-            own = g.state_dict()
-            missing = [k for k in own if k not in state and not k.endswith("num_batches_tracked")]
-            if missing:
-                raise InputError(f"{self.onnx_path} lacks weights {missing[:5]}")
-            g.load_state_dict({k: torch.from_numpy(state[k]) if k in state else own[k]
-                               for k in own})
-            self._torch_g = g.eval()
-        return self._torch_g
-
-    def images_from(self, noise: np.ndarray, nu: np.ndarray, batch: int = 256) -> np.ndarray:
-        """Normalised images (N, H, W) for noise (N, 100) and nu (N, 6), float32."""
-        noise = np.ascontiguousarray(noise, np.float32)
-        nu = np.ascontiguousarray(nu, np.float32)
-        out = []
-        for s in range(0, len(nu), batch):
-            z, c = noise[s:s + batch], nu[s:s + batch]
-            if self.runtime == "onnx":
-                img = self._onnx_session().run(None, {"noise": z, "nu": c})[0]
-            else:
-                import torch
-                with torch.no_grad():
-                    img = self.torch_generator()(torch.from_numpy(z), torch.from_numpy(c)).numpy()
-            out.append(img[:, 0])
-        h, w = self.lidar.height, self.lidar.width
-        return np.concatenate(out) if out else np.zeros((0, h, w), np.float32)
-
-    # --- conditions ------------------------------------------------------------------------------
-    def generate(self, conditions: Conditions, count: int = 1,
-                 seed: int = 0) -> GenerationResult:
-        """Point clouds for ``conditions`` (mapped by type name into this model's types),
-        ``count`` samples each (rows repeated), noise from ``seed``."""
-        table = self.repeated_conditions(conditions, count)
-        nu = self.space.encode(table)
-        noise = np.random.default_rng(seed).standard_normal((len(table), NOISE_DIM))
-        img_n = self.images_from(noise, nu)
-        # a model trained without Norm (eq. 17) made the depth image itself
-        d = denorm(img_n, scale_ratio(table[:, 1])) if self.norm else img_n
-        codes = table[:, 0].astype(np.int64)
-        cloud = im2pc(d, table[:, 1], table[:, 2], self.depth_length(codes), self.lidar,
-                      tau=self.tau)
-        return self.result(cloud, d, table)
-
-
-register(_CGANFamily())
 
 
 _BROKEN = ("a partial or corrupt file: export the model again (`apcg export`), or copy it "
@@ -277,7 +157,7 @@ def conditions_from_csv(path, model: ModelTypes) -> Conditions:
     conditions.csv (its ``type_name`` column) is read as it is."""
     import csv
 
-    from .lidar import DEG
+    from ..lidar import DEG
     need = ["type", "range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg"]
     known: dict = {}
     if not Path(path).is_file():
@@ -322,5 +202,6 @@ def conditions_from_csv(path, model: ModelTypes) -> Conditions:
     return model.conditions(names, pose)
 
 
-__all__ = ["NOISE_DIM", "APCGModel", "Conditions", "GenerationResult", "ModelTypes",
-           "conditions_from_csv", "default_model_dir", "load_model"]
+__all__ = ["NOISE_DIM", "RUNTIMES", "Conditions", "GenerationResult", "ModelTypes",
+           "conditions_from_csv", "default_model_dir", "load_model", "onnx_session",
+           "onnx_weights"]

@@ -1,4 +1,5 @@
-"""The APCG+ network (apcg_core/plus.py): condition -> sheet (hit logit, range offset).
+"""The APCG+ network (apcg_core/families/apcg_plus.py): condition -> sheet (hit logit,
+range offset).
 
 The condition enters every block, not only the input: a learned embedding of the type (its code
 in the model's own type table) and Fourier features of the scaled pose (range, elevation, pitch,

@@ -19,8 +19,8 @@ idea and changes three things, each measured (docs/evaluation/plus/):
   the standard data are.
 
 This module is numpy (and onnxruntime to run the exported network), like the rest of the core;
-the network itself is :mod:`apcg_core.nn.plus` (torch), used for training and for the torch
-runtime.
+the network itself is :mod:`apcg_core.nn.apcg_plus` (torch), used for training and for the torch
+runtime; its training is ``training/families/apcg_plus.py``.
 """
 
 from __future__ import annotations
@@ -31,12 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .cloud import PointCloud
-from .errors import InputError, check_int
-from .families import register
-from .frames import spherical_to_cartesian
-from .generation import RUNTIMES, ModelTypes
-from .lidar import LidarParams
+from ..cloud import PointCloud
+from ..errors import InputError, check_int
+from ..frames import spherical_to_cartesian
+from ..lidar import LidarParams
+from .base import RUNTIMES, ModelTypes, onnx_session, onnx_weights
 
 FAMILY = "apcg-plus"
 CHUNK = 1024  # conditions per network call (bounds memory: a sheet is 2 x S x S floats)
@@ -165,12 +164,10 @@ class PlusModel(ModelTypes):
                                  "(or --runtime torch)") from exc
             opts = ort.SessionOptions()
             opts.intra_op_num_threads = 1 if self.workers > 1 else 0  # 0: onnxruntime's own
-            from .generation import onnx_session
             return _Runtime("onnx", session=onnx_session(self.onnx_path, opts))
         import torch
 
-        from .generation import onnx_weights
-        from .nn.plus import PlusConfig, PlusNet
+        from ..nn.apcg_plus import PlusConfig, PlusNet
         net = PlusNet(PlusConfig.from_dict(self.meta["net"]))
         state = onnx_weights(self.onnx_path)
         own = net.state_dict()
@@ -272,7 +269,8 @@ class PlusModel(ModelTypes):
 
 
 class _PlusLoader:
-    """APCG+ as the core knows it: its loader (training adds the rest: training/plus.py)."""
+    """APCG+ as the core knows it: its loader (training adds the rest:
+    training/families/apcg_plus.py)."""
 
     name = FAMILY
 
@@ -281,7 +279,7 @@ class _PlusLoader:
         return PlusModel(Path(directory), runtime=runtime)
 
 
-register(_PlusLoader())
+LOADER = _PlusLoader()
 
-__all__ = ["FAMILY", "PlusModel", "box_cells", "box_half_cells", "sample_sheets",
+__all__ = ["FAMILY", "LOADER", "PlusModel", "box_cells", "box_half_cells", "sample_sheets",
            "sheet_coords"]

@@ -1,4 +1,5 @@
-"""Training APCG+ (apcg_core/plus.py): the family object the trainer, export and evaluation use.
+"""Training APCG+ (apcg_core/families/apcg_plus.py): the family object the trainer, export and
+evaluation use.
 
 The standard data are (almost) a function of the condition: one first-surface return per cell.
 So the network is fitted to them directly, cell by cell, as pix2pix pairs an L1 loss with its
@@ -26,9 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from apcg_core.errors import InputError
-from apcg_core.plus import FAMILY, box_half_cells, sheet_coords
+from apcg_core.families.apcg_plus import FAMILY, box_half_cells, sheet_coords
 
-from .families import Family
+from .base import Family
 
 QUERIES = 1024
 EDGE_CELLS = 3
@@ -128,15 +129,15 @@ class PlusFamily(Family):
 
     @staticmethod
     def load(directory, runtime: str = "auto"):
-        from apcg_core.plus import PlusModel
+        from apcg_core.families.apcg_plus import PlusModel
         return PlusModel(directory, runtime=runtime)
 
     def net_config(self, cfg, dataset):
-        from apcg_core.nn.plus import PlusConfig
+        from apcg_core.nn.apcg_plus import PlusConfig
         return PlusConfig(n_types=len(dataset.types), width=cfg.width, sheet=cfg.sheet)
 
     def networks(self, net):
-        from apcg_core.nn.plus import PlusNet
+        from apcg_core.nn.apcg_plus import PlusNet
         return PlusNet(net), None
 
     def prepare(self, dataset) -> None:
@@ -179,7 +180,7 @@ class PlusFamily(Family):
 
     def export(self, state: dict, header: dict, out_dir, meta: dict, data_dir,
                sampling_steps=None) -> Path:
-        from apcg_core.nn.plus import PlusConfig, PlusNet
+        from apcg_core.nn.apcg_plus import PlusConfig, PlusNet
         self.check_sampling_steps(sampling_steps, state)
         net = PlusNet(PlusConfig.from_dict(state["net"]))
         net.load_state_dict(state["G"])
@@ -196,8 +197,8 @@ class PlusFamily(Family):
         """The same network freshly initialised (seeded), as a model directory."""
         import torch
 
-        from apcg_core.nn.plus import PlusConfig, PlusNet
-        from apcg_core.plus import PlusModel
+        from apcg_core.families.apcg_plus import PlusModel
+        from apcg_core.nn.apcg_plus import PlusConfig, PlusNet
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(seed)
@@ -218,10 +219,10 @@ class PlusFamily(Family):
         import torch
         import torch.nn.functional as F
 
-        from apcg_core.generation import onnx_weights
-        from apcg_core.nn.plus import PlusConfig, PlusNet
+        from apcg_core.families.base import onnx_weights
+        from apcg_core.nn.apcg_plus import PlusConfig, PlusNet
 
-        from .data import DepthDataset
+        from ..data import DepthDataset
         ds = DepthDataset(data_dir, "train")
         if len(ds.types) != 1:
             raise InputError(f"{data_dir} holds {len(ds.types)} types; teaching takes one")

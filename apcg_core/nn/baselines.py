@@ -10,8 +10,10 @@ import math
 import torch
 from torch import nn
 
-from apcg_core.errors import check_int
-from apcg_core.nn.models import COND_DIM, NOISE_DIM
+from ..condition import FIELDS, NOISE_DIM
+from ..errors import check_int
+
+COND_DIM = len(FIELDS)
 
 
 def _mlp(sizes, last_act=True):
