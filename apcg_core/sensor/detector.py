@@ -203,6 +203,10 @@ def _quiet_events(rng: np.random.Generator, n_quiet: int, n_bins: int, noise: fl
 
 def _binomial_pmf(n: int, p: float) -> np.ndarray:
     """P(Binomial(n, p) = z) for z = 0..n, in logs (no overflow for large n)."""
+    if p <= 0.0 or p >= 1.0:
+        pmf = np.zeros(n + 1)
+        pmf[0 if p <= 0.0 else n] = 1.0
+        return pmf
     z = np.arange(n + 1, dtype=np.float64)
     log_choose = np.concatenate([[0.0], np.cumsum(np.log((n - z[1:] + 1) / z[1:]))])
     with np.errstate(divide="ignore"):
@@ -218,12 +222,32 @@ def _draw_from(rng: np.random.Generator, pmf: np.ndarray, offset: int, size: int
 
 
 def _subsets(rng: np.random.Generator, sizes: np.ndarray, pulses: int) -> np.ndarray:
-    """For each slot, ``sizes[i]`` distinct pulses drawn uniformly (flat, slot by slot)."""
+    """For each slot, ``sizes[i]`` distinct pulses drawn uniformly (flat, slot by slot, in
+    ascending order): uniform draws, a repeat within a slot drawn again until none is left
+    (the sizes here are mostly 1 to 3 of ``pulses``)."""
     if len(sizes) == 0:
         return np.zeros(0, np.int64)
-    order = np.argsort(rng.random((len(sizes), pulses)), axis=1)
-    take = np.arange(pulses)[None, :] < sizes[:, None]
-    return order[take].astype(np.int64)
+    slot = np.repeat(np.arange(len(sizes), dtype=np.int64), sizes)
+    pulse = rng.integers(0, pulses, len(slot))
+    while True:
+        order = np.lexsort((pulse, slot))
+        slot, pulse = slot[order], pulse[order]
+        dup = np.flatnonzero((slot[1:] == slot[:-1]) & (pulse[1:] == pulse[:-1])) + 1
+        if len(dup) == 0:
+            return pulse
+        pulse[dup] = rng.integers(0, pulses, len(dup))
+
+
+def _quiet_cost(n_quiet: int, n_bins: int, pmf: np.ndarray, pulses: int, threshold: int,
+                noise: float) -> tuple[float, float]:
+    """Expected work (arrivals handled) of :func:`_quiet_points` and of drawing every event."""
+    z = np.arange(len(pmf))
+    heavy = float(pmf[threshold:].sum())
+    cells = min(float(n_quiet), n_quiet * n_bins * heavy)
+    light_z = float((pmf[1:threshold] * z[1:threshold]).sum())
+    fast = n_quiet * n_bins * heavy * pulses / 2 + cells * n_bins * light_z
+    full = n_quiet * pulses * float(-np.expm1(-noise * n_bins))
+    return fast, full
 
 
 def quiet_point_rate(n_bins: int, noise: float, pulses: int, threshold: int) -> float:
@@ -332,7 +356,9 @@ def detect_points(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_
     cell, b, _, k, _, _ = _loud_events(rng, win.inten, pulses, dead_bins)
     is_signal = rng.random(len(cell)) < _signal_share(win.signal, k, noise_per_bin)
     loud = peaks(Events(win.loud[cell], b, is_signal), n_bins)
-    if dead_bins >= n_bins:
+    pmf = _binomial_pmf(pulses, float(-np.expm1(-noise_per_bin)))
+    fast, full = _quiet_cost(win.n_quiet, n_bins, pmf, pulses, threshold, noise_per_bin)
+    if dead_bins >= n_bins and fast < full:
         q_cell, q_b, q_count = _quiet_points(rng, win.n_quiet, n_bins, noise_per_bin, pulses,
                                              threshold)
         quiet = Histogram(q_cell, q_b, q_count, np.zeros(len(q_cell), np.int64))

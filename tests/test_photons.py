@@ -1,0 +1,318 @@
+"""The photon stage (SPEC section 8, apcg_core/sensor) against closed forms.
+
+Each statistical test draws enough events for a tolerance of about 4 standard errors, and fails
+when the stage's law is off by more than that (a wrong bin, a missing dead time, a wrong
+transmission or an efficiency applied twice would all show)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from apcg_core.errors import InputError
+from apcg_core.lidar import LidarParams
+from apcg_core.sensor import SubRayHits, load_sensor, photon_cloud, preset_names
+from apcg_core.sensor.detector import (
+    SignalBins,
+    _quiet_points,
+    detect,
+    peaks,
+    quiet_point_rate,
+)
+from apcg_core.sensor.link import (
+    LIGHT_M_S,
+    kim_extinction_per_m,
+    range_sigma_m,
+    signal_photoelectrons,
+    sky_background_hz,
+    transmission,
+)
+from apcg_core.sensor.params import KEYS, check_sensor
+
+LIDAR = LidarParams.from_degrees(width=16, height=8)  # a small window keeps the tests fast
+BASE = dataclasses.asdict(load_sensor("1550nm-night"))
+
+
+def sensor(**over):
+    d = {**BASE, **over}
+    return check_sensor(d)
+
+
+def one_cell(range_m, sub_rays=1, n_samples=1, cos=1.0):
+    """``sub_rays`` hits in cell (0, 0) of each sample, at ``range_m`` (scalar or per hit)."""
+    r = np.broadcast_to(np.asarray(range_m, float), (n_samples * sub_rays,)).copy()
+    s = np.repeat(np.arange(n_samples), sub_rays)
+    z = np.zeros(len(s), np.int32)
+    return SubRayHits(s, z, z, r, np.full(len(s), cos), n_samples, sub_rays)
+
+
+def energy_for(mean_pe, r, sens, sub_rays=1):
+    """The pulse energy that gives ``mean_pe`` signal photo-electrons per pulse in the cell."""
+    per_joule = signal_photoelectrons(r, 1.0, 1.0, dataclasses.replace(sens, pulse_energy_j=1.0),
+                                      sub_rays) * sub_rays
+    return float(mean_pe / per_joule)
+
+
+def first_bin_probs(mu):
+    """P(first event in bin i) = (1 - exp(-mu_i)) exp(-sum_{k<i} mu_k)."""
+    before = np.concatenate([[0.0], np.cumsum(mu)[:-1]])
+    return -np.expm1(-mu) * np.exp(-before)
+
+
+def binned_gaussian(r, sigma_m, first, n_bins, r_r, total):
+    edges = (first + np.arange(n_bins + 1)) * r_r
+    cdf = np.array([0.5 * (1 + math.erf((e - r) / (sigma_m * math.sqrt(2)))) for e in edges])
+    return total * np.diff(cdf)
+
+
+# --- the link budget ----------------------------------------------------------------------------
+
+def test_signal_photoelectrons_is_the_formula_by_hand():
+    s = load_sensor("1064nm-night")
+    r, cos, rho, k2 = 9000.0, 0.6, 0.4, 16
+    h, c = 6.62607015e-34, 299792458.0
+    sigma = 3.912 / 23.0e3 * (1064 / 550) ** -1.3  # Kim, 6 < V < 50 km
+    expect = (400e-6 / 4096 * 1064e-9 / (h * c) * 0.5 * 0.30 * math.exp(-2 * sigma * r) * rho
+              * cos * 0.27**2 / (4 * r**2) / k2)
+    assert signal_photoelectrons(r, cos, rho, s, k2) == pytest.approx(expect, rel=1e-12)
+    assert transmission(r, s) == pytest.approx(math.exp(-sigma * r), rel=1e-12)
+
+
+@pytest.mark.parametrize("vis, q", [(80.0, 1.6), (23.0, 1.3), (3.0, 0.16 * 3 + 0.34),
+                                    (0.8, 0.3), (0.3, 0.0)])
+def test_kim_model_branches(vis, q):
+    assert kim_extinction_per_m(vis, 1550.0) == pytest.approx(
+        3.912 / (vis * 1e3) * (1550 / 550) ** -q, rel=1e-12)
+
+
+@pytest.mark.parametrize("preset, radiance, aperture, filt, eta_d, lam", [
+    ("1550nm-day", 0.001, 0.10, 1.0, 0.25, 1550.0),
+    ("1064nm-day", 0.05, 0.27, 0.1, 0.30, 1064.0),
+])
+def test_day_presets_background_is_derived_as_their_files_say(preset, radiance, aperture, filt,
+                                                              eta_d, lam):
+    omega = math.radians(0.0040) * math.radians(0.0076)
+    derived = sky_background_hz(radiance, omega, aperture, filt, 0.5, eta_d, lam)
+    assert load_sensor(preset).background_hz == pytest.approx(derived, rel=2e-3)
+
+
+# --- the detector against closed forms ------------------------------------------------------------
+
+def test_no_noise_share_of_pulses_with_an_event_is_one_minus_exp_minus_n():
+    n_pe, pulses = 0.7, 40_000
+    s = sensor(background_hz=0.0, dark_count_hz=0.0, pulses=pulses, output="events")
+    r = 5000.0
+    s = dataclasses.replace(s, pulse_energy_j=energy_for(n_pe, r, s))
+    pc = photon_cloud(one_cell(r), [r], [1.0], s, LIDAR, seed=3)
+    assert (pc.label == 1).all()
+    assert len(np.unique(pc.pulse)) == len(pc.pulse)  # one event per pulse at most
+    p = 1 - math.exp(-n_pe)
+    share = len(pc.pulse) / pulses
+    assert abs(share - p) < 4 * math.sqrt(p * (1 - p) / pulses)
+    assert pc.target_signal_pe[0] == pytest.approx(n_pe, rel=1e-9)
+
+
+def test_no_signal_events_per_pulse_per_cell_is_one_minus_exp_of_rate_times_gate():
+    rate, pulses = 300e3, 400
+    s = sensor(background_hz=rate, dark_count_hz=0.0, pulses=pulses, output="events",
+               gate_m=150.0)
+    empty = SubRayHits(*(np.zeros(0, t) for t in (np.int64, np.int32, np.int32, float, float)),
+                       n_samples=1, sub_rays=1)
+    pc = photon_cloud(empty, [4000.0], [1.0], s, LIDAR, seed=5)
+    cells = LIDAR.width * LIDAR.height
+    p = -math.expm1(-rate * 2 * 150.0 / LIGHT_M_S)
+    per = len(pc.label) / (cells * pulses)
+    assert abs(per - p) < 4 * math.sqrt(p * (1 - p) / (cells * pulses))
+    assert (pc.label == 0).all()
+    # noise fills the gate: every cell of the window, ranges inside [r0 - gate/2, r0 + gate/2]
+    assert len(np.unique(pc.w.astype(int) * 100 + pc.h)) == cells
+    assert pc.range_m.min() >= 4000 - 75 - LIDAR.r_r and pc.range_m.max() <= 4000 + 75 + LIDAR.r_r
+
+
+def test_weak_signal_ranges_spread_as_the_binned_gaussian_of_c_sigma_t_over_2():
+    s = sensor(background_hz=0.0, dark_count_hz=0.0, pulses=60_000, output="events",
+               jitter_ps=400.0, pulse_fwhm_ps=800.0)
+    r = 6000.0 + 0.37 * LIDAR.r_r
+    s = dataclasses.replace(s, pulse_energy_j=energy_for(0.01, r, s))
+    pc = photon_cloud(one_cell(r), [r], [1.0], s, LIDAR, seed=7)
+    sigma = range_sigma_m(s)
+    assert sigma == pytest.approx(LIGHT_M_S / 2 * math.hypot(800e-12 / 2.3548, 400e-12),
+                                  rel=1e-4)
+    first = int(np.floor((r - s.gate_m / 2) / LIDAR.r_r))
+    n_bins = int(math.ceil(s.gate_m / LIDAR.r_r))
+    mu = binned_gaussian(r, sigma, first, n_bins, LIDAR.r_r, 0.01)
+    p = first_bin_probs(mu)
+    centres = (first + np.arange(n_bins) + 0.5) * LIDAR.r_r
+    mean = (p * centres).sum() / p.sum()
+    var = (p * (centres - mean) ** 2).sum() / p.sum()
+    n = len(pc.range_m)
+    assert n > 300
+    assert abs(pc.range_m.mean() - mean) < 4 * math.sqrt(var / n)
+    assert pc.range_m.std() == pytest.approx(math.sqrt(var), rel=4 * math.sqrt(2 / n) + 0.01)
+    # the spread is c sigma_t / 2 with the bin's own width added
+    assert math.sqrt(var) == pytest.approx(math.sqrt(sigma**2 + LIDAR.r_r**2 / 12), rel=0.08)
+
+
+def test_strong_signal_shows_the_first_photon_bias_the_formula_predicts():
+    n_pe, pulses = 8.0, 20_000
+    s = sensor(background_hz=0.0, dark_count_hz=0.0, pulses=pulses, output="events",
+               jitter_ps=600.0, pulse_fwhm_ps=1200.0)
+    r = 7000.0 + 0.5 * LIDAR.r_r
+    s = dataclasses.replace(s, pulse_energy_j=energy_for(n_pe, r, s))
+    pc = photon_cloud(one_cell(r), [r], [1.0], s, LIDAR, seed=11)
+    sigma = range_sigma_m(s)
+    first = int(np.floor((r - s.gate_m / 2) / LIDAR.r_r))
+    n_bins = int(math.ceil(s.gate_m / LIDAR.r_r))
+    p = first_bin_probs(binned_gaussian(r, sigma, first, n_bins, LIDAR.r_r, n_pe))
+    centres = (first + np.arange(n_bins) + 0.5) * LIDAR.r_r
+    predicted = (p * centres).sum() / p.sum() - r
+    var = (p * (centres - r - predicted) ** 2).sum() / p.sum()
+    measured = pc.range_m.mean() - r
+    assert predicted < -0.8 * sigma  # pile-up: the first photon arrives early
+    assert abs(measured - predicted) < 4 * math.sqrt(var / len(pc.range_m))
+
+
+def test_short_dead_time_counts_approach_rate_over_one_plus_rate_tau():
+    rate, tau_ns, gate_m, pulses = 2e6, 200.0, 3000.0, 200
+    s = sensor(background_hz=rate, dark_count_hz=0.0, pulses=pulses, output="events",
+               gate_m=gate_m, dead_time_ns=tau_ns)
+    empty = SubRayHits(*(np.zeros(0, t) for t in (np.int64, np.int32, np.int32, float, float)),
+                       n_samples=1, sub_rays=1)
+    pc = photon_cloud(empty, [9000.0], [1.0], s, LIDAR, seed=13)
+    gate_s = 2 * gate_m / LIGHT_M_S
+    per_pulse = len(pc.label) / (LIDAR.width * LIDAR.height * pulses)
+    expected = rate / (1 + rate * tau_ns * 1e-9) * gate_s
+    assert per_pulse == pytest.approx(expected, rel=0.02)
+    assert abs(per_pulse - rate * gate_s) > 0.2 * rate * gate_s  # the dead time matters
+    # events of one pulse never come closer than the dead time
+    key = (pc.w.astype(np.int64) * 100 + pc.h) * pulses + pc.pulse
+    order = np.lexsort((pc.range_m, key))
+    same = key[order][1:] == key[order][:-1]
+    gaps = np.diff(pc.range_m[order])[same]
+    assert gaps.min() >= tau_ns * 1e-9 * LIGHT_M_S / 2 - 2 * LIDAR.r_r
+
+
+def test_a_cell_straddling_an_edge_returns_both_ranges_in_events_mode():
+    s = sensor(background_hz=0.0, dark_count_hz=0.0, pulses=2000, output="events")
+    r_near, r_far = 5000.0, 5012.0
+    hits = one_cell([r_near, r_near, r_far, r_far], sub_rays=4)
+    s = dataclasses.replace(s, pulse_energy_j=energy_for(0.3, r_near, s, 4))
+    pc = photon_cloud(hits, [5005.0], [1.0], s, LIDAR, seed=17)
+    near = np.abs(pc.range_m - r_near) < 1.0
+    far = np.abs(pc.range_m - r_far) < 1.0
+    assert near.sum() > 100 and far.sum() > 100 and (near | far).all()
+    # points output: one point per cell, at the histogram's peak (the nearer surface here)
+    pts = photon_cloud(hits, [5005.0], [1.0], dataclasses.replace(s, output="points"), LIDAR,
+                       seed=17)
+    assert len(pts.range_m) == 1 and abs(pts.range_m[0] - r_near) < 1.0
+    assert pts.count[0] >= s.threshold and pts.label[0] == 1
+
+
+def test_quiet_cells_points_follow_the_same_law_as_every_event_drawn():
+    """The points of cells of noise alone are drawn without drawing every event: their number
+    per window must match the full event-by-event histogram's."""
+    n_bins, noise, pulses, thr, cells = 200, 0.01, 50, 3, 400
+    empty = SignalBins(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    fast, full = [], []
+    for i in range(60):
+        rng = np.random.default_rng([1, i])
+        c, b, n = _quiet_points(rng, cells, n_bins, noise, pulses, thr)
+        fast.append(len(c))
+        assert (n >= thr).all() and (b < n_bins).all() and (c < cells).all()
+        ev = detect(np.random.default_rng([2, i]), empty, cells, n_bins, noise, n_bins, pulses,
+                    False)
+        h = peaks(ev, n_bins)
+        full.append(int((h.count >= thr).sum()))
+    fast, full = np.array(fast), np.array(full)
+    se = math.sqrt(fast.var() / len(fast) + full.var() / len(full))
+    assert fast.mean() > 5  # the case is not vacuous
+    assert abs(fast.mean() - full.mean()) < 4 * se
+    assert 0 < quiet_point_rate(n_bins, noise, pulses, thr) < 1
+
+
+def test_points_carry_counts_and_labels_and_noise_points_appear_outside_the_target():
+    s = sensor(background_hz=1e6, threshold=2, pulses=200)
+    r = 5000.0
+    s = dataclasses.replace(s, pulse_energy_j=energy_for(2.0, r, s))
+    pc = photon_cloud(one_cell(r), [r], [1.0], s, LIDAR, seed=19)
+    target = (pc.w == 0) & (pc.h == 0)
+    assert target.sum() == 1 and pc.label[target][0] == 1 and pc.count[target][0] > 50
+    assert (~target).sum() > 0 and (pc.label[~target] == 0).all()
+    assert (pc.count >= 2).all() and (pc.pulse == -1).all()
+
+
+# --- seeds ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("output", ["points", "events"])
+def test_a_samples_photons_do_not_depend_on_its_batch(output):
+    s = sensor(background_hz=2e5, output=output, threshold=2)
+    r = np.array([4000.0, 6000.0, 9000.0])
+    hits = one_cell(np.repeat(r, 4), sub_rays=4, n_samples=3)
+    both = photon_cloud(hits, r, [0.5] * 3, s, LIDAR, seed=42)
+    alone = photon_cloud(one_cell(np.full(4, r[2]), sub_rays=4), r[2:], [0.5], s, LIDAR,
+                         seed=42, sample_ids=[2])
+    mine = both.sample == 2
+    for f in ("w", "h", "range_m", "label", "count", "pulse"):
+        assert np.array_equal(getattr(both, f)[mine], getattr(alone, f)), f
+    again = photon_cloud(hits, r, [0.5] * 3, s, LIDAR, seed=42)
+    other = photon_cloud(hits, r, [0.5] * 3, s, LIDAR, seed=43)
+    assert np.array_equal(both.range_m, again.range_m)
+    assert not (len(both.range_m) == len(other.range_m)
+                and np.array_equal(both.range_m, other.range_m))
+
+
+# --- bad input --------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("key, value", [
+    ("pulse_energy_j", -1e-6), ("pulse_energy_j", 0.0), ("optics_efficiency", 1.2),
+    ("detector_efficiency", 0.0), ("detector_efficiency", float("nan")),
+    ("visibility_km", float("inf")), ("background_hz", -5.0), ("pulses", 0), ("pulses", 2.5),
+    ("threshold", True), ("cells_per_pulse", 0), ("aperture_m", "wide"), ("gate_m", 0.0),
+    ("dead_time_ns", -1.0), ("wavelength_nm", 50.0), ("jitter_ps", float("nan")),
+])
+def test_every_bad_sensor_value_is_named(key, value):
+    with pytest.raises(InputError) as e:
+        check_sensor({**BASE, key: value})
+    msg = str(e.value)
+    assert key in msg and "\n" not in msg
+
+
+def test_unknown_missing_and_bad_output_keys_are_named():
+    with pytest.raises(InputError, match="unknown sensor key.*'pulse_energy'"):
+        check_sensor({**BASE, "pulse_energy": 1.0})
+    short = {k: v for k, v in BASE.items() if k != "aperture_m"}
+    with pytest.raises(InputError, match="lacks aperture_m"):
+        check_sensor(short)
+    with pytest.raises(InputError, match="output must be one of points, events"):
+        check_sensor({**BASE, "output": "cloud"})
+
+
+def test_a_gate_shorter_than_a_bin_is_refused():
+    s = sensor(gate_m=0.1)
+    with pytest.raises(InputError, match="gate_m = 0.1 m is shorter than one range bin"):
+        photon_cloud(one_cell(5000.0), [5000.0], [1.0], s, LIDAR, seed=0)
+
+
+def test_presets_and_files(tmp_path):
+    assert {"ideal", "1064nm-day", "1064nm-night", "1550nm-day", "1550nm-night"} <= set(
+        preset_names())
+    assert load_sensor("ideal") is None and load_sensor(None) is None
+    for name in preset_names():
+        if name != "ideal":
+            s = load_sensor(name)
+            assert s.name == name and set(KEYS) <= set(dataclasses.asdict(s))
+    f = tmp_path / "mine.toml"
+    f.write_text("[sensor]\n" + "".join(f"{k} = {v!r}\n".replace("'", '"')
+                                          for k, v in BASE.items() if k != "name"))
+    assert load_sensor(str(f)).pulses == BASE["pulses"]
+    with pytest.raises(InputError, match="unknown sensor 'nope'"):
+        load_sensor("nope")
+    (tmp_path / "bad.toml").write_text("[sensor\n")
+    with pytest.raises(InputError, match="not a readable TOML"):
+        load_sensor(str(tmp_path / "bad.toml"))
+    (tmp_path / "none.toml").write_text("[lidar]\nwidth = 256\n")
+    with pytest.raises(InputError, match="no \\[sensor\\] table"):
+        load_sensor(str(tmp_path / "none.toml"))
