@@ -33,25 +33,85 @@ def test_a_datasets_conditions_csv_is_read_as_it_is(model, tiny_training_data):
 
 
 @pytest.mark.parametrize("row,words", [
-    ("A320neo,nan,3.4,2,0,0", "row 2: range_m must be finite"),
-    ("A320neo,-5,3.4,2,0,0", "row 2: range_m = -5"),
-    ("A320neo,4500,90,2,0,0", "row 2: elevation = 90 deg"),
-    ("A320neo,4500,3.4,2,200,0", "row 2: yaw"),
-    ("A320neo,4500,3.4,x,0,0", "row 2: could not convert"),
-    ("No Such Jet,4500,3.4,2,0,0", "row 2: .*No Such Jet"),
+    ("A320neo,nan,3.4,2,0,0", r"c.csv, line 3, column range_m \(B\): 'nan' is not a finite"),
+    ("A320neo,-5,3.4,2,0,0", r"line 3, column range_m \(B\): '-5' .*range_m = -5"),
+    ("A320neo,4500,90,2,0,0", r"line 3, column elevation_deg \(C\): '90' .*elevation = 90 deg"),
+    ("A320neo,4500,3.4,2,200,0", r"line 3, column yaw_deg \(E\): '200' .*yaw"),
+    ("A320neo,4500,3.4,x,0,0", r"line 3, column pitch_deg \(D\): 'x' is not a number"),
+    ("A320neo,4500,3.4,,0,0", r"line 3, column pitch_deg \(D\): '' is empty"),
+    ("A320neo,4500,3.4,2", r"line 3: 4 values, the header \(line 1\) has 6 columns: no value "
+                           "for yaw_deg, roll_deg"),
+    ("A320neo,4500,3.4,2,0,0,7", r"line 3, column G: '7' lies past the header's last column"),
+    ('A320neo,"3,5",3.4,2,0,0', r"line 3, column range_m \(B\): '3,5' is not a number \(use a "
+                                "point"),
+    ("No Such Jet,4500,3.4,2,0,0", r"line 3, column type \(A\): 'No Such Jet'"),
 ])
-def test_bad_rows_are_refused_by_number(model, tmp_path, row, words):
+def test_bad_rows_are_refused_by_line_column_and_value(model, tmp_path, row, words):
+    """The line as an editor shows it (the header is line 1), the column by its name and its
+    spreadsheet letter, and the value (not a data-row count, not Python's float() words)."""
     f = tmp_path / "c.csv"
     f.write_text(HEAD + "A320neo,4500,3.4,2,0,0\n" + row + "\n")
     with pytest.raises(InputError, match=words):
         conditions_from_csv(f, model)
 
 
+@pytest.mark.parametrize("how", ["bom", "crlf", "quoted", "blank lines", "spaces", "all"])
+def test_a_csv_as_spreadsheets_and_editors_save_it_is_read(model, tmp_path, how):
+    """A byte-order mark ("CSV UTF-8"), CRLF, quoted fields, trailing empty lines (and rows
+    of empty cells), spaces around values: the same conditions as the plain file."""
+    plain = HEAD + "A320neo,4500,3.4,2.3,13.2,0.13\nMavic 3,250,3.1,1.5,-20,2\n"
+    text = plain
+    if how in ("quoted", "all"):
+        text = text.replace("A320neo,4500", '"A320neo","4500"').replace("Mavic 3", '"Mavic 3"')
+    if how in ("spaces", "all"):
+        text = text.replace(",", " , ").replace("type", " type")
+    if how in ("blank lines", "all"):
+        text = text + "\n,,,,,\n\n\n"
+    if how in ("crlf", "all"):
+        text = text.replace("\n", "\r\n")
+    data = text.encode()
+    if how in ("bom", "all"):
+        data = b"\xef\xbb\xbf" + data
+    (tmp_path / "plain.csv").write_text(plain)
+    (tmp_path / "c.csv").write_bytes(data)
+    want = conditions_from_csv(tmp_path / "plain.csv", model)
+    got = conditions_from_csv(tmp_path / "c.csv", model)
+    assert got.names == want.names
+    np.testing.assert_array_equal(got.table, want.table)
+
+
+def test_a_line_break_inside_quotes_keeps_the_line_numbers_true(model, tmp_path):
+    f = tmp_path / "c.csv"
+    f.write_text(HEAD + '"A320neo",4500,3.4,2,0,0\n"Mavic\n3",250,3,1,0,0\nA320neo,x,1,1,0,0\n')
+    with pytest.raises(InputError, match=r"line 3, column type \(A\): 'Mavic\\n3'"):
+        conditions_from_csv(f, model)
+    f.write_text(HEAD + '"A320 neo note\nspanning",4500,3.4,2,0,0\nA320neo,x,1,1,0,0\n')
+    with pytest.raises(InputError, match=r"line (2|4)"):
+        conditions_from_csv(f, model)
+
+
 def test_missing_columns_and_empty_files(model, tmp_path):
     f = tmp_path / "c.csv"
     f.write_text("type,range_m\nA320neo,4500\n")
-    with pytest.raises(InputError, match="needs the header"):
+    with pytest.raises(InputError, match=r"c.csv, line 1: the header has no column "
+                                         "elevation_deg, pitch_deg, yaw_deg, roll_deg"):
         conditions_from_csv(f, model)
     f.write_text(HEAD)
     with pytest.raises(InputError, match="no conditions"):
+        conditions_from_csv(f, model)
+    f.write_bytes(b"")
+    with pytest.raises(InputError, match="c.csv: the file is empty"):
+        conditions_from_csv(f, model)
+    f.write_bytes(b"\xef\xbb\xbf\r\n\r\n")
+    with pytest.raises(InputError, match="c.csv: the file is empty"):
+        conditions_from_csv(f, model)
+    f.write_bytes(HEAD.encode() + b"A320neo,4500,3.4,2,0,0\nA320\xe9,1,1,1,1,1\n")
+    with pytest.raises(InputError, match=r"c.csv, line 3: byte 0xe9 is not UTF-8"):
+        conditions_from_csv(f, model)
+    f.write_text("\ufeff" + HEAD, encoding="utf-16")
+    with pytest.raises(InputError, match="UTF-16"):
+        conditions_from_csv(f, model)
+    f.write_text(HEAD.replace("pitch_deg", "range_m"))
+    with pytest.raises(InputError, match=r"line 1, column D: the column name 'range_m' "
+                                         "appears twice"):
         conditions_from_csv(f, model)

@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import sys
 import tempfile
@@ -25,6 +24,7 @@ import numpy as np
 
 from apcg_core.errors import InputError
 from apcg_core.io.atomic import atomic_path
+from apcg_core.io.csv_table import read_csv
 from apcg_core.io.dataset import write_atomic
 
 
@@ -34,11 +34,10 @@ def read_log(run) -> dict:
     path = Path(run) / "log.csv"
     if not path.exists():
         raise InputError(f"{run} has no log.csv")
-    with open(path) as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
+    table = read_csv(path, required=("seconds",), what="training log")
+    if not table.rows:
         raise InputError(f"{path} has no rows yet")
-    cols = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+    cols = {k: np.array([r.float(k) for r in table]) for k in table.header if k}
     sec = cols["seconds"]
     step = np.diff(sec, prepend=0.0)
     step[step < 0] = sec[step < 0]  # a resumed run that counted from 0 again

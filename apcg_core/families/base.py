@@ -154,51 +154,10 @@ def onnx_weights(path) -> dict:
 def conditions_from_csv(path, model: ModelTypes) -> Conditions:
     """Rows ``type,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg`` (header required; the
     type by catalog name, or catalog index), in the model's type table. A dataset's
-    conditions.csv (its ``type_name`` column) is read as it is."""
-    import csv
-
-    from ..lidar import DEG
-    need = ["type", "range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg"]
-    known: dict = {}
-    if not Path(path).is_file():
-        raise InputError(f"conditions CSV {path} does not exist (or is not a file)")
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            fields = reader.fieldnames or []
-            type_col = "type" if "type" in fields else "type_name"
-            if any(k not in fields for k in [type_col, *need[1:]]):
-                raise InputError(f"{path}: a conditions CSV needs the header {','.join(need)} "
-                                 "(or a dataset's conditions.csv)")
-            rows = list(reader)
-    except (UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"{path} is not a readable CSV text file ({exc})") from exc
-    if not rows:
-        raise InputError(f"{path} has no conditions")
-    names = []
-    for i, r in enumerate(rows):
-        key = (r[type_col] or "").strip()
-        if key not in known:
-            try:
-                known[key] = model.type_name(key)
-            except InputError as exc:
-                raise InputError(f"{path}, row {i + 1}: {exc}") from exc
-        names.append(known[key])
-    try:
-        pose = np.array([[float(r[k]) for k in need[1:]] for r in rows], dtype=np.float64)
-    except (TypeError, ValueError):
-        pose = None
-    if pose is not None:
-        pose[:, 1:] *= DEG
-        bad = ~np.isfinite(pose).all(axis=1) | (pose[:, 0] <= 0) \
-            | (np.abs(pose[:, 1]) >= np.pi / 2) | (np.abs(pose[:, 2]) > np.pi / 2) \
-            | (np.abs(pose[:, 3:]) > np.pi).any(axis=1)
-    if pose is None or bad.any():  # the first bad row, with the physical check's own words
-        for i, r in enumerate(rows):
-            try:
-                Condition(0, float(r["range_m"]), *(float(r[k]) * DEG for k in need[2:]))
-            except (TypeError, ValueError, InputError) as exc:
-                raise InputError(f"{path}, row {i + 1}: {exc}") from exc
+    conditions.csv (its ``type_name`` column) is read as it is. The reading and its errors
+    (file, line, column, value): :func:`apcg_core.condition.read_conditions_csv`."""
+    from ..condition import read_conditions_csv
+    names, pose = read_conditions_csv(path, model.type_name)
     return model.conditions(names, pose)
 
 

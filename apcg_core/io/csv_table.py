@@ -97,6 +97,7 @@ class CSVTable:
         self.header = header
         self.header_line = header_line
         self.rows: list[CSVRow] = []
+        self.lines: list[str] = []  # the file's text lines as read (BOM gone, ends kept)
 
     def letter(self, column: str) -> str:
         return column_letter(self.header.index(column)) if column in self.header else "?"
@@ -156,6 +157,7 @@ def read_csv(path, required: Iterable[str] = (), what: str = "CSV file",
         named = ",".join(need) if need else "a header line"
         raise InputError(f"{path}: the file is empty; a {what} needs the header {named} "
                          "and rows under it")
+    table.lines = text.splitlines(keepends=True)
     missing = [c for c in need if c not in table.header]
     missing += ["|".join(g) for g in groups if not any(c in table.header for c in g)]
     if missing:
