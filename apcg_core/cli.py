@@ -100,13 +100,14 @@ def _run(argv, registrars, command: list) -> int:
         return 0
     command.append(args.command)
     from .options import problems
-    from .outputs import output_problems
+    from .outputs import guarding, output_problems
     refused = problems(vars(args)) + output_problems(args)
     for message in refused:
         print(f"apcg {args.command}: error: {message}", file=sys.stderr)
     if refused:
         return 2
-    return int(args.func(args) or 0)
+    with guarding(args):  # every file written goes through its guard (outputs.py)
+        return int(args.func(args) or 0)
 
 
 def print_mapping(mapping: dict, as_json: bool, key_width: int = 24) -> None:

@@ -53,3 +53,32 @@ def sparse_cloud_warning(n_points: int, what: str) -> str | None:
         return (f"{what} has only {n_points} point{'s' * (n_points > 1)}: the target covers "
                 f"fewer than {SPARSE_POINTS} lidar cells at this range")
     return None
+
+
+def _lidar_words(lidar: dict) -> str:
+    known = ("r_alpha_deg", "r_beta_deg", "r_r_m", "width", "height")
+    words = (f"{lidar.get('r_alpha_deg')} x {lidar.get('r_beta_deg')} deg cells, "
+             f"{lidar.get('r_r_m')} m bins, {lidar.get('width')} x {lidar.get('height')} cells")
+    rest = [f"{k} {lidar[k]}" for k in sorted(lidar) if k not in known]
+    return words + "".join(f", {r}" for r in rest)
+
+
+def _same_value(a, b) -> bool:
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) \
+            and not isinstance(a, bool) and not isinstance(b, bool):
+        return abs(a - b) <= 1e-9 * max(abs(a), abs(b), 1e-300)
+    return a == b
+
+
+def lidar_mismatch_warning(data_lidar: dict, data_name, model_lidar: dict,
+                           model_name) -> str | None:
+    """A dataset made by another lidar than the one a model was trained for (its model.json):
+    the model's clouds and the dataset's standard clouds are not comparable cell for cell."""
+    data_lidar, model_lidar = dict(data_lidar or {}), dict(model_lidar or {})
+    differ = [k for k in sorted(set(data_lidar) | set(model_lidar))
+              if not _same_value(data_lidar.get(k), model_lidar.get(k))]
+    if not differ:
+        return None
+    return (f"the dataset {data_name} was made by another lidar ({_lidar_words(data_lidar)}) "
+            f"than the model {model_name} was trained for ({_lidar_words(model_lidar)}); "
+            f"they differ in {', '.join(differ)}, so its scores compare clouds of two lidars")

@@ -35,6 +35,10 @@ POINTS = {
                            "or cluster worker): a shard's file has just been written whole",
     "generate.block-written": "generate: a block of clouds has just been written to the "
                               "output's temporary file",
+    "output.held": "any command (apcg_core.outputs): its first output file is written whole "
+                   "under its temporary name and held; nothing is under a final name yet",
+    "output.committing": "any command: its held outputs are being renamed to their final "
+                         "names, Ctrl-C and SIGTERM held until they all are",
 }
 
 

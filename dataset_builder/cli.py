@@ -86,6 +86,12 @@ def _run_simulate(args) -> int:
     return 0
 
 
+# What a build writes at the top of its directory, and what says a directory is a build's own
+# (its header, or a live or killed build's lock: concurrent --shard builds share it).
+DATASET_FILES = ("conditions.csv", "dataset.json", "manifest.json")
+DATASET_RECORD = ("dataset.json", ".build-*-of-*.lock")
+
+
 def register_dataset(sub) -> None:
     p = sub.add_parser("dataset", help="build and inspect training datasets",
                        description="Build a dataset of standard depth images from a TOML config "
@@ -96,7 +102,8 @@ def register_dataset(sub) -> None:
                                     "and run again, it finishes the same dataset byte for byte.")
     b.add_argument("--config", required=True,
                    help="TOML file, or a committed config name (see `apcg dataset configs`)")
-    add_output(b, "-o", "--output", kind=DIRECTORY, required=True, help="dataset directory")
+    add_output(b, "-o", "--output", kind=DIRECTORY, required=True, help="dataset directory",
+               files=DATASET_FILES, record=DATASET_RECORD)
     b.add_argument("--backend", choices=BACKENDS, help="override the config's backend")
     b.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     b.add_argument("--shard", metavar="I/N",

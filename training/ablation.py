@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from apcg_core.io.dataset import write_atomic
+
 from .trainer import Trainer, config_from
 
 VARIANTS = [dict(conv=c, attention=a, loss=loss) for c, a, loss in
@@ -69,7 +71,8 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
         first = export_model(run, run / "model", force=True)
         sweep = protocol.choose_tau(load_model(first), data_dir, n_pairs=pairs, seed=seed)
         model = load_model(export_model(run, run / "model", tau=sweep["best"], force=True))
-        (run / "model" / "tau_sweep.json").write_text(json.dumps(sweep, indent=1) + "\n")
+        write_atomic(run / "model" / "tau_sweep.json",
+                     (json.dumps(sweep, indent=1) + "\n").encode())
         bands = protocol.score(model, test_pairs, floor=False, pointflow=False)["mean"]
         fresh = protocol.score(protocol.untrained(model, run / "untrained", seed=seed),
                                test_pairs, floor=False, pointflow=False)["mean"]
@@ -94,8 +97,8 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
                           f"--width {width:g} --pairs {pairs} --seed {seed}"
                           + (f" --encoder {given_encoder}" if given_encoder else "")
                           + ("" if no_norm else " --skip-no-norm"))}
-    (out / "table3.json").write_text(json.dumps(report, indent=1) + "\n")
-    (out / "table3.md").write_text(markdown(report))
+    write_atomic(out / "table3.json", (json.dumps(report, indent=1) + "\n").encode())
+    write_atomic(out / "table3.md", markdown(report).encode())
     return report
 
 

@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from apcg_core.outputs import DIRECTORY, FILE, PICTURE_SUFFIXES, add_output
+from apcg_core.outputs import ANY, DIRECTORY, FILE, PICTURE_SUFFIXES, add_output
 
 
 def register_train(sub) -> None:
@@ -19,7 +19,9 @@ def register_train(sub) -> None:
                                    "RUN/log.csv and RUN/tensorboard. For several processes: "
                                    "torchrun --nproc_per_node N -m apcg_core.cli train ...")
     p.add_argument("--data", required=True, help="dataset directory")
-    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="run directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="run directory",
+               files=("train_config.json", "checkpoint.pt", "log.csv"),
+               record=("train_config.json",))
     p.add_argument("--preset", default="cpu", choices=["paper", "cpu", "tiny"],
                    help="paper: full width for a GPU; cpu: quarter width, bf16 (default); "
                         "tiny: for tests")
@@ -194,7 +196,9 @@ def register_export(sub) -> None:
                                    "generator.onnx), with the run's config and log beside "
                                    "them.")
     p.add_argument("--run", required=True, help="training run directory")
-    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="model directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="model directory",
+               files=ANY, force_help="write into an output directory that holds files "
+               "(files of the same names are replaced, others kept)")
     p.add_argument("--tau", type=float, default=None,
                    help="output threshold to record (the cGAN's Im2PC tau, default -0.95; "
                         "APCG+'s hit logit, default 0); `apcg choose-tau` chooses it")
@@ -208,8 +212,6 @@ def register_export(sub) -> None:
                    help="families that sample on a schedule (diffusion): sample on N evenly "
                         "spaced steps of it (default: all of them; fewer is faster and "
                         "coarser); the others refuse it")
-    p.add_argument("--force", action="store_true",
-                   help="replace what the output directory holds (default: refuse)")
     p.set_defaults(func=_run_export)
 
 
@@ -250,6 +252,17 @@ def add_runtime_argument(p) -> None:
                         "onnx, torch; the same images either way")
 
 
+def warn_other_lidar(command: str, data_dir, model) -> None:
+    """One warning line when the dataset's lidar (its dataset.json) is not the model's
+    (its model.json): the scores would compare clouds of two lidars."""
+    from apcg_core.io.dataset import read_header
+    from apcg_core.plausibility import lidar_mismatch_warning
+    warning = lidar_mismatch_warning(read_header(data_dir).get("lidar"), data_dir,
+                                     model.meta.get("lidar"), model.directory)
+    if warning:
+        print(f"apcg {command}: warning: {warning}", file=sys.stderr, flush=True)
+
+
 def register_evaluate(sub) -> None:
     import argparse
 
@@ -261,7 +274,8 @@ def register_evaluate(sub) -> None:
                                    "metrics.json, report.md and fig17.png.")
     add_model_argument(p)
     p.add_argument("--data", required=True, help="dataset directory (its test split is used)")
-    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="report directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="report directory",
+               files=_evaluate_files)
     add_protocol_arguments(p)
     add_runtime_argument(p)
     p.add_argument("--jsd-bins-study", action="store_true",
@@ -275,6 +289,11 @@ def register_evaluate(sub) -> None:
     p.set_defaults(func=_run_evaluate)
 
 
+def _evaluate_files(args) -> tuple[str, ...]:
+    return (("jsd_bins.json",) if args.jsd_bins_study
+            else ("metrics.json", "report.md", "fig17.png"))
+
+
 def _run_evaluate(args) -> int:
     from pathlib import Path
 
@@ -282,13 +301,14 @@ def _run_evaluate(args) -> int:
 
     from .evaluate import evaluate, jsd_bins_study, markdown, write_report
     model = load_model(args.model, runtime=args.runtime)
+    warn_other_lidar("evaluate", args.data, model)
     command = "apcg evaluate " + " ".join(sys.argv[2:])
     if args.jsd_bins_study:
         study = jsd_bins_study(model, args.data, seed=args.seed)
         study["command"] = command
-        out = Path(args.output)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "jsd_bins.json").write_text(json.dumps(study, indent=1) + "\n")
+        from apcg_core.io.dataset import write_atomic
+        write_atomic(Path(args.output) / "jsd_bins.json",
+                     (json.dumps(study, indent=1) + "\n").encode())
         print(json.dumps({"best": study["best"], "min_gap": study["min_gap"]}))
         return 0
     report = evaluate(model, args.data, n_pairs=args.pairs or None, seed=args.seed,
@@ -351,6 +371,8 @@ def _run_choose_tau(args) -> int:
             raise InputError("--apply would change the shipped default model; export a copy "
                              "(or copy its directory) and apply it there")
         meta = dict(model.meta, tau=rep["best"], tau_choice=rep)
+        from apcg_core.outputs import allow_update
+        allow_update(Path(model.directory) / "model.json")  # --apply changes it, by design
         write_atomic(Path(model.directory) / "model.json", json_bytes(meta))
         print(f"wrote tau {rep['best']:g} into {model.directory}/model.json", file=sys.stderr)
     return 0
@@ -376,7 +398,7 @@ def register_figure(sub) -> None:
                    help="figure 14: score at most K kept checkpoints per run, evenly spaced, "
                         "the last always (default: all)")
     add_output(p, "-o", "--output", kind=FILE, suffixes=PICTURE_SUFFIXES, required=True,
-               help="PNG path (the data goes beside it, as .json)")
+               sidecars=(".json",), help="PNG path (the data goes beside it, as .json)")
     p.set_defaults(func=_run_figure)
 
 
@@ -425,7 +447,8 @@ def register_fd_depth(sub) -> None:
     s = p.add_subparsers(dest="fd_cmd", required=True)
     t = s.add_parser("train", help="train the encoder on a dataset's train split")
     t.add_argument("--data", required=True)
-    add_output(t, "-o", "--output", kind=DIRECTORY, required=True, help="encoder directory")
+    add_output(t, "-o", "--output", kind=DIRECTORY, required=True, help="encoder directory",
+               files=("encoder.pt", "encoder.json"))
     t.add_argument("--epochs", type=float, default=4.0)
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_run_fd_train)
@@ -463,7 +486,8 @@ def register_ablation(sub) -> None:
                                    "writes table3.md and table3.json.")
     p.add_argument("--data", required=True)
     add_output(p, "-o", "--output", kind=DIRECTORY, required=True,
-               help="directory for the 9 runs + table")
+               help="directory for the 9 runs + table", files=("table3.json", "table3.md"),
+               record=("encoder/encoder.json", "*/train_config.json"))
     p.add_argument("--steps", type=int, default=500,
                    help="generator steps per variant (default 500, the documented Table 3)")
     p.add_argument("--width", type=float, default=0.25)
@@ -495,7 +519,8 @@ def register_compare(sub) -> None:
                                    "generation time; writes compare.json, compare.md and "
                                    "compare.png.")
     p.add_argument("--data", required=True, help="dataset directory (its test split is used)")
-    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="report directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="report directory",
+               files=("compare.json", "compare.md", "compare.png"))
     add_model_argument(p, many=True)
     add_protocol_arguments(p)
     add_runtime_argument(p)
@@ -515,6 +540,8 @@ def _run_compare(args) -> int:
     from .compare import compare, markdown, method_names, write
     models = [(name, load_model(path, runtime=args.runtime))
               for name, path in method_names(args.model)]
+    for _, model in models:
+        warn_other_lidar("compare", args.data, model)
     report = compare(models, args.data, n_pairs=args.pairs or None, seed=args.seed,
                      memory_steps=args.memory_steps, with_untrained=not args.no_untrained,
                      progress=True, faithfulness=args.faithfulness)

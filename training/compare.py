@@ -232,15 +232,16 @@ def plot(report: dict, path: Path) -> None:
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
     fig.suptitle("Every method against the simulator per slant-range band (paper Fig. 17)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    from apcg_core.io.atomic import atomic_path
+    with atomic_path(path, ".part" + Path(path).suffix) as tmp:  # matplotlib reads the format
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
 def write(report: dict, out_dir) -> Path:
+    from apcg_core.io.dataset import write_atomic
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "compare.json").write_text(json.dumps(report, indent=1) + "\n")
-    (out / "compare.md").write_text(markdown(report))
+    write_atomic(out / "compare.json", (json.dumps(report, indent=1) + "\n").encode())
+    write_atomic(out / "compare.md", markdown(report).encode())
     plot(report, out / "compare.png")
     return out

@@ -161,15 +161,17 @@ def plot(report: dict, path: Path) -> None:
             ax.grid(alpha=0.3)
             ax.legend()
     fig.suptitle("APCG vs the simulator per slant-range band (paper Fig. 17)")
-    fig.savefig(path, dpi=110)
+    from apcg_core.io.atomic import atomic_path
+    with atomic_path(path, ".part" + Path(path).suffix) as tmp:  # matplotlib reads the format
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
 def write_report(report: dict, out_dir) -> Path:
+    from apcg_core.io.dataset import write_atomic
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(json.dumps(report, indent=1) + "\n")
-    (out / "report.md").write_text(markdown(report))
+    write_atomic(out / "metrics.json", (json.dumps(report, indent=1) + "\n").encode())
+    write_atomic(out / "report.md", markdown(report).encode())
     plot(report, out / "fig17.png")
     return out
 

@@ -4,7 +4,6 @@ generator.onnx for the cGAN, weights.pt + counts.npz for the comparison families
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import warnings
 from pathlib import Path
@@ -40,9 +39,11 @@ def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
                  checkpoint=None, raw: bool = False, sampling_steps: int | None = None,
                  log_every: int = 1, force: bool = False) -> Path:
     """Export a run as a model directory (see :func:`_export`). The model is written into a
-    hidden staging directory beside ``out_dir`` and renamed into place when complete, so a
-    directory under the final name is always a whole model. An ``out_dir`` that holds anything
-    is refused unless ``force`` (then replaced whole); the run directory itself is refused."""
+    hidden staging directory beside ``out_dir`` and published into it file by file when
+    complete (``apcg_core.outputs.staged_directory``: each file whole, none on failure or
+    Ctrl-C). An ``out_dir`` that holds anything is refused unless ``force``; then the files of
+    the model replace those of the same names, and nothing else there is touched (a directory
+    is never deleted). The run directory itself is refused."""
     run, out = Path(run_dir), Path(out_dir)
     if out.resolve() == run.resolve():
         raise InputError(f"-o {out} is the run directory itself; export to another directory")
@@ -51,20 +52,9 @@ def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
     if out.is_dir() and any(out.iterdir()) and not force:
         raise InputError(f"-o {out} already holds files; choose a new directory, or --force to "
                          "replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = out.with_name(f".{out.name}.export-{os.getpid()}")
-    shutil.rmtree(staging, ignore_errors=True)
-    try:
+    from apcg_core.outputs import staged_directory
+    with staged_directory(out) as staging:
         _export(run, staging, tau, data_dir, checkpoint, raw, sampling_steps, log_every)
-        if out.exists():
-            old = out.with_name(f".{out.name}.replaced-{os.getpid()}")
-            out.rename(old)
-            staging.rename(out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            staging.rename(out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return out
 
 

@@ -72,19 +72,19 @@ def train_encoder(data_dir, out_dir, epochs: float = 4.0, batch: int = 64, seed:
             print(f"encoder step {step + 1}/{steps} loss {float(loss):.3f}", file=sys.stderr,
                   flush=True)
     acc = accuracy(enc, test)
+    from apcg_core.io.atomic import atomic_path
+    from apcg_core.io.dataset import write_atomic
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "encoder.pt.part"
-    torch.save({"state": enc.state_dict(), "n_types": n_types,
-                "shape": [train.height, train.width]}, tmp)
-    tmp.replace(out / "encoder.pt")
+    with atomic_path(out / "encoder.pt") as tmp:
+        torch.save({"state": enc.state_dict(), "n_types": n_types,
+                    "shape": [train.height, train.width]}, tmp)
     meta = {"dataset": train.header.get("name"), "data": str(data_dir), "epochs": epochs,
             "steps": steps, "batch": batch, "seed": seed, "lr": lr,
             "test_accuracy_type": acc, "chance": 1.0 / n_types, "n_types": n_types,
             "train_seconds": round(time.perf_counter() - t0, 1), "features": FEATURES,
             "command": f"apcg fd-depth train --data {data_dir} -o {out_dir} --epochs {epochs:g} "
                        f"--seed {seed}"}
-    (out / "encoder.json").write_text(json.dumps(meta, indent=1) + "\n")
+    write_atomic(out / "encoder.json", (json.dumps(meta, indent=1) + "\n").encode())
     return meta
 
 

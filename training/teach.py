@@ -20,7 +20,7 @@ from pathlib import Path
 
 from apcg_core.errors import InputError, check_int
 from apcg_core.families import get_family
-from apcg_core.outputs import DIRECTORY, add_output
+from apcg_core.outputs import ANY, DIRECTORY, add_output
 
 TEST_FRACTION = 0.25
 
@@ -69,35 +69,40 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
     out = Path(out_dir)
     if out.resolve() == Path(model.directory).resolve():
         raise InputError("-o must be a new directory, not the model being taught")
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise InputError(f"{out} exists and is not empty; choose another -o or pass --force")
-        shutil.rmtree(out)
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise InputError(f"{out} exists and is not empty; choose another -o or pass --force "
+                         "(files of the same names are replaced, others kept)")
+    from apcg_core.io.dataset import write_atomic
+    from apcg_core.outputs import staged_directory
     t0 = time.perf_counter()
     tmp = None
     if data_dir is None:
         tmp = tempfile.mkdtemp(prefix="apcg-teach-")
         data_dir = Path(tmp) / "data"
     try:
-        build_dataset(teach_config(model, t.name, samples, seed), data_dir, workers=workers,
-                      progress=progress)
-        t_data = time.perf_counter() - t0
-        fit = family.teach(model, data_dir, out, minutes=minutes - t_data / 60.0, steps=steps,
-                           seed=seed, progress=progress)
-        taught = load_model(out)
-        # nothing is chosen on this small dataset's validation half: score all it holds out
-        pairs = protocol.draw_pairs(data_dir, None, seed, half=protocol.WHOLE)
-        score = protocol.score(taught, pairs, floor=False, pointflow=False, faithfulness=True)
-        score.pop("per_pair", None)
+        # the new model is made in a staging directory and published into -o file by file
+        # when whole: an interrupted teach leaves -o as it was; nothing in -o is deleted
+        with staged_directory(out) as stage:
+            build_dataset(teach_config(model, t.name, samples, seed), data_dir,
+                          workers=workers, progress=progress)
+            t_data = time.perf_counter() - t0
+            fit = family.teach(model, data_dir, stage, minutes=minutes - t_data / 60.0,
+                               steps=steps, seed=seed, progress=progress)
+            taught = load_model(stage)
+            # nothing is chosen on this small dataset's validation half: score all it holds out
+            pairs = protocol.draw_pairs(data_dir, None, seed, half=protocol.WHOLE)
+            score = protocol.score(taught, pairs, floor=False, pointflow=False,
+                                   faithfulness=True)
+            score.pop("per_pair", None)
+            report = {"type": t.name, "model": str(model.directory), "taught_model": str(out),
+                      "samples": samples, "seed": seed, "fit": fit,
+                      "seconds": {"dataset": round(t_data, 2),
+                                  "total": round(time.perf_counter() - t0, 2)},
+                      "score": score}
+            write_atomic(stage / "teach.json", (json.dumps(report, indent=1) + "\n").encode())
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
-    report = {"type": t.name, "model": str(model.directory), "taught_model": str(out),
-              "samples": samples, "seed": seed, "fit": fit,
-              "seconds": {"dataset": round(t_data, 2),
-                          "total": round(time.perf_counter() - t0, 2)},
-              "score": score}
-    (out / "teach.json").write_text(json.dumps(report, indent=1) + "\n")
     if progress:
         print(f"taught {t.name} in {report['seconds']['total']:.0f} s -> {out}",
               file=sys.stderr)
@@ -112,7 +117,10 @@ def register_teach(sub) -> None:
                                    "and scores it on the dataset's held-out conditions.")
     p.add_argument("--model", required=True, metavar="DIR", help="the trained model")
     p.add_argument("--type", required=True, help="catalog name of the type to teach")
-    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="the new model directory")
+    add_output(p, "-o", "--output", kind=DIRECTORY, required=True, files=ANY,
+               help="the new model directory",
+               force_help="write into a -o that holds files (files of the same names are "
+                          "replaced, others kept; never the model being taught)")
     p.add_argument("--samples", type=int, default=400,
                    help="conditions of the type to simulate (default 400, a quarter held out)")
     p.add_argument("--minutes", type=float, default=10.0,
@@ -120,8 +128,9 @@ def register_teach(sub) -> None:
     p.add_argument("--steps", type=int, help="stop after this many fitting steps")
     p.add_argument("--workers", type=int, default=1, help="dataset build processes")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--data", help="keep the type's dataset here (default: a temporary one)")
-    p.add_argument("--force", action="store_true", help="replace a non-empty -o")
+    from dataset_builder.cli import DATASET_FILES, DATASET_RECORD
+    add_output(p, "--data", kind=DIRECTORY, files=DATASET_FILES, record=DATASET_RECORD,
+               help="keep the type's dataset here (default: a temporary one)")
     p.set_defaults(func=_run_teach)
 
 

@@ -32,6 +32,8 @@ import torch
 
 from apcg_core.errors import APCGError, InputError
 from apcg_core.families import get_family
+from apcg_core.io.atomic import atomic_path
+from apcg_core.io.dataset import write_atomic
 
 from .data import DepthDataset
 
@@ -191,14 +193,13 @@ class Trainer:
             rec = read_run_record(self.run) if self.rank == 0 else None
             if rec is not None:  # show the budget in force, not the first's
                 rec["train"] = asdict(cfg)
-                tmp = record.with_suffix(".json.tmp")
-                tmp.write_text(json.dumps(rec, indent=1))
-                tmp.replace(record)
+                write_atomic(record, json.dumps(rec, indent=1).encode())
         elif self.rank == 0:
             self.run.mkdir(parents=True, exist_ok=True)
-            (self.run / "train_config.json").write_text(json.dumps(
+            write_atomic(self.run / "train_config.json", json.dumps(
                 {"train": asdict(cfg), "net": net.to_dict(), "data": self.data_dir,
-                 "dataset": self.data.header.get("name"), "world": self.world}, indent=1))
+                 "dataset": self.data.header.get("name"), "world": self.world},
+                indent=1).encode())
         if self.world > 1:
             _broadcast(self.G)
             if self.D is not None:
@@ -219,13 +220,12 @@ class Trainer:
     def save(self) -> None:
         if self.rank != 0:
             return
-        tmp = self.run / "checkpoint.pt.part"
-        torch.save(self._state(), tmp)
-        os.replace(tmp, self.run / "checkpoint.pt")
+        with atomic_path(self.run / "checkpoint.pt") as tmp:
+            torch.save(self._state(), tmp)
         if self.cfg.keep_every and self.step % self.cfg.keep_every == 0:
             keep = self.run / "checkpoints" / f"step-{self.step:06d}.pt"
-            keep.parent.mkdir(exist_ok=True)
-            shutil.copyfile(self.run / "checkpoint.pt", keep)
+            with atomic_path(keep) as tmp:
+                shutil.copyfile(self.run / "checkpoint.pt", tmp)
 
     def _load(self, path: Path) -> None:
         st = read_checkpoint(path)

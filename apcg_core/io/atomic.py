@@ -1,4 +1,5 @@
-"""Every file the project writes appears under its final name only when complete."""
+"""Every file the project writes appears under its final name only when complete, and only
+where the running command may write it (``apcg_core.outputs``: the guard of every output)."""
 
 from __future__ import annotations
 
@@ -7,12 +8,42 @@ from contextlib import contextmanager
 from pathlib import Path
 
 
+def claim(path) -> bool:
+    """Ask the running command's guard before a file is made for ``path``: an InputError when
+    it may not be replaced (a user's file without --force, an input of the command); True when
+    the file is to be held until the command ends. Outside a command: False."""
+    from ..outputs import active
+    guard = active()
+    return guard.claim(path) if guard is not None else False
+
+
+def publish(tmp, path, held: bool | None = None) -> None:
+    """``tmp`` (complete) becomes ``path``: renamed now, or, for a command's own result, moved
+    beside ``path`` and renamed when the command ends (``apcg_core.outputs.Guard.commit``)."""
+    from ..outputs import active
+    path = Path(path)
+    if held is None:
+        held = claim(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    guard = active()
+    if held and guard is not None:
+        waiting = path.with_name(path.name + ".part")
+        if Path(tmp) != waiting:
+            os.replace(tmp, waiting)
+        guard.hold(waiting, path)
+    else:
+        os.replace(tmp, path)
+
+
 @contextmanager
 def atomic_path(path, suffix: str = ".part"):
     """A temporary name beside ``path`` to write to: renamed to ``path`` when the block ends
-    without error, removed when it fails (a full disk, Ctrl-C), so a file under its final name
-    is always complete and no half-written one is left. Missing parent directories are made."""
+    without error (when the running command ends, for a command's result), removed when it
+    fails (a full disk, Ctrl-C), so a file under its final name is always complete and no
+    half-written one is left. The guard is asked first, so a refusal costs no work. Missing
+    parent directories are made."""
     path = Path(path)
+    held = claim(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + suffix)
     try:
@@ -21,7 +52,7 @@ def atomic_path(path, suffix: str = ".part"):
         tmp.unlink(missing_ok=True)
         name_the_file(exc, path)
         raise
-    os.replace(tmp, path)
+    publish(tmp, path, held)
 
 
 def name_the_file(exc: BaseException, path) -> None:

@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import InputError
-from .atomic import atomic_path, name_the_file
+from .atomic import atomic_path, claim, name_the_file, publish
 
 FORMATS = (".ply", ".npz", ".las", ".laz")
 _OWN = ("range_m", "cell_w", "cell_h", "sample")
@@ -38,8 +37,8 @@ def _fmt(path) -> str:
     return ext
 
 
-def _replace(tmp: Path, path: Path) -> None:
-    os.replace(tmp, path)
+def _replace(tmp: Path, path: Path, held: bool | None = None) -> None:
+    publish(tmp, path, held)
 
 
 def write_cloud(path, cloud: PointCloud, meta: dict | None = None) -> Path:
@@ -130,6 +129,7 @@ class CloudWriter:
             self._file.write(_ply_records(cloud))
         else:
             laspy = _laspy(self.ext == ".laz")
+        self._held_output = claim(self.path)  # the guard first: a refusal costs no work
             if self._las is None:
                 header = _las_header(laspy, cloud, self.meta)
                 # the writer counts its points in its header: each block starts from a copy
@@ -158,7 +158,7 @@ class CloudWriter:
         else:  # nothing written: an empty LAS, as write_cloud makes it
             empty = PointCloud(np.zeros((0, 3)), [], [], [], np.zeros(0, np.int64))
             return write_cloud(self.path, empty, self.meta)
-        _replace(self.tmp, self.path)
+        _replace(self.tmp, self.path, self._held_output)
         return self.path
 
     def abort(self) -> None:
