@@ -26,10 +26,12 @@ def register_simulate(sub) -> None:
     p.add_argument("--backend", choices=BACKENDS, default="embree",
                    help="ray casting: embree (default), blender (Geometry Nodes), blender-bvh; "
                         "or points (the paper's z-buffer over a fine point cloud)")
-    p.add_argument("--supersample", type=int, default=1, metavar="K",
-                   help="K x K rays per cell, nearest hit kept (default 1)")
+    p.add_argument("--supersample", type=int, default=None, metavar="K",
+                   help="K x K rays per cell, nearest hit kept (default 1; 4 with a sensor, "
+                        "whose stage takes every sub-ray)")
     p.add_argument("--no-quantize", action="store_true",
                    help="keep exact ranges instead of the time-bin centres")
+    add_sensor_arguments(p)
     add_output(p, "-o", "--output", kind=FILE, suffixes=CLOUD_FORMATS, required=True,
                help="cloud file: .ply, .npz, .las or .laz")
     add_output(p, "--depth-image", kind=FILE, suffixes=DEPTH_IMAGE_SUFFIXES,
@@ -37,6 +39,36 @@ def register_simulate(sub) -> None:
     add_output(p, "--normalized-image", kind=FILE, suffixes=DEPTH_IMAGE_SUFFIXES,
                help="also write Norm(depth image): .npy or .png")
     p.set_defaults(func=_run_simulate)
+
+
+def add_sensor_arguments(p) -> None:
+    """``--sensor``, ``--seed`` and ``--photon-output``: the photon stage (SPEC section 8)."""
+    from apcg_core.sensor import OUTPUTS, preset_names
+    p.add_argument("--sensor", metavar="PRESET|FILE.toml",
+                   help="what a real single-photon lidar records (SPEC section 8): a preset ("
+                        + ", ".join(preset_names()) + ") or a TOML file with a [sensor] "
+                        "table; default ideal (the standard cloud, no photon statistics)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the photon draws (default 0); the same seed, the same bytes")
+    p.add_argument("--photon-output", choices=OUTPUTS,
+                   help="override the sensor's output: points (one per cell at the "
+                        "histogram's peak) or events (every detector event)")
+
+
+def sensor_of(args):
+    """The sensor the options ask for (None: the ideal lidar), with ``--photon-output``."""
+    from apcg_core.errors import InputError
+    from apcg_core.sensor import load_sensor
+    sensor = load_sensor(args.sensor)
+    if sensor is not None and getattr(args, "backend", None) == "points":
+        raise InputError("--sensor needs a ray-casting backend (the photon stage takes every "
+                         "sub-ray's range and incidence); accepted: embree, blender, "
+                         "blender-bvh")
+    if sensor is None:
+        if args.photon_output:
+            raise InputError("--photon-output needs a --sensor other than ideal")
+        return None
+    return sensor.with_output(args.photon_output) if args.photon_output else sensor
 
 
 def _run_simulate(args) -> int:
@@ -50,20 +82,33 @@ def _run_simulate(args) -> int:
 
     from .simulate import Simulator
 
+    sensor = sensor_of(args)
+    supersample = args.supersample or (4 if sensor else 1)
     cat = default_catalog()
     t = cat.get(args.type)
     cond = Condition.from_degrees(t.index, args.range_m, args.elevation_deg, args.pitch_deg,
                                   args.yaw_deg, args.roll_deg)
-    with Simulator(args.backend, quantize=not args.no_quantize,
-                   supersample=args.supersample) as sim:
-        res = sim.simulate_type(cat, t, cond.as_array()[None])
     table = cond.as_array()[None]
+    with Simulator(args.backend, quantize=not args.no_quantize,
+                   supersample=supersample) as sim:
+        if sensor:
+            from apcg_core.sensor import to_cloud
+
+            from .simulate import SimResult
+            photons, clipped, n_rays = sim.photon_cells_type(cat, t, table, sensor, args.seed)
+            res = SimResult(to_cloud(photons, table[:, 2], sim.lidar), 1, clipped, n_rays,
+                            args.backend)
+        else:
+            res = sim.simulate_type(cat, t, table)
     length = cat.depth_length_m(t)
-    img, stats = res.depth_images(table, length, sim.lidar)
     meta = {"type": t.name, "catalog_index": t.index, "condition": cond.to_degrees(),
             "backend": args.backend, "quantized": not args.no_quantize,
-            "supersample": args.supersample, "lidar": sim.lidar.to_dict(),
+            "supersample": supersample, "lidar": sim.lidar.to_dict(),
             "depth_length_m": length, "clipped": bool(res.clipped[0])}
+    if sensor:
+        from apcg_core.sensor import reflectivity_of
+        meta.update(sensor=sensor.to_dict(), seed=args.seed, reflectivity=reflectivity_of(t))
+    img, stats = res.depth_images(table, length, sim.lidar)
     cloud = res.cloud
     cloud.sample = None
     write_cloud(args.output, cloud, meta)
@@ -75,6 +120,9 @@ def _run_simulate(args) -> int:
                "clipped": bool(res.clipped[0]), "clamped_pixels": stats.n_clamped,
                "range_m": [float(np.min(cloud.range_m)), float(np.max(cloud.range_m))]
                if len(cloud) else None}
+    if sensor:
+        summary.update(sensor=sensor.name, photon_output=sensor.output,
+                       signal=int((cloud.label == 1).sum()), noise=int((cloud.label == 0).sum()))
     print(json.dumps(summary))
     warnings = [range_band_warning(t, args.range_m),
                 sparse_cloud_warning(len(cloud), f"the cloud of {t.name} at {args.range_m:g} m")]

@@ -100,6 +100,7 @@ class Simulator:
         self._casters: OrderedDict = OrderedDict()  # most recently used last
         self._fine: dict = {}
         self._normal_cache: dict = {}
+        self.last_boxes = (np.zeros(0, bool), np.zeros(0, np.int64))
 
     # --- public ------------------------------------------------------------------------------
     def simulate(self, mesh, conditions, key=None) -> SimResult:
@@ -178,9 +179,32 @@ class Simulator:
             start = stop
         cols = [np.concatenate([p[i] for p in parts]) if parts else np.zeros(0)
                 for i in range(5)]
-        return SubRayHits(cols[0].astype(np.int64), cols[1].astype(np.int32),
+        hits = SubRayHits(cols[0].astype(np.int64), cols[1].astype(np.int32),
                           cols[2].astype(np.int32), cols[3].astype(np.float64),
                           np.clip(cols[4], 0.0, 1.0), n, self.supersample**2)
+        self.last_boxes = (boxes.clipped, rays_per_sample.astype(np.int64))
+        return hits
+
+    def photon_cells(self, mesh, conditions, sensor, reflectivity: float, seed: int,
+                     sample_ids=None, key=None):
+        """The photon stage (``apcg_core.sensor``) on the sub-ray hits of ``conditions``: what
+        ``sensor`` records, each sample's draws seeded by (``seed``, its id in
+        ``sample_ids``, default 0..N-1). Returns the photon cells, and per sample whether the
+        target's box was clipped by the window and how many rays were cast."""
+        from apcg_core.sensor import photon_cloud
+        table = np.atleast_2d(np.asarray(conditions, dtype=np.float64))
+        hits = self.sub_ray_hits(mesh, table, key)
+        cells = photon_cloud(hits, table[:, 1], np.full(len(table), float(reflectivity)),
+                             sensor, self.lidar, seed, sample_ids)
+        return cells, *self.last_boxes
+
+    def photon_cells_type(self, catalog, type_key, conditions, sensor, seed: int,
+                          sample_ids=None):
+        """:meth:`photon_cells` of a catalog type, at its reflectivity."""
+        from apcg_core.sensor import reflectivity_of
+        t = catalog.get(type_key)
+        return self.photon_cells(catalog.mesh(t), conditions, sensor, reflectivity_of(t), seed,
+                                 sample_ids, key=("type", t.index))
 
     def _normals(self, mesh, key) -> np.ndarray:
         """Unit face normals (float64) of a mesh, cached with its caster (zero for a

@@ -22,6 +22,11 @@ FORMATS = (".ply", ".npz", ".las", ".laz")
 _OWN = ("range_m", "cell_w", "cell_h", "sample")
 _PLY_PROPS = [("x", "f8"), ("y", "f8"), ("z", "f8"), ("range_m", "f8"), ("cell_w", "i4"),
               ("cell_h", "i4"), ("sample", "i4")]
+# A photon cloud's extra properties (SPEC section 8); an ideal cloud's files have none of them.
+_PHOTON_PROPS = {"label": "u1", "count": "i4", "pulse": "i4"}
+# LAS classification of a photon cloud's points: the ASPRS codes 1 (unclassified: signal)
+# and 7 (low point: noise).
+LAS_CLASS = {1: 1, 0: 7}
 _PLY_TYPES = {"f8": "double", "i4": "int", "f4": "float", "u1": "uchar", "i2": "short",
               "u2": "ushort", "u4": "uint", "i1": "char"}
 _PLY_NAMES = {v: k for k, v in _PLY_TYPES.items()} | {
@@ -52,10 +57,11 @@ def write_cloud(path, cloud: PointCloud, meta: dict | None = None) -> Path:
             with open(tmp, "wb") as f:
                 np.savez(f, xyz=cloud.xyz, range_m=cloud.range_m, cell_w=cloud.cell_w,
                          cell_h=cloud.cell_h, sample=_sample_of(cloud),
-                         meta=np.array(json.dumps(meta)))
+                         meta=np.array(json.dumps(meta)),
+                         **{k: getattr(cloud, k) for k in cloud.photon_fields})
         elif ext == ".ply":
             with open(tmp, "wb") as f:
-                f.write(_own_ply_header(meta, str(len(cloud))))
+                f.write(_own_ply_header(meta, str(len(cloud)), cloud.photon_fields))
                 f.write(_ply_records(cloud))
         else:
             _write_las(tmp, cloud, meta, compress=ext == ".laz")
@@ -67,20 +73,27 @@ def _sample_of(cloud: PointCloud) -> np.ndarray:
     return cloud.sample if cloud.sample is not None else np.zeros(len(cloud), np.int64)
 
 
-def _own_ply_header(meta: dict, count: str) -> bytes:
+def _props(photon_fields) -> list[tuple[str, str]]:
+    return _PLY_PROPS + [(k, _PHOTON_PROPS[k]) for k in photon_fields]
+
+
+def _own_ply_header(meta: dict, count: str, photon_fields=()) -> bytes:
     comment = json.dumps(meta).replace("\n", " ")
     head = ["ply", "format binary_little_endian 1.0",
             "comment APCG standard point cloud: observation frame, metres",
             f"comment meta {comment}", f"element vertex {count}"]
-    head += [f"property {_PLY_TYPES[t]} {n}" for n, t in _PLY_PROPS] + ["end_header"]
+    head += [f"property {_PLY_TYPES[t]} {n}" for n, t in _props(photon_fields)]
+    head += ["end_header"]
     return ("\n".join(head) + "\n").encode()
 
 
 def _ply_records(cloud: PointCloud) -> bytes:
-    rec = np.empty(len(cloud), dtype=[(n, "<" + t) for n, t in _PLY_PROPS])
+    rec = np.empty(len(cloud), dtype=[(n, "<" + t) for n, t in _props(cloud.photon_fields)])
     rec["x"], rec["y"], rec["z"] = cloud.xyz.T
     rec["range_m"], rec["cell_w"] = cloud.range_m, cloud.cell_w
     rec["cell_h"], rec["sample"] = cloud.cell_h, _sample_of(cloud)
+    for k in cloud.photon_fields:
+        rec[k] = getattr(cloud, k)
     return rec.tobytes()
 
 
@@ -89,6 +102,12 @@ def _fill_las(las, cloud: PointCloud):
     las.range_m = cloud.range_m
     las.cell_w, las.cell_h = cloud.cell_w, cloud.cell_h
     las.sample = _sample_of(cloud).astype(np.int32)
+    if cloud.label is not None:
+        las.classification = np.where(cloud.label == 1, LAS_CLASS[1], LAS_CLASS[0]).astype(
+            np.uint8)
+    for k in ("count", "pulse"):
+        if getattr(cloud, k) is not None:
+            setattr(las, k, getattr(cloud, k).astype(np.int32))
     return las
 
 
@@ -197,7 +216,9 @@ def _las_header(laspy, cloud: PointCloud, meta: dict):
     header.add_extra_dims([laspy.ExtraBytesParams("range_m", np.float64),
                            laspy.ExtraBytesParams("cell_w", np.int32),
                            laspy.ExtraBytesParams("cell_h", np.int32),
-                           laspy.ExtraBytesParams("sample", np.int32)])
+                           laspy.ExtraBytesParams("sample", np.int32)]
+                          + [laspy.ExtraBytesParams(k, np.int32) for k in ("count", "pulse")
+                             if getattr(cloud, k) is not None])
     header.vlrs.append(laspy.VLR(user_id="APCG", record_id=1, description="meta",
                                  record_data=json.dumps(meta).encode()))
     return header

@@ -14,8 +14,8 @@ from .params import (
     sensor_from_table,
 )
 from .reflectivity import CATEGORY_REFLECTIVITY, reflectivity_of
-from .stage import PhotonCells, SubRayHits, photon_cloud, sample_rng
+from .stage import PhotonCells, SubRayHits, photon_cloud, sample_rng, to_cloud
 
 __all__ = ["CATEGORY_REFLECTIVITY", "IDEAL", "OUTPUTS", "PRESET_DIR", "PhotonCells",
            "SensorParams", "SubRayHits", "check_sensor", "load_sensor", "photon_cloud",
-           "preset_names", "reflectivity_of", "sample_rng", "sensor_from_table"]
+           "preset_names", "reflectivity_of", "sample_rng", "sensor_from_table", "to_cloud"]

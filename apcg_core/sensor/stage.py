@@ -13,7 +13,9 @@ from functools import lru_cache
 
 import numpy as np
 
+from ..cloud import PointCloud
 from ..errors import InputError
+from ..frames import spherical_to_cartesian
 from ..lidar import LidarParams
 from .detector import SignalBins, detect, detect_points
 from .link import (
@@ -80,6 +82,16 @@ class PhotonCells:
     target_w: np.ndarray
     target_h: np.ndarray
     target_signal_pe: np.ndarray
+
+
+def to_cloud(cells: PhotonCells, beta0: np.ndarray, lidar: LidarParams) -> PointCloud:
+    """The photon cloud in the observation frame: each point on its cell's centre ray at its
+    bin's centre range, as the ideal cloud places a quantized range (``beta0`` per sample)."""
+    alpha, beta = lidar.cell_centre_angles(cells.w, cells.h,
+                                           np.asarray(beta0, np.float64)[cells.sample])
+    pulse = cells.pulse if (cells.pulse >= 0).all() and len(cells.pulse) else None
+    return PointCloud(spherical_to_cartesian(alpha, beta, cells.range_m), cells.range_m,
+                      cells.w, cells.h, cells.sample, cells.label, cells.count, pulse)
 
 
 def sample_rng(seed: int, sample_id: int) -> np.random.Generator:
@@ -192,4 +204,4 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
 
 
 __all__ = ["LIGHT_M_S", "PhotonCells", "SubRayHits", "gate_first_bin", "photon_cloud",
-           "sample_rng", "signal_bins"]
+           "sample_rng", "signal_bins", "to_cloud"]
