@@ -117,6 +117,19 @@ def user_dir() -> Path:
     return root / "catalog"
 
 
+@contextmanager
+def _database_file(path, suffix: str = ".part"):
+    """atomic_path for the user catalog's own files, which a change of the catalog replaces
+    by design (under its lock): the running command's output guard, where there is one, is
+    told so, and the file appears at once (other processes read the registry meanwhile)."""
+    from .. import outputs
+    guard = getattr(outputs, "active", lambda: None)()
+    if guard is not None and hasattr(guard, "allow_update"):
+        guard.allow_update(path)
+    with atomic_path(path, suffix=suffix) as tmp:
+        yield tmp
+
+
 REGISTRY = "user_types.json"
 LOCK_WAIT_S = 120.0  # how long a catalog change waits for another process's change to end
 # A registry entry: field -> (accepted types, required). The rest of AircraftType is optional.
@@ -322,7 +335,7 @@ class Catalog:
         return self._read_registry()
 
     def _write_registry(self, users: list[AircraftType]) -> None:
-        with atomic_path(self._registry()) as tmp:
+        with _database_file(self._registry()) as tmp:
             tmp.write_text(json.dumps([asdict(u) for u in users], indent=1,
                                       ensure_ascii=False) + "\n", encoding="utf-8")
 
@@ -400,7 +413,7 @@ class Catalog:
             t = AircraftType(index=index, name=name, kind=kind, range_band=band,
                              category=category, length_m=float(ext[0]), span_m=float(ext[1]),
                              height_m=float(ext[2]), source=str(source))
-            with atomic_path(self._user_mesh_file(name), suffix=".part.npz") as tmp:
+            with _database_file(self._user_mesh_file(name), suffix=".part.npz") as tmp:
                 np.savez(tmp, vertices=mesh.vertices, faces=mesh.faces)
             if old is not None:
                 users[users.index(old)] = t

@@ -1,0 +1,275 @@
+"""The user's catalog as a small database: changes from several processes at once are never
+lost (a lock and an atomic replace of the registry), names are one name whatever their case,
+spaces, dashes or underscores, and a damaged registry is named with the fix."""
+
+import json
+import os
+import subprocess
+import sys
+import time
+import unicodedata
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apcg_core.catalog import Catalog, Mesh
+from apcg_core.catalog.catalog import REGISTRY, mesh_file_stem, name_key
+from apcg_core.errors import InputError
+
+APCG = str(Path(sys.executable).parent / "apcg")
+
+
+def _box(length=10.0, span=8.0, height=2.0) -> Mesh:
+    v = np.array([[x, y, z] for x in (0, length) for y in (0, span) for z in (0, height)], float)
+    f = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7],
+         [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    return Mesh(v - v.mean(axis=0), f)
+
+
+@pytest.fixture
+def box_obj(tmp_path) -> Path:
+    m = _box()
+    p = tmp_path / "box.obj"
+    p.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in m.vertices)
+                 + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in m.faces))
+    return p
+
+
+def _env(tmp_path) -> dict:
+    return {**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")}
+
+
+def _apcg(*args, env, timeout=300):
+    return subprocess.run([APCG, *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+def _user_names(env) -> list[str]:
+    out = _apcg("catalog", "list", "--json", env=env)
+    assert out.returncode == 0, out.stderr
+    return [r["name"] for r in json.loads(out.stdout) if r["index"] >= 1000]
+
+
+# --- several processes at once ----------------------------------------------------------
+
+WORKER = r"""
+import sys, time
+from pathlib import Path
+import numpy as np
+from apcg_core.catalog import Catalog, Mesh
+user, me, n, go = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]), Path(sys.argv[4])
+v = np.array([[x, y, z] for x in (-5, 5) for y in (-4, 4) for z in (-1, 1)], float)
+f = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+     [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+while not go.exists():  # every process starts its changes at the same moment
+    time.sleep(0.005)
+for i in range(n):
+    Catalog(user_path=user).add_user_type(f"{me}-{i}", Mesh(v * (1 + i / 10), f), "aircraft",
+                                          "user", "w")
+for i in range(0, n, 2):  # and removes every other one again
+    Catalog(user_path=user).remove_user_type(f"{me}-{i}")
+"""
+
+
+def test_concurrent_adds_and_removes_from_several_processes_lose_nothing(tmp_path):
+    user, go = tmp_path / "cat", tmp_path / "go"
+    n, workers = 6, 5
+    procs = [subprocess.Popen([sys.executable, "-c", WORKER, str(user), f"w{k}", str(n),
+                               str(go)], stderr=subprocess.PIPE, text=True)
+             for k in range(workers)]
+    time.sleep(1.0)  # let them all import and wait at the gate
+    go.touch()
+    for p in procs:
+        assert p.wait(timeout=300) == 0, p.stderr.read()
+    cat = Catalog(user_path=user)
+    want = {f"w{k}-{i}" for k in range(workers) for i in range(1, n, 2)}
+    got = [t.name for t in cat if t.source != "builtin"]
+    assert sorted(got) == sorted(want)  # every add kept, every remove done, nothing twice
+    assert len({t.index for t in cat}) == len(cat)  # no index given twice
+    for name in want:  # each one's own mesh
+        i = int(name.split("-")[1])
+        assert cat.mesh(name).extents[0] == pytest.approx(10 * (1 + i / 10))
+    left = sorted(p.name for p in user.iterdir())
+    assert left == sorted([REGISTRY] + [f"{mesh_file_stem(w)}.npz" for w in want])
+
+
+def test_concurrent_catalog_add_commands_all_stay(tmp_path, box_obj):
+    """The issue's case: several `apcg catalog add` at once all print "added", and all are
+    listed afterwards."""
+    env = _env(tmp_path)
+    names = [f"jet {k}" for k in range(4)]
+    procs = [subprocess.Popen([APCG, "catalog", "add", str(box_obj), "--name", n],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+             for n in names]
+    for p in procs:
+        out, err = p.communicate(timeout=300)
+        assert p.returncode == 0 and "added" in out, err
+    assert sorted(_user_names(env)) == names
+
+
+def test_a_lock_left_by_a_killed_process_does_not_block(tmp_path):
+    user = tmp_path / "cat"
+    user.mkdir()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True).stdout.strip()
+    import socket
+    (user / ".lock").write_text(f"{dead} {socket.gethostname()}\n")
+    t = Catalog(user_path=user).add_user_type("after a crash", _box(), "aircraft", "user", "x")
+    assert t.index == 1000 and not (user / ".lock").exists()
+
+
+# --- one name, one type, one file ---------------------------------------------------------
+
+@pytest.mark.parametrize("second", ["Jet_A", "jet-a", "JET A", " jet  a ", "Jet\u2013A",
+                                    "jet_-a"])
+def test_names_differing_in_case_or_separators_are_one_name(tmp_path, second):
+    cat = Catalog(user_path=tmp_path)
+    first = cat.add_user_type("Jet A", _box(), "aircraft", "user", "x")
+    with pytest.raises(InputError, match=r"a type named 'Jet A' already exists.*--force"):
+        cat.add_user_type(second, _box(20.0), "aircraft", "user", "y")
+    assert Catalog(user_path=tmp_path).mesh("Jet A").extents[0] == pytest.approx(10.0)
+    # --force replaces it explicitly: the same index, the new name and mesh, one file
+    t = cat.add_user_type(second, _box(20.0), "aircraft", "user", "y", force=True)
+    assert t.index == first.index and cat.last_replaced.name == "Jet A"
+    again = Catalog(user_path=tmp_path)
+    assert [u.name for u in again if u.source != "builtin"] == [second.strip()]
+    assert again.mesh("Jet A").extents[0] == pytest.approx(20.0)  # found by either spelling
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+
+
+def test_a_builtin_name_in_another_spelling_is_refused_even_with_force(tmp_path):
+    cat = Catalog(user_path=tmp_path)
+    for name in ("a320-NEO", "Mavic_3", "mavic3"):
+        with pytest.raises(InputError, match="built-in type named"):
+            cat.add_user_type(name, _box(), "aircraft", "user", "x", force=True)
+
+
+def test_names_are_normalised_once_nfc_and_outer_spaces(tmp_path):
+    cat = Catalog(user_path=tmp_path)
+    decomposed = unicodedata.normalize("NFD", "  Café jet\t")
+    t = cat.add_user_type(decomposed, _box(), "aircraft", "user", "x")
+    assert t.name == "Café jet" and unicodedata.is_normalized("NFC", t.name)
+    again = Catalog(user_path=tmp_path)
+    for key in ("Café jet", unicodedata.normalize("NFD", "café JET"), " cafe\u0301_jet "):
+        assert again.get(key).index == 1000
+    assert json.loads((tmp_path / REGISTRY).read_text())[0]["name"] == "Café jet"
+    with pytest.raises(InputError, match="already exists"):
+        again.add_user_type("CAFÉ-JET", _box(), "aircraft", "user", "x")
+
+
+def test_name_keys_and_file_names():
+    assert name_key("Jet_A") == name_key("Jet A") == name_key("jet-a") == "jeta"
+    assert name_key("A-320") != name_key("A.320")  # a point is not a separator
+    assert mesh_file_stem("Jet A") == "jeta"
+    odd = [mesh_file_stem(n) for n in ("a?b", "a*b", "a:b", "☃")]
+    assert len(set(odd)) == 4 and all("/" not in s and "?" not in s for s in odd)
+    for bad in ("", "   ", "-_-", "123", "a/b", "a\\b", "tab\x07"):
+        with pytest.raises(InputError, match="not accepted"):
+            Catalog(include_user=False).check_new_type(bad, "aircraft")
+
+
+def test_outer_spaces_on_the_command_line_are_stored_stripped_and_found(tmp_path, box_obj):
+    env = _env(tmp_path)
+    add = _apcg("catalog", "add", box_obj, "--name", "  Spacey Jet  ", env=env)
+    assert add.returncode == 0 and "added 'Spacey Jet'" in add.stdout, add.stderr
+    assert _user_names(env) == ["Spacey Jet"]
+    for i, key in enumerate(("Spacey Jet", "spacey-jet", "  SPACEY JET ")):
+        out = tmp_path / f"c{i}.ply"
+        c = _apcg("simulate", "--type", key, "--range-m", "2000", "--elevation-deg", "3",
+                  "--pitch-deg", "1", "-o", out, env=env)
+        assert c.returncode == 0 and b"Spacey Jet" in out.read_bytes(), c.stderr
+    same = _apcg("catalog", "add", box_obj, "--name", "spacey_jet", env=env)
+    assert same.returncode == 2 and "'Spacey Jet' already exists" in same.stderr
+    assert "Traceback" not in same.stderr
+    forced = _apcg("catalog", "add", box_obj, "--name", "spacey_jet", "--force", env=env)
+    assert forced.returncode == 0 and "replaced 'Spacey Jet' by 'spacey_jet'" in forced.stdout
+    assert _user_names(env) == ["spacey_jet"]
+    rm = _apcg("catalog", "remove", "SPACEY JET", env=env)
+    assert rm.returncode == 0 and _user_names(env) == []
+    assert not list((tmp_path / "data" / "catalog").glob("*.npz"))
+    for name, words in (("A320neo", "built-in"), ("nothing", "no user type named")):
+        r = _apcg("catalog", "remove", name, env=env)
+        assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr
+
+
+# --- a damaged registry --------------------------------------------------------------------
+
+def _good_registry(tmp_path) -> Path:
+    cat = Catalog(user_path=tmp_path / "data" / "catalog")
+    cat.add_user_type("Jet A", _box(), "aircraft", "user", "x")
+    cat.add_user_type("Jet B", _box(), "aircraft", "user", "x")
+    return tmp_path / "data" / "catalog" / REGISTRY
+
+
+def _entries(reg: Path) -> list:
+    return json.loads(reg.read_text())
+
+
+DAMAGES = {
+    "not JSON": lambda r: b"{broken",
+    "cut short": lambda r: r.read_bytes()[: len(r.read_bytes()) // 2],
+    "empty": lambda r: b"",
+    "binary": lambda r: b"\x00\xff\xfe" * 20,
+    "an object": lambda r: b'{"name": "Jet A"}',
+    "a field missing": lambda r: json.dumps(
+        [{k: v for k, v in e.items() if k != "length_m"} for e in _entries(r)]).encode(),
+    "a bad kind": lambda r: json.dumps(
+        [{**e, "kind": "blimp"} for e in _entries(r)]).encode(),
+    "a length as text": lambda r: json.dumps(
+        [{**e, "length_m": "ten"} for e in _entries(r)]).encode(),
+    "a negative index": lambda r: json.dumps(
+        [{**e, "index": -1} for e in _entries(r)]).encode(),
+    "two of one name": lambda r: json.dumps(
+        [{**e, "name": "jet a" if i else "Jet_A"} for i, e in enumerate(_entries(r))]).encode(),
+    "an index twice": lambda r: json.dumps(
+        [{**e, "index": 1000} for e in _entries(r)]).encode(),
+    "an unknown field": lambda r: json.dumps(
+        [{**e, "colour": "red"} for e in _entries(r)]).encode(),
+    "an entry not an object": lambda r: b'[1, 2]',
+}
+
+
+@pytest.mark.parametrize("how", sorted(DAMAGES))
+def test_a_damaged_registry_is_named_with_the_fix(tmp_path, how):
+    reg = _good_registry(tmp_path)
+    reg.write_bytes(DAMAGES[how](reg))
+    with pytest.raises(InputError) as exc:
+        Catalog(user_path=reg.parent)
+    message = str(exc.value)
+    assert "\n" not in message and str(reg) in message and "damaged" in message
+    assert "mv " in message and "apcg catalog add" in message  # what to do
+
+
+def test_a_damaged_registry_on_the_command_line_is_one_line_not_a_traceback(tmp_path):
+    reg = _good_registry(tmp_path)
+    before = [e for e in _entries(reg)]
+    reg.write_text(json.dumps([{k: v for k, v in e.items() if k != "kind"} for e in before]))
+    damaged = reg.read_bytes()
+    env = _env(tmp_path)
+    for argv in (["catalog", "list"], ["catalog", "add", reg, "--name", "x", "--dry-run"],
+                 ["catalog", "remove", "Jet A"]):
+        r = _apcg(*argv, env=env)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1 and "entry 1 ('Jet A') has no kind" in lines[0], r.stderr
+    assert reg.read_bytes() == damaged  # the user's file is never rewritten by a refusal
+
+
+def test_a_missing_or_damaged_mesh_file_is_named(tmp_path):
+    reg = _good_registry(tmp_path)
+    (reg.parent / "jeta.npz").unlink()
+    (reg.parent / "jetb.npz").write_bytes(b"PK\x03\x04 not a zip")
+    cat = Catalog(user_path=reg.parent)
+    with pytest.raises(InputError, match=r"mesh of user type 'Jet A' .*jeta.npz\) is missing; "
+                                         "add the type again"):
+        cat.mesh("Jet A")
+    with pytest.raises(InputError, match=r"mesh of user type 'Jet B' .*is damaged"):
+        cat.mesh("Jet B")
+
+
+def test_a_catalog_written_before_name_keys_still_reads(tmp_path):
+    """Older catalogs kept a mesh under its name made safe ("Jet A" -> Jet_A.npz)."""
+    reg = _good_registry(tmp_path)
+    os.replace(reg.parent / "jeta.npz", reg.parent / "Jet_A.npz")
+    assert Catalog(user_path=reg.parent).mesh("Jet A").extents[0] == pytest.approx(10.0)
