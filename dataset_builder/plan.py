@@ -18,7 +18,7 @@ from apcg_core.condition import ConditionSpace
 from apcg_core.errors import InputError
 from apcg_core.lidar import DEG, LidarParams
 
-from .schema import check_config
+from .schema import check_config, resolve_sensor
 
 CONFIG_DIR = Path(__file__).with_name("configs")
 # The nesting order of a grid's product: it decides which sample gets which id, so it stays as
@@ -74,6 +74,7 @@ class Plan:
     split: np.ndarray  # (N,) "train" / "test"
     shards: list[ShardPlan]
     values: dict  # the grid values drawn for each parameter (edge units)
+    sensor: object = None  # apcg_core.sensor.SensorParams, or None for the ideal lidar
 
     @property
     def n_samples(self) -> int:
@@ -113,8 +114,12 @@ def _check_size(n: int, what: str) -> None:
                          f"{MAX_SAMPLES:,}: split it into several configs (other seeds)")
 
 
-def make_plan(cfg: dict, catalog, backend: str | None = None) -> Plan:
-    """The plan of a config (see the committed configs for every key, and ``schema``)."""
+def make_plan(cfg: dict, catalog, backend: str | None = None,
+              sensor: str | None = None) -> Plan:
+    """The plan of a config (see the committed configs for every key, and ``schema``);
+    ``backend`` and ``sensor`` (a preset or file) override the config's."""
+    if sensor is not None:
+        cfg = {**cfg, "sensor": sensor}
     check_config(cfg)
     seed = cfg.get("seed", 0)
     lidar = LidarParams.from_dict(cfg["lidar"]) if "lidar" in cfg else LidarParams()
@@ -193,4 +198,9 @@ def make_plan(cfg: dict, catalog, backend: str | None = None) -> Plan:
     if backend:
         cfg["backend"] = backend
     cfg.setdefault("backend", "embree")
-    return Plan(cfg, lidar, space, types, table, split, shards, values)
+    sensor_params = resolve_sensor(cfg["sensor"]) if "sensor" in cfg else None
+    if sensor_params is not None and cfg["backend"] == "points":
+        raise InputError("a sensor needs a ray-casting backend (the photon stage takes every "
+                         "sub-ray's range and incidence); accepted: embree, blender, "
+                         "blender-bvh")
+    return Plan(cfg, lidar, space, types, table, split, shards, values, sensor_params)

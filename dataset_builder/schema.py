@@ -73,6 +73,9 @@ SCHEMA: dict = {
     "samples_per_type": Key("an integer from 1 to 10000000", _int_in(1, 10**7), "random"),
     "types": Key('"all" or a non-empty list of catalog type names', _types),
     "fine_cloud_points": Key("an integer from 100 to 10000000", _int_in(100, 10**7)),
+    # a preset name, a TOML file, or the [sensor] table itself: apcg_core.sensor checks it
+    "sensor": Key("a sensor preset name, a TOML file or a [sensor] table (docs/SPEC.md "
+                  "section 8)", lambda v: _text(v) or isinstance(v, dict)),
     "lidar": Table({"r_alpha_deg": _POSITIVE, "r_beta_deg": _POSITIVE, "r_r_m": _POSITIVE,
                     "width": _EVEN, "height": _EVEN}),
     "ranges": Table({k: _PAIR for k in ("aircraft_range_m", "drone_range_m", "elevation_deg",
@@ -82,6 +85,19 @@ SCHEMA: dict = {
                     "grid"),
 }
 REQUIRED = ("types",)
+
+
+def resolve_sensor(value, source: str = "dataset config"):
+    """A config's ``sensor`` (preset, file or table) as a SensorParams, None for the ideal
+    lidar; every value checked by the sensor module, named with the config it came from."""
+    from apcg_core.sensor import load_sensor, sensor_from_table
+    try:
+        if isinstance(value, dict):
+            return sensor_from_table(value, source=f"{source} [sensor]")
+        return load_sensor(value)
+    except InputError as exc:
+        msg = str(exc)
+        raise InputError(msg if source in msg else f"{source}: {msg}") from None
 
 
 def accepted_keys() -> str:
@@ -108,6 +124,8 @@ def check_config(cfg: dict, source: str = "dataset config") -> None:
         if rule.sampling and sampling != rule.sampling:  # it would be silently ignored
             raise InputError(f"{source}: {key} is used by sampling = \"{rule.sampling}\" only "
                              f"(this config samples {sampling!r})")
+    if "sensor" in cfg:
+        resolve_sensor(cfg["sensor"], source)
     if sampling == "random" and "samples_per_type" not in cfg:
         raise InputError(f"{source}: sampling = \"random\" needs samples_per_type "
                          f"({SCHEMA['samples_per_type'].accepted})")

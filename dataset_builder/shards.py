@@ -34,6 +34,8 @@ class ShardTask:
     supersample: int
     fine_cloud_points: int
     lidar: dict
+    sensor: dict | None = None  # SensorParams.to_dict(); None: the ideal standard cloud
+    seed: int = 0  # the dataset's seed: a sample's photons are seeded by (seed, sample id)
 
 
 _SIMULATORS: dict = {}
@@ -62,25 +64,58 @@ def compute_shard(task: ShardTask) -> Shard:
     from apcg_core.catalog.catalog import default_catalog
     sim = _simulator(task)
     lidar = sim.lidar
+    if task.sensor is not None:
+        return _photon_shard(task, sim, default_catalog())
     cl = sim.simulate_cells_type(default_catalog(), task.type_catalog_index, task.table)
+    return _shard(task, lidar, cl.sample, cl.cell_w, cl.cell_h, cl.range_m, cl.clipped,
+                  cl.n_rays)
+
+
+def _pixels(lidar, w, h):
+    pix_type = np.uint16 if lidar.width * lidar.height <= 1 << 16 else np.uint32
+    return (lidar.row_of_h(h) * lidar.width + lidar.col_of_w(w)).astype(pix_type)
+
+
+def _photon_shard(task: ShardTask, sim, catalog) -> Shard:
+    """A shard of what the sensor records: the photon points (or events: nearest of a pixel
+    last, so the depth image holds the first return), their labels and counts, and per target
+    cell the expected signal per pulse."""
+    from apcg_core.sensor import sensor_from_table
+    sensor = sensor_from_table(task.sensor)
+    cells, clipped, n_rays = sim.photon_cells_type(catalog, task.type_catalog_index, task.table,
+                                                   sensor, task.seed, sample_ids=task.rows)
+    pixel = _pixels(sim.lidar, cells.w, cells.h)
+    order = np.lexsort((-cells.range_m, pixel, cells.sample))
+    shard = _shard(task, sim.lidar, cells.sample[order], cells.w[order], cells.h[order],
+                   cells.range_m[order], clipped, n_rays)
     n = len(task.rows)
-    s = cl.sample
+    shard.label = cells.label[order]
+    shard.count = cells.count[order]
+    if sensor.output == "events":
+        shard.pulse = cells.pulse[order]
+    shard.target_offsets = np.concatenate(
+        [[0], np.cumsum(np.bincount(cells.target_sample, minlength=n))]).astype(np.int64)
+    shard.target_pixel = _pixels(sim.lidar, cells.target_w, cells.target_h)
+    shard.target_signal_pe = cells.target_signal_pe.astype(np.float32)
+    return shard
+
+
+def _shard(task: ShardTask, lidar, s, cell_w, cell_h, range_m, clipped, n_rays) -> Shard:
+    n = len(task.rows)
     if len(s) > 1 and (np.diff(s) < 0).any():  # backends return clouds in sample order
         raise RuntimeError("internal error: simulator output is not grouped by sample")
     counts = np.bincount(s, minlength=n)
     r0 = task.table[s, 1]
-    d = DEPTH_SCALE * (cl.range_m - r0) / task.depth_length_m
+    d = DEPTH_SCALE * (range_m - r0) / task.depth_length_m
     dc = np.clip(d, TARGET_FLOOR, 1.0)
-    pixel = lidar.row_of_h(cl.cell_h) * lidar.width + lidar.col_of_w(cl.cell_w)
-    pix_type = np.uint16 if lidar.width * lidar.height <= 1 << 16 else np.uint32
     return Shard(sample_id=task.rows.astype(np.int64), conditions=task.table,
                  nu=task.nu.astype(np.float32),
                  offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-                 pixel=pixel.astype(pix_type), depth=dc.astype(np.float16),
-                 delta_range_m=(cl.range_m - r0).astype(np.float32),
-                 clipped=cl.clipped.astype(bool),
+                 pixel=_pixels(lidar, cell_w, cell_h), depth=dc.astype(np.float16),
+                 delta_range_m=(range_m - r0).astype(np.float32),
+                 clipped=clipped.astype(bool),
                  n_clamped=np.bincount(s, weights=(d != dc), minlength=n).astype(np.int32),
-                 n_rays=cl.n_rays.astype(np.int32))
+                 n_rays=n_rays.astype(np.int32))
 
 
 def part_suffix() -> str:

@@ -24,6 +24,9 @@ from .atomic import atomic_path
 FORMAT_VERSION = 1
 SHARD_KEYS = ("sample_id", "conditions", "nu", "offsets", "pixel", "depth", "delta_range_m",
               "clipped", "n_clamped", "n_rays")
+# A photon dataset's shards (a [sensor] in the config, SPEC section 8) also hold these; an
+# ideal dataset's shards do not, and are byte-identical to those built before they existed.
+PHOTON_KEYS = ("label", "count", "pulse", "target_offsets", "target_pixel", "target_signal_pe")
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
@@ -87,12 +90,22 @@ class Shard:
     clipped: np.ndarray  # (n,) bool: the target's angular box reached beyond the window
     n_clamped: np.ndarray  # (n,) int32: target pixels whose depth was clamped into [-1+eps, 1]
     n_rays: np.ndarray  # (n,) int32: rays cast (0 for the points backend)
+    # photon datasets only (docs/DATASET.md): per point 1 signal / 0 noise, the events in its
+    # bin, its pulse (events output); per cell any sub-ray hit, the expected signal
+    # photo-electrons per pulse, sample i owning target_offsets[i]:target_offsets[i+1]
+    label: np.ndarray | None = None  # (P,) uint8
+    count: np.ndarray | None = None  # (P,) int32
+    pulse: np.ndarray | None = None  # (P,) int32
+    target_offsets: np.ndarray | None = None  # (n + 1,) int64
+    target_pixel: np.ndarray | None = None  # (T,) uint16/uint32
+    target_signal_pe: np.ndarray | None = None  # (T,) float32
 
     def __len__(self) -> int:
         return len(self.sample_id)
 
     def to_bytes(self) -> bytes:
-        return npz_bytes({k: getattr(self, k) for k in SHARD_KEYS})
+        keys = SHARD_KEYS + tuple(k for k in PHOTON_KEYS if getattr(self, k) is not None)
+        return npz_bytes({k: getattr(self, k) for k in keys})
 
     @classmethod
     def load(cls, path) -> Shard:
@@ -103,7 +116,7 @@ class Shard:
                 if missing:
                     raise InputError(f"dataset shard {path} lacks arrays {missing}; it is not "
                                      "an APCG shard or is from another format version")
-                arrays = {k: z[k] for k in SHARD_KEYS}
+                arrays = {k: z[k] for k in SHARD_KEYS + PHOTON_KEYS if k in z.files}
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
             if isinstance(exc, InputError):
                 raise
@@ -114,6 +127,15 @@ class Shard:
         if len(shard.offsets) != n + 1 or shard.offsets[-1] != len(shard.pixel):
             raise InputError(f"dataset shard {path} is inconsistent (offsets do not match the "
                              "points); delete it and build again")
+        per_point = [k for k in ("label", "count", "pulse") if getattr(shard, k) is not None
+                     and len(getattr(shard, k)) != len(shard.pixel)]
+        t_off, t_pix = shard.target_offsets, shard.target_pixel
+        if per_point or (t_off is not None and (
+                len(t_off) != n + 1 or t_pix is None or t_off[-1] != len(t_pix)
+                or shard.target_signal_pe is None or len(shard.target_signal_pe) != len(t_pix))):
+            raise InputError(f"dataset shard {path} is inconsistent (its photon arrays "
+                             f"{per_point or ['target_*']} do not match its points); delete it "
+                             "and build again")
         return shard
 
     def depth_images(self, height: int, width: int, dtype=np.float16) -> np.ndarray:

@@ -94,9 +94,14 @@ def to_cloud(cells: PhotonCells, beta0: np.ndarray, lidar: LidarParams) -> Point
                       cells.w, cells.h, cells.sample, cells.label, cells.count, pulse)
 
 
+# The photon draws' own stream beside the dataset's other uses of its seed ("PHOT").
+PHOTON_STREAM = 0x50484F54
+
+
 def sample_rng(seed: int, sample_id: int) -> np.random.Generator:
     """The generator of one sample's photons: the same for a sample however it is batched."""
-    return np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, int(sample_id)])
+    return np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, PHOTON_STREAM,
+                                  int(sample_id)])
 
 
 def gate_first_bin(r0: np.ndarray, sensor: SensorParams, lidar: LidarParams) -> np.ndarray:
