@@ -68,6 +68,7 @@ def _run_generate(args) -> int:
         meta["conditions_csv"], meta["n_conditions"] = str(args.conditions), len(table)
     from .io.clouds import CloudWriter
     from .progress import Progress
+    from .testpoints import wait_point
     progress = Progress(total, "cloud", enabled=total > BLOCK_CLOUDS)
     points = empty = 0
     with CloudWriter(args.output, meta) as out:
@@ -78,6 +79,7 @@ def _run_generate(args) -> int:
             if out.ext == ".npz" and block == 0 and total > BLOCK_CLOUDS:
                 _check_npz_memory(len(cloud) / max(1, len(res.table)), total)
             out.write(cloud)
+            wait_point("generate.block-written")
             points += len(cloud)
             empty += len(res.table) - len(np.unique(cloud.sample))
             progress.update(len(res.table))
