@@ -140,6 +140,22 @@ def test_stated_axes_and_the_operator(scene):
         api.make_target(lidar, src, forward="W", up="Z")
 
 
+def test_stated_axes_that_contradict_the_shape_are_warned_with_the_fix(scene):
+    """Make Target with stated axes the shape contradicts (the box jet's nose is -Y, stated
+    X): one warning naming the fix in the add-on's words; a right statement, none."""
+    src = box.add_box_aircraft()
+    lidar = api.add_lidar()
+    wrong = api.make_target(lidar, src, 4500.0, forward="X", up="Z")
+    warning = wrong[AXES_KEY]["warning"]
+    assert "\n" not in warning and "use Forward -Y" in warning and "Guess axes" in warning
+    assert "stated: forward X, up Z" in warning
+    right = api.make_target(lidar, src, 4500.0, forward="-Y", up="Z")
+    assert "warning" not in right[AXES_KEY]
+    _select(src)  # the operator too: it finishes, and reports the warning
+    assert bpy.ops.apcg.make_target(guess_axes=False, forward="X", up="Z") == {"FINISHED"}
+    assert "use Forward -Y" in bpy.context.active_object[AXES_KEY]["warning"]
+
+
 def test_the_guess_without_scipy_equals_the_guess_with_it(monkeypatch):
     """Blender's own Python has no scipy: the core's guess then finds nearest neighbours with
     numpy, and must give the same answer."""

@@ -317,7 +317,9 @@ def test_catalog_add_cli_every_way(files, tmp_path):
     dry = _run("catalog", "add", str(files / "plane_cm.fbx"), "--name", "fbx", "--dry-run",
                env=env)
     assert dry.returncode == 0 and "nothing added" in dry.stdout and "FBX" in dry.stdout
-    assert "suggests --forward -Y --up Z" in dry.stdout  # the shape tells the nose axis
+    # the shape tells the nose axis: one warning line with the option that fixes it
+    warned = [ln for ln in dry.stderr.splitlines() if "contradict the shape" in ln]
+    assert len(warned) == 1 and "use --forward -Y" in warned[0], dry.stderr
     rows = json.loads(_run("catalog", "list", "--json", env=env).stdout)
     names = [r["name"] for r in rows if r["index"] >= 1000]
     assert names == ["mm", "mm-forced", "inch-plane"]

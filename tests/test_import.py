@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -211,3 +212,131 @@ def test_catalog_cli(tmp_path):
     assert (tmp_path / "s.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     bad = _run("catalog", "export", "A380", "-o", str(tmp_path / "x.ply"), env=env)
     assert bad.returncode == 2 and "did you mean A380-800" in bad.stderr
+
+
+# --- round trips through the command line, axes that contradict the shape, bad meshes ---
+
+@pytest.mark.parametrize("ext", [s.lstrip(".") for s in EXPORT_SUFFIXES])
+def test_catalog_export_then_add_gives_the_same_type(tmp_path, ext):
+    """`apcg catalog export A320neo -o a.EXT` then `apcg catalog add a.EXT`: the same size and
+    attitude, no axes warning (the issue's airliner on its side, for glTF)."""
+    env = {**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")}
+    f = tmp_path / f"a.{ext}"
+    exp = _run("catalog", "export", "A320neo", "-o", str(f), env=env)
+    assert exp.returncode == 0, exp.stderr
+    add = _run("catalog", "add", str(f), "--name", "round trip", env=env)
+    assert add.returncode == 0 and "warning" not in add.stderr, add.stderr
+    cat = Catalog(user_path=tmp_path / "data" / "catalog")
+    a, b = CAT.mesh("A320neo"), cat.mesh("round trip")
+    np.testing.assert_allclose(b.extents, a.extents, rtol=1e-6)
+    t = cat.get("round trip")
+    assert (t.length_m, t.span_m, t.height_m) == pytest.approx(tuple(a.extents), rel=1e-6)
+    sa = a.vertices[np.lexsort(np.round(a.vertices, 3).T)]
+    sb = b.vertices[np.lexsort(np.round(b.vertices, 3).T)]
+    np.testing.assert_allclose(sb, sa, atol=1e-4)
+
+
+def _collada(tmp_path, mesh, up_axis: str) -> Path:
+    """A COLLADA file of ``mesh``'s vertices as given, declaring ``up_axis``."""
+    import trimesh
+    data = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(file_type="dae")
+    text = (data if isinstance(data, str) else data.decode())
+    text = re.sub(r"<up_axis>\w+</up_axis>", f"<up_axis>{up_axis}</up_axis>", text)
+    p = tmp_path / f"m_{up_axis}.dae"
+    p.write_text(text)
+    return p
+
+
+def _warnings(stderr: str) -> list[str]:
+    return [ln for ln in stderr.splitlines() if ln.startswith("warning:")]
+
+
+def test_declared_axes_that_contradict_the_shape_are_warned_with_the_fix(tmp_path):
+    """A Y_UP COLLADA whose vertices are Z-up (as many robotics meshes are): one warning line
+    naming --up Z; with --up Z, or with vertices that are Y-up, none."""
+    env = {**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")}
+    body = CAT.mesh("A320neo")
+    lying = _collada(tmp_path, body, "Y_UP")  # Z-up vertices declared Y-up
+    dry = _run("catalog", "add", str(lying), "--name", "x", "--dry-run", env=env)
+    assert dry.returncode == 0, dry.stderr
+    warned = _warnings(dry.stderr)
+    assert len(warned) == 1 and "use --up Z" in warned[0] and "m_Y_UP.dae" in warned[0]
+    assert "up Y (the file)" in warned[0]
+    fixed = _run("catalog", "add", str(lying), "--name", "x", "--up", "Z", env=env)
+    assert fixed.returncode == 0 and not _warnings(fixed.stderr), fixed.stderr
+    assert Catalog(user_path=tmp_path / "data" / "catalog").get("x").length_m == \
+        pytest.approx(body.extents[0], rel=1e-6)
+    from apcg_core.catalog.importer import axis_matrix
+    honest = _collada(tmp_path, body.transformed(axis_matrix("X", "Y").T), "Z_UP")
+    honest = honest.rename(tmp_path / "honest.dae")
+    text = honest.read_text().replace("<up_axis>Z_UP</up_axis>", "<up_axis>Y_UP</up_axis>")
+    honest.write_text(text)  # Y-up vertices, declared Y-up: nothing to say
+    ok = _run("catalog", "add", str(honest), "--name", "y", "--dry-run", env=env)
+    assert ok.returncode == 0 and not _warnings(ok.stderr), ok.stderr
+
+
+def test_axes_fix_names_only_what_contradicts_a_confident_guess():
+    from apcg_core.catalog.checks import AxesGuess, axes_fix
+    from apcg_core.catalog.importer import _default_forward
+    g = AxesGuess("X", "Z", "", True)
+    assert axes_fix(g, "X", "Y", default_forward=_default_forward) == {"up": "Z"}
+    assert axes_fix(g, "Z", "Y") == {"up": "Z", "forward": "X"}  # glTF's declared forward
+    assert axes_fix(g, "-X", "Z") == {}  # a sign alone is not contradicted (weaker cue)
+    assert axes_fix(g, "Y", "Z") == {"forward": "X"}
+    assert axes_fix(g, "X", "Y", up_given=True) == {}  # the user said so
+    assert axes_fix(g._replace(confident=False), "X", "Y") == {}
+    assert axes_fix(None, "X", "Y") == {}
+
+
+def _obj(path: Path, vertices, faces) -> Path:
+    path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in vertices)
+                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
+    return path
+
+
+BOX_V = [[x, y, z] for x in (0.0, 10.0) for y in (0.0, 8.0) for z in (0.0, 2.0)]
+BOX_F = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7],
+         [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+
+
+def test_degenerate_triangles_are_dropped_with_a_warning(tmp_path):
+    """Zero-area triangles (three points on a line, two in one place), here far from the
+    model, are dropped with one warning line; the rest is the model, at its own size."""
+    env = {**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")}
+    v = BOX_V + [[100.0, 0, 0], [200.0, 0, 0], [300.0, 0, 0], [50.0, 50, 50]]
+    f = BOX_F + [[8, 9, 10], [8, 8, 11], [0, 1, 1]]
+    path = _obj(tmp_path / "degenerate.obj", v, f)
+    add = _run("catalog", "add", str(path), "--name", "box", env=env)
+    assert add.returncode == 0 and "Traceback" not in add.stderr, add.stderr
+    warned = _warnings(add.stderr)
+    assert len(warned) == 1 and "3 degenerate (zero-area) triangles dropped" in warned[0]
+    t = Catalog(user_path=tmp_path / "data" / "catalog").get("box")
+    assert (t.length_m, t.span_m, t.height_m) == pytest.approx((10.0, 8.0, 2.0))
+    mesh, rep = import_model(path)
+    assert rep.n_dropped == 3 and len(mesh.faces) == 12 and len(mesh.vertices) == 8
+
+
+@pytest.mark.parametrize("vertices,faces,words", [
+    ([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]], "every one of its 1 triangles has zero"),
+    ([[0, 0, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3]], [[0, 1, 2], [1, 2, 3]], "zero area"),
+    ([[0, 0, 0], [1, 0, "nan"], [0, 1, 0]], [[0, 1, 2]], "non-finite"),
+    ([[0, 0, 0], [1, 0, "inf"], [0, 1, 0]], [[0, 1, 2]], "non-finite"),
+    ([[0, 0, 0], [1e200, 0, 0], [0, 1e200, 0]], [[0, 1, 2]], "too large"),
+])
+def test_a_mesh_with_no_surface_is_named_in_one_line(tmp_path, vertices, faces, words):
+    path = _obj(tmp_path / "bad.obj", vertices, faces)
+    r = _run("catalog", "add", str(path), "--name", "bad", "--dry-run",
+             env={**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")})
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "bad.obj" in lines[0] and words in lines[0], r.stderr
+
+
+def test_an_unknown_preview_format_is_refused_before_any_work(tmp_path):
+    env = {**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")}
+    missing = tmp_path / "not-read.obj"  # never read: the preview is refused first
+    r = _run("catalog", "add", str(missing), "--name", "p", "--preview",
+             str(tmp_path / "x.txt"), env=env)
+    assert r.returncode == 2 and "--preview" in r.stderr and "'.txt'" in r.stderr
+    assert ".png" in r.stderr and "Traceback" not in r.stderr and "not-read" not in r.stderr
+    assert not (tmp_path / "data").exists() and not (tmp_path / "x.txt").exists()

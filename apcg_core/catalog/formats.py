@@ -106,7 +106,8 @@ def _scene_meshes(scene, patterns, path: Path) -> RawModel:
             continue
         v = np.asarray(geom.vertices, np.float64)
         m = np.asarray(matrix, np.float64)
-        verts.append(v @ m[:3, :3].T + m[:3, 3])
+        with np.errstate(invalid="ignore", over="ignore"):  # non-finite: named by read_model
+            verts.append(v @ m[:3, :3].T + m[:3, 3])
         faces.append(np.asarray(geom.faces, np.int64) + offset)
         offset += len(v)
         taken.append(name)

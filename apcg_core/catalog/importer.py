@@ -93,8 +93,8 @@ def drop_degenerate(mesh: Mesh, path) -> tuple[Mesh, int]:
                          "remove them in a modeller")
     used = mesh.vertices[np.unique(mesh.faces)] if len(mesh.faces) else mesh.vertices[:0]
     size = float(np.max(used.max(axis=0) - used.min(axis=0))) if len(used) else 0.0
-    areas = mesh.face_areas
     with np.errstate(over="ignore", invalid="ignore"):
+        areas = mesh.face_areas
         keep = areas > DEGENERATE_AREA * size * size
     if not np.isfinite(areas).all():
         raise InputError(f"{path}: coordinates too large to compute with (up to "
