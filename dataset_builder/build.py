@@ -158,9 +158,11 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
             raise InputError(f"{out} already holds a different dataset (its dataset.json differs "
                              "from this config's); build into a new directory or delete it")
     else:
-        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=part_suffix())
-        # last: its presence means the plan files are complete
+        # first: the header is the record that makes the directory this build's own
+        # (apcg_core.outputs), so a conditions.csv of ours never stands without it; a
+        # conditions.csv missing beside it is made below (a build stopped in between)
         write_atomic(head_path, header, part_suffix=part_suffix())
+        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=part_suffix())
     if not (out / "conditions.csv").exists():
         write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=part_suffix())
 

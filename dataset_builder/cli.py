@@ -135,9 +135,9 @@ def _run_simulate(args) -> int:
 
 
 # What a build writes at the top of its directory, and what says a directory is a build's own
-# (its header, or a live or killed build's lock: concurrent --shard builds share it).
+# (its header, written first: build.py; concurrent --shard builds share it).
 DATASET_FILES = ("conditions.csv", "dataset.json", "manifest.json")
-DATASET_RECORD = ("dataset.json", ".build-*-of-*.lock")
+DATASET_RECORD = ("dataset.json",)
 
 
 def register_dataset(sub) -> None:

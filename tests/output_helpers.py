@@ -37,7 +37,8 @@ NOT_OUTPUTS = {
     ("figure", "run"): INPUT, ("figure", "model"): INPUT, ("figure", "data"): INPUT,
     ("generate", "model"): INPUT, ("generate", "type"): VALUE,
     ("generate", "conditions"): INPUT,
-    ("simulate", "type"): VALUE,
+    ("simulate", "type"): VALUE, ("simulate", "sensor"): INPUT,
+    ("dataset build", "sensor"): INPUT,
     ("teach", "model"): INPUT, ("teach", "type"): VALUE,
     ("train", "data"): INPUT,
 }

@@ -228,9 +228,19 @@ def test_a_type_name_is_found_or_refused_by_name(tmp_path_factory, capsys, name,
 @given(name=TYPE_TEXT)
 def test_a_new_type_name_that_could_be_misread_is_refused(tmp_path_factory, capsys, name):
     """Names a later `--type NAME` could not find as themselves (empty, a number, which
-    `--type` reads as an index, a path separator, a taken name) are refused up front."""
-    misread = (not name.strip() or name.strip().isdigit() or "/" in name or "\\" in name
-               or name.lower() in {"a320neo", "mavic 3"})
+    `--type` reads as an index, a path separator, a control character, a taken name in any
+    case or spelling of its spaces, dashes and underscores) are refused up front."""
+    import unicodedata
+
+    def key(s):  # the catalog's rule, written out again: NFC, case, separators
+        s = unicodedata.normalize("NFC", s).strip().casefold()
+        return "".join(c for c in s if not c.isspace()
+                       and unicodedata.category(c) not in ("Pd", "Pc"))
+    from apcg_core.catalog.catalog import default_catalog
+    taken = {key(n) for n in default_catalog().names()}
+    misread = (not key(name) or name.strip().isdigit() or "/" in name or "\\" in name
+               or any(unicodedata.category(c) == "Cc" for c in name.strip())
+               or key(name) in taken)
     tmp = tmp_path_factory.mktemp("newname")
     rc, out, err = run(["catalog", "add", MESH, f"--name={name}",
                         "--dry-run"], capsys, cwd=tmp)
@@ -545,3 +555,521 @@ def test_a_build_killed_at_any_moment_resumes_byte_for_byte(demo_dataset, tmp_pa
     assert r.returncode == 0, r.stderr
     assert tree_digest(out) == tree_digest(demo_dataset)
     _record("interrupt", f"dataset build signal {int(sig)} after {delay:.1f} s", "handled")
+
+
+# --- 7. the output guard: every declared output, one file under two names, inputs ----------
+# (tests/output_helpers.py finds the outputs from the parsers; tests/test_outputs.py checks
+# that nothing writes without a declaration)
+
+from output_helpers import (  # noqa: E402
+    argv_for,
+    inputs_of,
+    named_files,
+    outputs,
+    parse,
+    planned_files,
+    sample_value,
+)
+
+GUARDED = outputs()
+
+
+def _spelled(path: Path, how: str, cwd: Path) -> str:
+    """``path`` (in ``cwd``) written another way that names the same file."""
+    if how == "relative":
+        return os.path.relpath(path, cwd)
+    if how == "dot":
+        return f"./{os.path.relpath(path, cwd)}"
+    if how == "updown":
+        return str(path.parent / ".." / path.parent.name / path.name)
+    if how == "link":
+        link = path.parent / f"link-{path.name}"
+        if not os.path.lexists(link):
+            link.symlink_to(path)
+        return str(link)
+    return str(path)
+
+
+SPELLINGS = ["absolute", "relative", "dot", "updown", "link"]
+
+
+@fuzz(40)
+@given(data=st.data(), how=st.sampled_from(SPELLINGS), content=st.binary(min_size=0,
+                                                                           max_size=64))
+def test_an_existing_file_of_any_output_is_kept(tmp_path_factory, capsys, data, how, content):
+    cmd, parser, _, spec = data.draw(st.sampled_from(GUARDED), label="output")
+    tmp = tmp_path_factory.mktemp("kept")
+    target = Path(sample_value(spec, tmp))
+    args = parse(argv_for(cmd, parser, tmp, {spec.dest: str(target)}))
+    files = ([p for p in planned_files(spec, args) if p.name not in spec.record]
+             if named_files(spec, args) else [target / "notes.txt"])
+    assume(files)
+    mine = data.draw(st.sampled_from(files), label="file")
+    mine.parent.mkdir(parents=True, exist_ok=True)
+    mine.write_bytes(content)
+    value = _spelled(target, how, tmp) if spec.kind == "file" or how != "link" else str(target)
+    if how == "link" and spec.kind == "file":
+        assume(mine == target)
+    rc, _, err = run(argv_for(cmd, parser, tmp, {spec.dest: value}), capsys, cwd=tmp)
+    clear_error("overwrite", f"{cmd} {spec.flag} {how}: {mine.name} exists", rc, err,
+                mine.name if named_files(spec, args) else target.name, "--force")
+    assert mine.read_bytes() == content
+
+
+SAME_PAIRS = [(cmd, parser, a, b) for cmd, parser, a, _ in GUARDED
+              for c2, _, b, _ in GUARDED
+              if c2 == cmd and a.dest < b.dest and a.apcg_output.kind == "file"
+              and b.apcg_output.kind == "file"
+              and set(a.apcg_output.suffixes) & set(b.apcg_output.suffixes)]
+
+
+@fuzz(15)
+@given(data=st.data(), first=st.sampled_from(SPELLINGS), second=st.sampled_from(SPELLINGS),
+       exists=st.booleans())
+def test_two_outputs_named_as_one_file_are_refused(tmp_path_factory, capsys, data, first,
+                                                   second, exists):
+    cmd, parser, a, b = data.draw(st.sampled_from(SAME_PAIRS), label="pair")
+    tmp = tmp_path_factory.mktemp("same")
+    suffix = data.draw(st.sampled_from(sorted(set(a.apcg_output.suffixes)
+                                              & set(b.apcg_output.suffixes))))
+    target = tmp / f"one{suffix}"
+    if exists:
+        target.write_bytes(b"the user's own file")
+    argv = argv_for(cmd, parser, tmp, {a.dest: _spelled(target, first, tmp),
+                                       b.dest: _spelled(target, second, tmp)})
+    rc, _, err = run([*argv, "--force"], capsys, cwd=tmp)
+    clear_error("same file", f"{cmd} {a.option_strings[-1]} {first} = "
+                f"{b.option_strings[-1]} {second}", rc, err, "same file")
+    assert not exists or target.read_bytes() == b"the user's own file"
+    assert sorted(p.name for p in tmp.iterdir() if not p.name.startswith("link-")) == (
+        [target.name] if exists else [])
+
+
+INPUT_OUTPUT = [(cmd, parser, spec, dest) for cmd, parser, _, spec in GUARDED
+                for dest in inputs_of(cmd)]
+
+
+@pytest.mark.parametrize("cmd,parser,spec,dest", INPUT_OUTPUT,
+                         ids=[f"{c} {s.flag} in --{d}" for c, _, s, d in INPUT_OUTPUT])
+def test_force_keeps_an_input_that_an_output_would_replace(tmp_path, capsys, cmd, parser, spec,
+                                                           dest):
+    shared = tmp_path / "shared"
+    value = (shared if spec.kind == "directory"
+             else shared / Path(sample_value(spec, tmp_path)).name)
+    argv = argv_for(cmd, parser, tmp_path, {spec.dest: str(value), dest: str(shared)})
+    args = parse(argv)
+    files = ([p for p in planned_files(spec, args) if p.name not in spec.record]
+             if named_files(spec, args) else [shared / "model.json"])
+    for p in files:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_bytes(b"an input's own bytes")
+    before = tree_digest(tmp_path)
+    rc, _, err = run([*argv, "--force"], capsys)
+    clear_error("input kept", f"{cmd} {spec.flag} into its --{dest} with --force", rc, err,
+                "input")
+    assert tree_digest(tmp_path) == before
+
+
+# --- 8. Ctrl-C and SIGTERM in every kind of command ----------------------------------------
+
+@pytest.fixture(scope="module")
+def held_world(tmp_path_factory):
+    """What the interrupted commands need: a small dataset, a two-step training run, a user
+    catalog with a drone the default model does not know."""
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.catalog.importer import export_mesh
+    from dataset_builder.build import build_dataset
+    root = tmp_path_factory.mktemp("held")
+    cfg = root / "tiny.toml"
+    cfg.write_text('description = "tiny"\nseed = 3\nbackend = "embree"\nshard_size = 50\n'
+                   'test_fraction = 0.5\nquantize = true\nsupersample = 1\n'
+                   'sampling = "random"\nsamples_per_type = 24\n'
+                   'types = ["Mavic 3", "A320neo"]\n')
+    build_dataset(str(cfg), root / "data", progress=False)
+    env = {**os.environ, "APCG_DATA_DIR": str(root / "user")}
+    r = subprocess.run([APCG, "train", "--data", root / "data", "-o", root / "run", "--preset",
+                        "tiny", "--steps", "2", "--batch-size", "8", "--no-progress"],
+                       capture_output=True, text=True, timeout=600, env=env)
+    assert r.returncode == 0, r.stderr
+    drone = root / "drone.ply"
+    export_mesh(default_catalog().mesh("Mavic 3"), drone)
+    r = subprocess.run([APCG, "catalog", "add", drone, "--name", "Held Drone", "--kind",
+                        "drone"], capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stderr
+    return {"root": root, "env": env, "drone": drone}
+
+
+HELD = {  # command line in the test's directory; what it leaves (relative to that directory)
+    "simulate": (["simulate", *POSE, "-o", "c.ply", "--depth-image", "d.png"],
+                 ["c.ply", "d.png"]),
+    "figure": (["figure", "13", "--run", str(DEFAULT_MODEL), "-o", "f.png"],
+               ["f.png", "f.json"]),
+    "generate": (["generate", *POSE, "--count", "2", "-o", "g.npz"], ["g.npz"]),
+    "evaluate": (["evaluate", "--data", "{root}/data", "--pairs", "4", "--no-faithfulness",
+                  "-o", "rep"], ["rep/metrics.json", "rep/report.md", "rep/fig17.png"]),
+    "export": (["export", "--run", "{root}/run", "-o", "model"],
+               ["model/model.json", "model/generator.onnx"]),
+    "catalog add": (["catalog", "add", "{drone}", "--name", "Held Drone 2", "--kind", "drone",
+                     "--preview", "p.png"], ["p.png"]),
+    "teach": (["teach", "--model", "work/m", "--type", "Held Drone", "-o", "work", "--force",
+               "--samples", "8", "--steps", "2"], ["work/model.json", "work/teach.json"]),
+}
+
+
+@pytest.mark.parametrize("name,sig", [(n, [signal.SIGINT, signal.SIGTERM][i % 2])
+                                      for i, n in enumerate(HELD)])
+def test_an_interrupted_command_leaves_all_or_nothing_and_runs_again(held_world, tmp_path,
+                                                                     hold, name, sig):
+    argv, made = HELD[name]
+    world = held_world
+    argv = [a.format(root=world["root"], drone=world["drone"]) for a in argv]
+    if name == "teach":
+        shutil.copytree(DEFAULT_MODEL, tmp_path / "work" / "m")
+    env = {**hold.env("output.held"), "APCG_DATA_DIR": world["env"]["APCG_DATA_DIR"]}
+    before = tree_digest(tmp_path)
+    p = subprocess.Popen([APCG, *argv], cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        hold.wait("output.held", p)
+        p.send_signal(sig)
+        hold.release("output.held")
+        err = p.communicate(timeout=300)[1]
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    assert tree_digest(tmp_path) == before  # nothing under a final name, no temporary left
+    assert not [q for q in tmp_path.rglob("*") if q.name.startswith(".")]
+    if name == "catalog add":
+        listed = subprocess.run([APCG, "catalog", "list", "--json"], capture_output=True,
+                                text=True, env=world["env"], timeout=120).stdout
+        assert "Held Drone 2" not in listed
+    r = subprocess.run([APCG, *argv], cwd=tmp_path, capture_output=True, text=True,
+                       env=world["env"], timeout=600)
+    assert r.returncode == 0, r.stderr
+    for rel in made:
+        assert (tmp_path / rel).is_file() and (tmp_path / rel).stat().st_size > 0, rel
+    if name == "teach":
+        assert tree_digest(tmp_path / "work" / "m") == tree_digest(DEFAULT_MODEL)
+    _record("interrupt", f"{name} {signal.Signals(sig).name} with its outputs held", "handled")
+
+
+def test_an_interrupt_while_outputs_are_renamed_finishes_them(held_world, tmp_path, hold):
+    argv = ["evaluate", "--data", held_world["root"] / "data", "--pairs", "4",
+            "--no-faithfulness", "-o", "rep"]
+    p = subprocess.Popen([APCG, *argv], cwd=tmp_path, env=hold.env("output.committing"),
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        hold.wait("output.committing", p)
+        p.send_signal(signal.SIGINT)
+        hold.release("output.committing")
+        err = p.communicate(timeout=300)[1]
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 0 and "Traceback" not in err, err
+    assert sorted(q.name for q in (tmp_path / "rep").iterdir()) == [
+        "fig17.png", "metrics.json", "report.md"]
+    _record("interrupt", "evaluate SIGINT while its outputs are renamed", "handled")
+
+
+# --- 9. the user's catalog as a database, round trips, inputs as users make them ----------
+
+import contextlib  # noqa: E402
+import re  # noqa: E402
+import unicodedata  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+
+@contextlib.contextmanager
+def user_catalog(path: Path):
+    """Commands in this process see the user catalog in ``path`` (APCG_DATA_DIR), with the
+    process-wide catalog made again on entry and on exit."""
+    from apcg_core.catalog.catalog import default_catalog
+    old = os.environ.get("APCG_DATA_DIR")
+    os.environ["APCG_DATA_DIR"] = str(path)
+    default_catalog.cache_clear()
+    try:
+        yield path / "catalog"
+    finally:
+        if old is None:
+            os.environ.pop("APCG_DATA_DIR", None)
+        else:
+            os.environ["APCG_DATA_DIR"] = old
+        default_catalog.cache_clear()
+
+
+def _box_obj(path: Path, length=10.0, extra: str = "") -> Path:
+    v = [[x, y, z] for x in (0.0, length) for y in (0.0, 8.0) for z in (0.0, 2.0)]
+    f = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7],
+         [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in v)
+                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f) + extra)
+    return path
+
+
+def _two_types(data: Path) -> Path:
+    from apcg_core.catalog import Catalog
+    from apcg_core.catalog.importer import import_model
+    mesh, _ = import_model(MESH)
+    cat = Catalog(user_path=data / "catalog")
+    cat.add_user_type("Jet A", mesh, "aircraft", "user", "a")
+    cat.add_user_type("Jet B", mesh, "aircraft", "user", "b")
+    return data / "catalog" / "user_types.json"
+
+
+@fuzz(12)
+@given(damage=DAMAGE)
+def test_a_damaged_user_catalog_is_named_with_the_fix(tmp_path_factory, capsys, damage):
+    """The registry truncated, emptied, replaced by garbage or with a byte flipped: listed
+    as what it still says, or one line naming the file and what to do; never rewritten."""
+    data = tmp_path_factory.mktemp("reg")
+    reg = _two_types(data)
+    before = reg.read_bytes()
+    reg.write_bytes(_damage(before, *damage))
+    assume(reg.read_bytes() != before)
+    damaged = reg.read_bytes()
+    with user_catalog(data):
+        rc, out, err = run(["catalog", "list", "--json"], capsys)
+    case = f"user_types.json {damage[0]}"
+    assert reg.read_bytes() == damaged, f"{case}: the user's file was rewritten"
+    if rc == 0:  # still a valid registry (a flipped byte inside a name, a number)
+        listed = [r for r in json.loads(out) if r["index"] >= 1000]
+        assert [r["name"] for r in listed] == [e["name"].strip() for e in json.loads(damaged)]
+        _record("catalog database", case, "handled")
+        return
+    assert len(err.strip().splitlines()) == 1, err
+    clear_error("catalog database", case, rc, err, "user_types.json", "mv ", "catalog add")
+
+
+@pytest.mark.parametrize("field", ["index", "name", "kind", "range_band", "length_m",
+                                   "category"])
+def test_a_user_catalog_entry_short_of_a_field_is_named(tmp_path, capsys, field):
+    reg = _two_types(tmp_path)
+    entries = json.loads(reg.read_text())
+    del entries[1][field]
+    reg.write_text(json.dumps(entries))
+    with user_catalog(tmp_path):
+        rc, _, err = run(["catalog", "list"], capsys)
+    clear_error("catalog database", f"registry entry without {field}", rc, err,
+                "user_types.json", "entry 2", field, "mv ")
+
+
+def test_concurrent_adds_of_one_name_in_two_spellings(tmp_path):
+    """Four `apcg catalog add` at once, two names in two spellings each: one of each pair is
+    added, the other refused naming it; nothing lost, no two types share a file."""
+    env = {**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")}
+    obj = _box_obj(tmp_path / "box.obj")
+    names = ["Jet A", "jet_a", "Jet B", "JET-B"]
+    procs = [subprocess.Popen([APCG, "catalog", "add", str(obj), "--name", n],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+             for n in names]
+    results = [(n, *p.communicate(timeout=300), p.returncode)
+               for n, p in zip(names, procs, strict=True)]
+    listed = json.loads(subprocess.run([APCG, "catalog", "list", "--json"], env=env,
+                                       capture_output=True, text=True).stdout)
+    users = sorted(r["name"] for r in listed if r["index"] >= 1000)
+    for pair in (names[:2], names[2:]):
+        won = [n for n, out, err, rc in results if n in pair and rc == 0]
+        assert len(won) == 1 and won[0] in users, results
+        for n, _, err, rc in results:
+            if n in pair and rc != 0:
+                clear_error("catalog database", f"concurrent add {n!r} beside {won[0]!r}", rc,
+                            err, repr(won[0]), "--force")
+        _record("catalog database", f"concurrent add of {pair}", "handled")
+    assert len(users) == 2 and len(list((tmp_path / "data" / "catalog").glob("*.npz"))) == 2
+
+
+SPELLINGS = st.sampled_from([str.lower, str.upper, str.title,
+                             lambda s: s.replace(" ", "_"), lambda s: s.replace(" ", "-"),
+                             lambda s: f"  {s}\t", lambda s: s.replace(" ", " _ "),
+                             lambda s: unicodedata.normalize("NFD", s),
+                             lambda s: s.replace(" ", "\u2013")])
+
+
+@fuzz(10)
+@given(base=st.sampled_from(["Jet A", "Café Jet", "my drone 2", "Ünïcode Plane"]),
+       spell=st.lists(SPELLINGS, min_size=1, max_size=3))
+def test_a_name_in_another_spelling_is_the_same_type(tmp_path_factory, capsys, base, spell):
+    data = tmp_path_factory.mktemp("spell")
+    other = base
+    for f in spell:
+        other = f(other)
+    with user_catalog(data):
+        rc, _, err = run(["catalog", "add", MESH, "--name", base], capsys)
+        assert rc == 0, err
+        rc, out, err = run(["catalog", "add", MESH, "--name", other], capsys)
+        case = f"catalog add {other!r} after {base!r}"
+        if other.strip() == base:  # the same name
+            clear_error("new type name", case, rc, err, repr(base))
+            return
+        clear_error("new type name", case, rc, err, repr(base), "--force")
+        rc, out, err = run(["catalog", "add", MESH, "--name", other, "--force"], capsys)
+        assert rc == 0 and f"replaced {base!r}" in out, err
+        rc, out, _ = run(["catalog", "list", "--json"], capsys)
+    users = [r["name"] for r in json.loads(out) if r["index"] >= 1000]
+    assert users == [unicodedata.normalize("NFC", other).strip()]
+    assert len(list((data / "catalog").glob("*.npz"))) == 1
+    _record("new type name", f"{case} --force", "handled")
+
+
+CSV_HEAD = ["type", "range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg"]
+CSV_ROWS = [["A320neo", "4500", "3.4", "2", "10", "0"], ["Mavic 3", "250", "3", "1", "-20", "2"],
+            ["ATR 72-600", "6000.5", "3.9", "4.5", "-59", "-1.5"]]
+DIALECT = st.fixed_dictionaries({"bom": st.booleans(), "crlf": st.booleans(),
+                                 "quote": st.sampled_from(["none", "all", "text"]),
+                                 "spaces": st.booleans(),
+                                 "blank": st.lists(st.sampled_from(["", ",,,,,", " "]),
+                                                   max_size=3),
+                                 "blank_at": st.integers(0, 3)})
+
+
+def render_csv(rows: list[list[str]], d: dict) -> tuple[bytes, list[int]]:
+    """``rows`` (header first) as a spreadsheet or an editor might save them; with the line
+    (1-based) each row starts on."""
+    def cell(c: str) -> str:
+        q = d["quote"] == "all" or (d["quote"] == "text" and not re.fullmatch(r"[-\d.]+", c))
+        c = f'"{c}"' if q or "," in c else c
+        return f" {c} " if d["spaces"] and not q else c
+    lines, starts = [], []
+    for i, r in enumerate(rows):
+        if i == d["blank_at"] and i > 0:
+            lines += d["blank"]
+        starts.append(len(lines) + 1)
+        lines.append(",".join(cell(c) for c in r))
+    lines += d["blank"]  # trailing empty lines
+    nl = "\r\n" if d["crlf"] else "\n"
+    data = (nl.join(lines) + nl).encode()
+    return (b"\xef\xbb\xbf" + data if d["bom"] else data), starts
+
+
+@fuzz(10)
+@given(d=DIALECT)
+def test_a_conditions_csv_as_users_save_it_gives_the_same_clouds(tmp_path_factory, capsys, d):
+    tmp = tmp_path_factory.mktemp("dialect")
+    plain, _ = render_csv([CSV_HEAD, *CSV_ROWS], {"bom": False, "crlf": False, "quote": "none",
+                                                  "spaces": False, "blank": [],
+                                                  "blank_at": 0})
+    (tmp / "plain.csv").write_bytes(plain)
+    (tmp / "user.csv").write_bytes(render_csv([CSV_HEAD, *CSV_ROWS], d)[0])
+    outs = []
+    for name in ("plain", "user"):
+        rc, out, err = run(["generate", "--conditions", tmp / f"{name}.csv", "--seed", "3",
+                            "-o", tmp / f"{name}.npz"], capsys)
+        assert rc == 0, f"{d}: {err}"
+        with np.load(tmp / f"{name}.npz") as z:
+            outs.append({k: z[k].copy() for k in z.files})
+    assert outs[0].keys() == outs[1].keys()
+    assert all(np.array_equal(outs[0][k], outs[1][k]) for k in outs[0]), d
+    _record("csv input", f"conditions CSV saved as {d}", "handled")
+
+
+BAD_CELLS = {"range_m": ["abc", "nan", "-5", "", "1,5", "inf", "20000"],
+             "elevation_deg": ["90", "x", "-95", "10"], "pitch_deg": ["91", "--"],
+             "yaw_deg": ["181", "1e999"], "roll_deg": ["-180.5", "None"],
+             "type": ["No Such Jet", ""]}
+
+
+@fuzz(15)
+@given(d=DIALECT, row=st.integers(0, 2), column=st.sampled_from(sorted(BAD_CELLS)),
+       data=st.data())
+def test_a_bad_cell_is_named_by_line_column_and_value(tmp_path_factory, capsys, d, row,
+                                                      column, data):
+    value = data.draw(st.sampled_from(BAD_CELLS[column]), label="value")
+    rows = [list(r) for r in CSV_ROWS]
+    rows[row][CSV_HEAD.index(column)] = value
+    text, starts = render_csv([CSV_HEAD, *rows], d)
+    tmp = tmp_path_factory.mktemp("cell")
+    (tmp / "c.csv").write_bytes(text)
+    rc, _, err = run(["generate", "--conditions", tmp / "c.csv", "-o", tmp / "g.npz"], capsys)
+    letter = "ABCDEF"[CSV_HEAD.index(column)]
+    clear_error("csv input", f"{column}={value!r} on data row {row + 1} of {d}", rc, err,
+                "c.csv", f"line {starts[row + 1]}, column {column} ({letter})", repr(value))
+    assert not (tmp / "g.npz").exists()
+
+
+MESH_FAULTS = {
+    "degenerate triangles": ("v 30 0 0\nv 40 0 0\nv 50 0 0\nf 9 10 11\nf 1 1 2\n", None),
+    "a repeated point": ("f 1 2 2\n", None),
+    "a nan vertex": ("v nan 0 0\nf 1 2 9\n", "non-finite"),
+    "an inf vertex": ("v 0 inf 0\nf 1 2 9\n", "non-finite"),
+    "a face past the vertices": ("f 1 2 99\n", "box.obj"),
+}
+
+
+@pytest.mark.parametrize("fault,fmt", [(fault, fmt) for fault in sorted(MESH_FAULTS)
+                                       for fmt in ("obj", "ply", "stl")
+                                       if fmt == "obj" or "past" not in fault])
+def test_a_mesh_with_bad_triangles_is_cleaned_or_named(tmp_path, capsys, fault, fmt):
+    """Degenerate triangles are dropped with one warning (the rest is the model, its size
+    kept); a non-finite vertex, or a face naming a vertex that is not there, is named."""
+    extra, words = MESH_FAULTS[fault]
+    src = _box_obj(tmp_path / "box.obj", extra=extra)
+    path = src
+    if fmt != "obj":  # the same triangles through trimesh's writer of that format
+        import trimesh
+        v = [list(map(float, ln.split()[1:])) for ln in src.read_text().splitlines()
+             if ln.startswith("v ")]
+        f = [[int(x) - 1 for x in ln.split()[1:]] for ln in src.read_text().splitlines()
+             if ln.startswith("f ")]
+        path = tmp_path / f"box.{fmt}"
+        path.write_bytes(trimesh.Trimesh(v, f, process=False).export(file_type=fmt))
+    with user_catalog(tmp_path / "data"):
+        rc, out, err = run(["catalog", "add", path, "--name", "boxed"], capsys)
+        case = f"{fmt} with {fault}"
+        if words is None:
+            assert rc == 0 and "degenerate (zero-area) triangles dropped" in err, err
+            rc2, listed, _ = run(["catalog", "list", "--json"], capsys)
+            t = [r for r in json.loads(listed) if r["name"] == "boxed"][0]
+            assert (t["length_m"], t["span_m"], t["height_m"]) == pytest.approx((10, 8, 2))
+            _record("mesh input", case, "handled")
+        else:
+            clear_error("mesh input", case, rc, err, path.name, words)
+            assert not (tmp_path / "data" / "catalog" / "user_types.json").exists()
+
+
+@pytest.mark.parametrize("preview", ["x.txt", "x.jpg", "x", "x.png.bak", "dir/x.gif"])
+def test_an_unknown_preview_format_is_refused_first(tmp_path, capsys, preview):
+    with user_catalog(tmp_path / "data"):
+        rc, _, err = run(["catalog", "add", tmp_path / "never-read.obj", "--name", "p",
+                          "--preview", tmp_path / preview], capsys)
+    clear_error("mesh input", f"catalog add --preview {preview}", rc, err, "--preview", ".png")
+    assert "never-read" not in err and not (tmp_path / "data").exists()
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".stl", ".glb"])
+def test_every_export_format_reads_back_the_same(tmp_path, capsys, suffix):
+    from apcg_core.catalog.catalog import default_catalog
+    with user_catalog(tmp_path / "data"):
+        rc, _, err = run(["catalog", "export", "ATR 72-600", "-o", tmp_path / f"a{suffix}"],
+                         capsys)
+        assert rc == 0, err
+        rc, _, err = run(["catalog", "add", tmp_path / f"a{suffix}", "--name", "back"],
+                         capsys)
+        assert rc == 0 and "warning" not in err, err
+        got = default_catalog().mesh("back")
+    want = default_catalog().mesh("ATR 72-600")
+    np.testing.assert_allclose(got.extents, want.extents, rtol=1e-6)
+    assert np.abs(np.sort(got.vertices, axis=0) - np.sort(want.vertices, axis=0)).max() < 1e-4
+    _record("round trip", f"catalog export -o a{suffix}, then catalog add", "handled")
+
+
+@pytest.mark.parametrize("name", ["A320neo", "F-16C Fighting Falcon", "C-130J Hercules"])
+def test_a_y_up_collada_with_z_up_vertices_is_warned(tmp_path, capsys, name):
+    import trimesh
+
+    from apcg_core.catalog.catalog import default_catalog
+    m = default_catalog().mesh(name)
+    dae = trimesh.Trimesh(m.vertices, m.faces, process=False).export(file_type="dae")
+    text = (dae if isinstance(dae, str) else dae.decode())
+    assert "<up_axis>Y_UP</up_axis>" in text
+    (tmp_path / "m.dae").write_text(text)
+    with user_catalog(tmp_path / "data"):
+        rc, _, err = run(["catalog", "add", tmp_path / "m.dae", "--name", "m", "--dry-run"],
+                         capsys)
+    warned = [ln for ln in err.splitlines() if "contradict the shape" in ln]
+    assert rc == 0 and len(warned) == 1 and "use --up Z" in warned[0], err
+    _record("round trip", f"{name} as a Y_UP COLLADA with Z-up vertices: warned", "handled")
