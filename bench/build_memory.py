@@ -2,8 +2,10 @@
 
     .venv/bin/python bench/build_memory.py [--samples 100000] [--shard-size 2500]
         [--types A320neo,...] [--mode both|in-process|per-process] [--json out.json]
+        [--backend blender|embree] [--sensor PRESET]
 
-Builds a dataset with ``backend = "blender"`` (the ``bpy`` module) from a config written to a
+Builds a dataset with ``backend = "blender"`` (the ``bpy`` module; ``--backend embree`` for
+embree, ``--sensor`` for a photon build, issue "Photons") from a config written to a
 temporary directory: ``--samples`` conditions drawn at random over a few types, shards of
 ``--shard-size`` samples (10^5 / 2500: 40 shards), one worker, and records the peak resident
 memory of every shard:
@@ -82,13 +84,16 @@ def measured_run_task(task):
     return result
 
 
-def config_text(samples: int, shard_size: int, types: list[str]) -> str:
+def config_text(samples: int, shard_size: int, types: list[str], backend: str = "blender",
+                sensor: str | None = None) -> str:
     per_type = -(-samples // len(types))
     names = ", ".join(json.dumps(t) for t in types)
     return (f'description = "memory bench: {len(types)} types x {per_type} random conditions"\n'
-            f'seed = 11\nbackend = "blender"\nshard_size = {shard_size}\n'
-            f'test_fraction = 0.2\nquantize = true\nsupersample = 1\nsampling = "random"\n'
-            f'samples_per_type = {per_type}\ntypes = [{names}]\n')
+            f'seed = 11\nbackend = "{backend}"\nshard_size = {shard_size}\n'
+            f'test_fraction = 0.2\nquantize = true\n'
+            f'supersample = {4 if sensor else 1}\nsampling = "random"\n'
+            f'samples_per_type = {per_type}\ntypes = [{names}]\n'
+            + (f'sensor = "{sensor}"\n' if sensor else ""))
 
 
 def run_mode(mode: str, cfg_path: Path, out: Path, log: Path) -> dict:
@@ -141,7 +146,7 @@ def table(res: dict) -> str:
 def _child(mode: str, cfg: Path, work: Path, out_json: Path) -> None:
     """One mode, in a process of its own (so that one mode's memory never shows in the
     other's, and the parent of a per-process build has not imported bpy itself)."""
-    if mode == "in-process":
+    if mode == "in-process" and 'backend = "blender"' in cfg.read_text():
         import bpy
         bpy.ops.wm.read_factory_settings(use_empty=True)
     res = run_mode(mode, cfg, work / mode, work / f"{mode}.jsonl")
@@ -157,6 +162,8 @@ def main() -> int:
     ap.add_argument("--types", default="A320neo,777-300ER,F-16C Fighting Falcon,Mavic 3")
     ap.add_argument("--mode", default="both", choices=["both", "in-process", "per-process"])
     ap.add_argument("--json", help="write the results here too")
+    ap.add_argument("--backend", default="blender", choices=["blender", "embree"])
+    ap.add_argument("--sensor", help="a sensor preset: a photon build (issue Photons)")
     ap.add_argument("--child", nargs=3, metavar=("CONFIG", "WORKDIR", "RESULT"),
                     help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -165,16 +172,20 @@ def main() -> int:
         return 0
     import subprocess
 
-    import bpy
     types = [t.strip() for t in args.types.split(",")]
     modes = ["in-process", "per-process"] if args.mode == "both" else [args.mode]
+    version = None
+    if args.backend == "blender":
+        import bpy
+        version = bpy.app.version_string
     results = {"command": "python bench/build_memory.py " + " ".join(sys.argv[1:]),
-               "machine": {"cpus": os.cpu_count(), "bpy": bpy.app.version_string},
+               "machine": {"cpus": os.cpu_count(), "bpy": version},
                "types": types, "modes": {}}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         cfg = tmp / "memory.toml"
-        cfg.write_text(config_text(args.samples, args.shard_size, types))
+        cfg.write_text(config_text(args.samples, args.shard_size, types, args.backend,
+                                   args.sensor))
         results["config"] = cfg.read_text()
         for mode in modes:
             out = tmp / f"{mode}.json"

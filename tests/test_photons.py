@@ -316,3 +316,19 @@ def test_presets_and_files(tmp_path):
     (tmp_path / "none.toml").write_text("[lidar]\nwidth = 256\n")
     with pytest.raises(InputError, match="no \\[sensor\\] table"):
         load_sensor(str(tmp_path / "none.toml"))
+
+
+@pytest.mark.parametrize("n, p", [(100, 0.003), (100, 0.08), (100, 0.97), (40, 0.5),
+                                  (5000, 0.001), (100, 0.0), (100, 1.0)])
+def test_the_stages_binomial_sampler_has_the_binomial_law(n, p):
+    from apcg_core.sensor.detector import binomial
+    draws = binomial(np.random.default_rng(0), np.full(200_000, n), np.full(200_000, p))
+    assert draws.min() >= 0 and draws.max() <= n
+    mean, var = n * p, n * p * (1 - p)
+    assert abs(draws.mean() - mean) <= 4 * math.sqrt(var / len(draws)) + 1e-12
+    if var > 0:
+        assert draws.var() == pytest.approx(var, rel=0.03)
+        # the whole law, not only two moments: P(X = k) near the mode
+        k = int(mean)
+        pk = math.comb(n, k) * p**k * (1 - p) ** (n - k)
+        assert abs((draws == k).mean() - pk) < 4 * math.sqrt(pk * (1 - pk) / len(draws))

@@ -125,6 +125,41 @@ class Intensity:
         return c
 
 
+# Below this mean (of the smaller of p and 1 - p) :func:`binomial` inverts the CDF itself.
+_INVERT_BELOW = 16.0
+
+
+def binomial(rng: np.random.Generator, n: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Binomial(n, p) draws, elementwise. numpy's sampler costs 100-600 ns a draw; here most
+    draws have a small mean (of p or of 1 - p), and for those the CDF is inverted directly
+    (one uniform each, a few vectorised steps); the rest go to numpy."""
+    n = np.asarray(n, np.int64)
+    p = np.clip(np.asarray(p, np.float64), 0.0, 1.0)
+    flip = p > 0.5
+    q = np.where(flip, 1.0 - p, p)
+    out = np.zeros(len(n), np.int64)
+    big = n * q >= _INVERT_BELOW
+    if big.any():
+        out[big] = rng.binomial(n[big], q[big])
+    small = np.flatnonzero(~big & (n > 0) & (q > 0))
+    if len(small):
+        nn, qq = n[small], q[small]
+        u = rng.random(len(small))
+        pk = np.exp(nn * np.log1p(-qq))  # P(X = 0)
+        cdf = pk.copy()
+        x = np.zeros(len(small), np.int64)
+        ratio = qq / (1.0 - qq)
+        act = np.flatnonzero(u > cdf)
+        while len(act):
+            x[act] += 1
+            k = x[act]
+            pk[act] *= (nn[act] - k + 1) / k * ratio[act]
+            cdf[act] += pk[act]
+            act = act[(u[act] > cdf[act]) & (x[act] < nn[act])]
+        out[small] = x
+    return np.where(flip, n - out, out)
+
+
 def _skip(rng: np.random.Generator, n: int, p: float) -> np.ndarray:
     """Indices of the successes among ``n`` independent trials of chance ``p`` each: the gaps
     between successes are geometric, so the cost is the number of successes, not of trials."""
@@ -152,7 +187,7 @@ def _loud_events(rng: np.random.Generator, inten: Intensity, pulses: int, dead_b
     n_bins = inten.n_bins
     total = inten.total()
     p_fire = -np.expm1(-total)
-    fired = rng.binomial(pulses, p_fire)
+    fired = binomial(rng, np.full(len(total), pulses), p_fire)
     cell = np.repeat(np.arange(len(total), dtype=np.int64), fired)
     u = rng.random(len(cell))
     # the first event: an Exp(1) draw conditioned on falling inside the gate
@@ -325,6 +360,102 @@ class Window:
         return j + np.searchsorted(self._gaps, j, side="right")
 
 
+def _loud_points(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_bins: int,
+                 noise: float, pulses: int) -> Histogram:
+    """The peak bins of the loud cells for one event per pulse (the dead time covers the
+    gate), drawn without following each pulse.
+
+    Cut each cell's gate into its signal bins and the stretches of noise alone between them.
+    A pulse that has not fired before a piece fires in it with chance 1 - exp(-mu) (mu the
+    piece's mean), so the pulses that fire in each piece are a chain of binomials, piece by
+    piece in time order: exactly the multinomial histogram of first events. Counts in signal
+    bins are kept as they are (their signal part binomial with the signal's share); events in
+    a stretch of noise are placed in it one by one (the first-arrival law truncated to it).
+    The cost follows the pieces, not the pulses."""
+    cell, b, mean = signal.cell, signal.bin, signal.mean
+    n_sig = len(cell)
+    if n_sig == 0:
+        z = np.zeros(0, np.int64)
+        return Histogram(z, z, z, z)
+    # Pieces in time order per cell, laid out without sorting: for each signal bin (sorted by
+    # cell and bin) the stretch of noise before it when there is one, then the bin; after a
+    # cell's last bin, the stretch to the gate's end.
+    new_cell = np.empty(n_sig, bool)
+    new_cell[0] = True
+    new_cell[1:] = cell[1:] != cell[:-1]
+    last = np.empty(n_sig, bool)
+    last[-1] = True
+    last[:-1] = new_cell[1:]
+    prev_end = np.where(new_cell, 0, np.concatenate([[0], b[:-1] + 1]))
+    gap_len = b - prev_end
+    gap = gap_len > 0
+    tail_len = np.where(last, n_bins - 1 - b, 0)
+    tail = tail_len > 0
+    per = gap.astype(np.int64) + 1 + tail
+    end_slot = np.cumsum(per)
+    sig_slot = end_slot - 1 - tail
+    n_pieces = int(end_slot[-1])
+    piece_cell = np.repeat(cell, per)
+    piece_start = np.empty(n_pieces, np.int64)
+    piece_len = np.empty(n_pieces, np.int64)
+    piece_sig = np.full(n_pieces, -1, np.int64)
+    piece_start[sig_slot] = b
+    piece_len[sig_slot] = 1
+    piece_sig[sig_slot] = np.arange(n_sig)
+    g = sig_slot[gap] - 1
+    piece_start[g], piece_len[g] = prev_end[gap], gap_len[gap]
+    t = sig_slot[tail] + 1
+    piece_start[t], piece_len[t] = b[tail] + 1, tail_len[tail]
+    piece_mean = noise * piece_len
+    piece_mean[sig_slot] += mean
+    # the chain, one piece position at a time across all cells
+    cell_first = np.repeat(np.flatnonzero(np.concatenate([[True], piece_cell[1:]
+                                                           != piece_cell[:-1]])),
+                           np.diff(np.append(np.flatnonzero(np.concatenate(
+                               [[True], piece_cell[1:] != piece_cell[:-1]])), n_pieces)))
+    pos = (np.arange(n_pieces) - cell_first).astype(np.int16 if n_pieces < 32767 else np.int64)
+    by_pos = np.argsort(pos, kind="stable")  # a radix sort on small integers
+    bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))
+    remaining = np.full(n_cells, pulses, np.int64)
+    fired = np.zeros(n_pieces, np.int64)
+    p_piece = -np.expm1(-piece_mean)
+    for j in range(len(bounds) - 1):
+        idx = by_pos[bounds[j]:bounds[j + 1]]
+        left = remaining[piece_cell[idx]]
+        live = left > 0
+        if not live.all():
+            if not live.any():
+                continue
+            idx, left = idx[live], left[live]
+        x = binomial(rng, left, p_piece[idx])
+        fired[idx] = x
+        remaining[piece_cell[idx]] -= x
+    # signal bins: their counts and how many of them are signal
+    in_sig = (piece_sig >= 0) & (fired > 0)
+    k = piece_sig[in_sig]
+    share = mean[k] / (mean[k] + noise)
+    sig_count = binomial(rng, fired[in_sig], share)
+    # stretches of noise: place each event (first-arrival law truncated to the stretch)
+    in_gap = (piece_sig < 0) & (fired > 0)
+    g_cell = np.repeat(piece_cell[in_gap], fired[in_gap])
+    g_start = np.repeat(piece_start[in_gap], fired[in_gap])
+    g_len = np.repeat(piece_len[in_gap], fired[in_gap])
+    u = rng.random(len(g_cell))
+    if noise > 0:
+        off = np.floor(-np.log1p(-u * -np.expm1(-noise * g_len)) / noise).astype(np.int64)
+    else:
+        off = np.zeros(len(u), np.int64)
+    g_bin = g_start + np.minimum(off, g_len - 1)
+    gaps = peaks(Events(g_cell, g_bin, np.zeros(len(g_cell), bool)), n_bins)
+    sig = Histogram(piece_cell[in_sig], piece_start[in_sig], fired[in_sig], sig_count)
+    both = [np.concatenate([getattr(h, f) for h in (sig, gaps)])
+            for f in ("cell", "bin", "count", "signal_count")]
+    order = np.lexsort((both[1], -both[2], both[0]))  # per cell: most counts, then nearest
+    c = both[0][order]
+    top = np.concatenate([[True], c[1:] != c[:-1]]) if len(c) else np.zeros(0, bool)
+    return Histogram(*(x[order][top] for x in both))
+
+
 def detect(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_bins: int,
            noise_per_bin: float, dead_bins: float, pulses: int, with_pulse: bool) -> Events:
     """Every event of ``pulses`` pulses in each of ``n_cells`` cells (SPEC section 8), labelled
@@ -353,9 +484,13 @@ def detect_points(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_
     """The peak bin (nearest of equal peaks) of each cell whose histogram reaches ``threshold``
     counts there, and how many of its counts were signal."""
     win = Window(signal, n_cells, n_bins, noise_per_bin)
-    cell, b, _, k, _, _ = _loud_events(rng, win.inten, pulses, dead_bins)
-    is_signal = rng.random(len(cell)) < _signal_share(win.signal, k, noise_per_bin)
-    loud = peaks(Events(win.loud[cell], b, is_signal), n_bins)
+    if dead_bins >= n_bins:
+        loud = _loud_points(rng, win.signal, len(win.loud), n_bins, noise_per_bin, pulses)
+        loud.cell = win.loud[loud.cell]
+    else:
+        cell, b, _, k, _, _ = _loud_events(rng, win.inten, pulses, dead_bins)
+        is_signal = rng.random(len(cell)) < _signal_share(win.signal, k, noise_per_bin)
+        loud = peaks(Events(win.loud[cell], b, is_signal), n_bins)
     pmf = _binomial_pmf(pulses, float(-np.expm1(-noise_per_bin)))
     fast, full = _quiet_cost(win.n_quiet, n_bins, pmf, pulses, threshold, noise_per_bin)
     if dead_bins >= n_bins and fast < full:

@@ -134,15 +134,22 @@ def signal_bins(cell: np.ndarray, range_m: np.ndarray, mean: np.ndarray, first_b
         b, m, c = np.floor(u).astype(np.int64), mean, cell
     keep = (b >= 0) & (b < n_bins) & (m > 0)
     b, m, c = b[keep], m[keep], c[keep]
-    key = c * n_bins + b
-    # sub-rays come cell by cell, each a run of ascending bins: a stable sort merges the runs
-    order = np.argsort(key, kind="stable")
-    key, m = key[order], m[order]
-    new = np.ones(len(key), bool)
-    new[1:] = key[1:] != key[:-1]
-    uniq = key[new]
-    total = np.add.reduceat(m, np.flatnonzero(new)) if len(m) else m
-    return SignalBins(uniq // n_bins, uniq % n_bins, total)
+    if len(c) == 0:
+        return SignalBins(c.astype(np.int64), b, m)
+    if (np.diff(c) < 0).any():  # the simulator gives hits cell by cell; others may not
+        order = np.argsort(c, kind="stable")
+        b, m, c = b[order], m[order], c[order]
+    # Add up per (cell, bin) without sorting the entries: each cell's bins lie in a short run
+    # [lo, hi]; one dense slot per bin of those runs, filled by bincount.
+    first = np.flatnonzero(np.concatenate([[True], c[1:] != c[:-1]]))
+    lo = np.minimum.reduceat(b, first)
+    width = np.maximum.reduceat(b, first) - lo + 1
+    start = np.concatenate([[0], np.cumsum(width)])
+    group = np.repeat(np.arange(len(first)), np.diff(np.append(first, len(c))))
+    total = np.bincount(start[group] + b - lo[group], weights=m, minlength=int(start[-1]))
+    slot = np.flatnonzero(total > 0)
+    g = np.searchsorted(start, slot, side="right") - 1
+    return SignalBins(c[first][g].astype(np.int64), lo[g] + slot - start[g], total[slot])
 
 
 def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
