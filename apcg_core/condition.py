@@ -174,23 +174,26 @@ class ConditionSpace:
             lo[:, j], hi[:, j] = getattr(self, name)
         return lo, hi
 
-    def check(self, table) -> np.ndarray:
+    def check(self, table, where=None) -> np.ndarray:
         """Return the table (N, 6) as float64 if every value lies in its configured range.
 
-        Raises naming the first bad row, field, value and accepted range.
+        Raises naming the first bad row, field, value and accepted range. ``where(i, j)``:
+        how to name row ``i``'s field ``j`` (a CSV's file, line and column); default
+        ``row i``.
         """
+        where = where or (lambda i, j: f"row {i}")
         table = np.atleast_2d(np.asarray(table, dtype=np.float64))
         if table.ndim != 2 or table.shape[1] != 6:
             raise InputError(f"a condition table has shape (N, 6) {FIELDS}, got {table.shape}")
         nan = ~np.isfinite(table)
         if nan.any():
             i, j = np.argwhere(nan)[0]
-            raise InputError(f"row {i}: {FIELDS[j]} must be finite, got {table[i, j]!r}")
+            raise InputError(f"{where(i, j)}: {FIELDS[j]} must be finite, got {table[i, j]!r}")
         types = table[:, 0]
         bad = (types != np.round(types)) | (types < 0) | (types > self.n_types - 1)
         if bad.any():
             i = int(np.argmax(bad))
-            raise InputError(f"row {i}: type_index = {types[i]!r} is not a known type; "
+            raise InputError(f"{where(i, 0)}: type_index = {types[i]!r} is not a known type; "
                              f"accepted: integers 0 .. {self.n_types - 1}")
         lo, hi = self.bounds(table)
         # A relative slack of 1e-12 absorbs decode(encode(x)) rounding at the ends of a range.
@@ -200,7 +203,7 @@ class ConditionSpace:
             i, j = np.argwhere(out)[0]
             scale, unit = (1.0, " m") if j == 1 else ((1 / DEG, " deg") if j > 1 else (1.0, ""))
             raise InputError(
-                f"row {i}: {FIELDS[j]} = {table[i, j] * scale:.6g}{unit} is outside the "
+                f"{where(i, j)}: {FIELDS[j]} = {table[i, j] * scale:.6g}{unit} is outside the "
                 f"configured range [{lo[i, j] * scale:.6g}{unit}, {hi[i, j] * scale:.6g}{unit}]")
         return table
 
@@ -261,11 +264,13 @@ _CSV_FIELD = {"range_m": "range_m", "elevation": "elevation_deg", "pitch": "pitc
               "yaw": "yaw_deg", "roll": "roll_deg"}
 
 
-def read_conditions_csv(path, type_name=str) -> tuple[list[str], np.ndarray]:
-    """The rows of a conditions CSV: (type names, poses ``(N, 5)``: range in metres, then
-    elevation, pitch, yaw, roll in radians). ``type_name(text)`` turns a row's type cell into
-    a type name (raising InputError for an unknown one). Read by the project's one CSV reader
-    (a byte-order mark, CRLF, quotes, blank lines accepted); every refusal names the file, the
+def read_conditions_csv(path, type_name=str):
+    """The rows of a conditions CSV: ``(names, pose, where)``: type names, poses ``(N, 5)``
+    (range in metres, then elevation, pitch, yaw, roll in radians) and ``where(i, j)``, the
+    file, line, column and value of row ``i``'s condition field ``j`` (for
+    :meth:`ConditionSpace.check`). ``type_name(text)`` turns a row's type cell into a type
+    name (raising InputError for an unknown one). Read by the project's one CSV reader (a
+    byte-order mark, CRLF, quotes, blank lines accepted); every refusal names the file, the
     line, the column and the value."""
     from .io.csv_table import read_csv
 
@@ -294,4 +299,9 @@ def read_conditions_csv(path, type_name=str) -> tuple[list[str], np.ndarray]:
         except InputError as exc:
             column = _CSV_FIELD.get(str(exc).split(" ", 1)[0], "range_m")
             raise table.rows[i].error(column, f"is not accepted: {exc}") from None
-    return names, pose
+    columns = (type_col, *CSV_COLUMNS[1:])
+
+    def where(i: int, j: int) -> str:
+        row = table.rows[i]
+        return f"{row.where(columns[j])}: {row[columns[j]]!r}"
+    return names, pose, where

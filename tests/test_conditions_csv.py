@@ -45,6 +45,10 @@ def test_a_datasets_conditions_csv_is_read_as_it_is(model, tiny_training_data):
     ('A320neo,"3,5",3.4,2,0,0', r"line 3, column range_m \(B\): '3,5' is not a number \(use a "
                                 "point"),
     ("No Such Jet,4500,3.4,2,0,0", r"line 3, column type \(A\): 'No Such Jet'"),
+    # physically fine, outside the model's condition space: named the same way
+    ("A320neo,4500,3.4,2,0,40", r"line 3, column roll_deg \(F\): '40': roll = 40 deg is "
+                                "outside the configured range"),
+    ("Mavic 3,5000,3.4,2,0,0", r"line 3, column range_m \(B\): '5000': range_m = 5000 m"),
 ])
 def test_bad_rows_are_refused_by_line_column_and_value(model, tmp_path, row, words):
     """The line as an editor shows it (the header is line 1), the column by its name and its

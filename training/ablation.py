@@ -77,9 +77,10 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
         fresh = protocol.score(protocol.untrained(model, run / "untrained", seed=seed),
                                test_pairs, floor=False, pointflow=False)["mean"]
         fd = fd_depth(encoder, model, data_dir, n_pairs=max(pairs, 400), seed=seed)
-        log = (run / "log.csv").read_text().splitlines()
+        from apcg_core.io.csv_table import read_csv
+        log = read_csv(run / "log.csv", required=("seconds",), what="training log").rows
         rows.append({"variant": name, "norm": True, **v, "steps": tr.step,
-                     "train_seconds": float(log[-1].split(",")[-1]) if len(log) > 1 else wall,
+                     "train_seconds": log[-1].float("seconds") if log else wall,
                      "fd_depth": fd["fd_depth"], "fd_depth_real_halves":
                      fd["fd_depth_real_halves"], "tau": sweep["best"],
                      "mmd": bands["mmd"], "jsd": bands["jsd"],

@@ -99,10 +99,12 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     if (run / "train_config.json").exists():
         shutil.copy(run / "train_config.json", out / "train_config.json")
     if (run / "log.csv").exists():  # the log up to the exported step
-        lines = (run / "log.csv").read_text().splitlines(keepends=True)
-        rows = [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) <= st["step"]]
-        keep = [ln for ln in rows[:-1] if int(ln.split(",", 1)[0]) % log_every == 0] + rows[-1:]
-        (out / "log.csv").write_text("".join([lines[0], *keep]))
+        from apcg_core.io.csv_table import read_csv
+        table = read_csv(run / "log.csv", required=("step",), what="training log")
+        rows = [r for r in table if r.int("step") <= st["step"]]
+        keep = [r for r in rows[:-1] if r.int("step") % log_every == 0] + rows[-1:]
+        (out / "log.csv").write_text("".join(table.lines[i - 1].rstrip("\r\n") + "\n" for i in
+                                             [table.header_line, *(r.line for r in keep)]))
         if log_every > 1:
             meta_path = out / "model.json"
             meta_now = json.loads(meta_path.read_text())

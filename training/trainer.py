@@ -247,8 +247,9 @@ class Trainer:
                 self.ema_since = self.step
         log = self.run / "log.csv"
         if log.exists() and self.rank == 0:  # drop rows past the checkpoint: they are redone
-            with open(log) as f:
-                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
+            from apcg_core.io.csv_table import read_csv
+            table = read_csv(log, required=LOG_FIELDS, what="training log")
+            rows = [{k: r[k] for k in LOG_FIELDS} for r in table if r.int("step") <= self.step]
             self._write_log_rows(rows, mode="w")
             if rows:  # the log's clock is training time summed over all runs
                 self.seconds_before = float(rows[-1]["seconds"])

@@ -157,8 +157,10 @@ def conditions_from_csv(path, model: ModelTypes) -> Conditions:
     conditions.csv (its ``type_name`` column) is read as it is. The reading and its errors
     (file, line, column, value): :func:`apcg_core.condition.read_conditions_csv`."""
     from ..condition import read_conditions_csv
-    names, pose = read_conditions_csv(path, model.type_name)
-    return model.conditions(names, pose)
+    names, pose, where = read_conditions_csv(path, model.type_name)
+    conditions = model.conditions(names, pose)
+    model.space.check(conditions.table, where=where)  # the model's ranges, by line and column
+    return conditions
 
 
 __all__ = ["NOISE_DIM", "RUNTIMES", "Conditions", "GenerationResult", "ModelTypes",
