@@ -55,6 +55,8 @@ RULES: dict[str, Rule] = {
     "number": ANY,  # a figure number: argparse's choices check it
     "seed": SEED,
     # amounts of time and training
+    "connect_timeout_s": Rule("a number of seconds > 0 and <= 3600", lo=0, hi=3600,
+                              lo_open=True),
     "epochs": POSITIVE, "hours": POSITIVE, "minutes": POSITIVE, "max_minutes": POSITIVE,
     "width": Rule("a number > 0 and <= 4 (1.0 = the paper's width)", lo=0, hi=4,
                   lo_open=True),

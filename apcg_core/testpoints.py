@@ -31,6 +31,9 @@ POINTS = {
     "build.workers-starting": "dataset build, in the build's own process: the local pool or "
                               "the local Dask cluster has been started, its workers are "
                               "booting, Ctrl-C is blocked until the point is passed",
+    "build.shard-computing": "dataset build, wherever a shard is computed: a shard task has "
+                             "started (a cluster's scheduler sees it executing), nothing "
+                             "written yet",
     "build.shard-written": "dataset build, wherever a shard is computed (this process, a pool "
                            "or cluster worker): a shard's file has just been written whole",
     "generate.block-written": "generate: a block of clouds has just been written to the "

@@ -113,11 +113,12 @@ class BuildInterrupted(KeyboardInterrupt):
 def build_dataset(config: str | dict, out_dir, backend: str | None = None, workers: int = 1,
                   shard_spec: str | None = None, progress: bool = True,
                   tasks_per_process: int | None = None, catalog=None, engine: str = "local",
-                  address: str | None = None) -> dict:
+                  address: str | None = None, connect_timeout_s: float | None = None) -> dict:
     """Build (or resume) the dataset of ``config`` in ``out_dir``; returns a summary.
 
     ``engine`` says where the shards are computed (``engine.ENGINES``: this machine, or a
-    Dask cluster at ``address``); the bytes written do not depend on it."""
+    Dask cluster at ``address``, which must answer within ``connect_timeout_s``); the bytes
+    written do not depend on it."""
     from apcg_core.catalog.catalog import default_catalog
     catalog = catalog or default_catalog()
     cfg = load_config(config) if isinstance(config, str) else dict(config)
@@ -131,7 +132,7 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
     out = Path(out_dir)
     runner = get_engine(engine)
     settings = RunSettings(workers=workers, address=address, tasks_per_process=tasks_per_process,
-                           output=str(out.resolve()))
+                           output=str(out.resolve()), connect_timeout_s=connect_timeout_s)
     runner.check(settings)  # before anything is written: a bad address costs nothing
     (out / "shards").mkdir(parents=True, exist_ok=True)
     # One live build per shard spec and directory; parts of one build run side by side.

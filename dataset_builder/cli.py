@@ -166,6 +166,9 @@ def register_dataset(sub) -> None:
                    help="a running cluster's scheduler (e.g. tcp://head-node:8786) for "
                         "--engine dask; the output directory must be shared storage, mounted "
                         "at the same path on every machine")
+    b.add_argument("--connect-timeout-s", type=float, default=None, metavar="S",
+                   help="with --address: give up when no Dask scheduler answers there within "
+                        "S seconds (default 10)")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     b.set_defaults(func=_run_build)
     i = dsub.add_parser("info", help="describe a dataset directory")
@@ -185,7 +188,7 @@ def _run_build(args) -> int:
                                 workers=args.workers, shard_spec=args.shard,
                                 progress=not args.no_progress,
                                 tasks_per_process=args.tasks_per_process, engine=args.engine,
-                                address=args.address)
+                                address=args.address, connect_timeout_s=args.connect_timeout_s)
     except BuildInterrupted as stop:  # Ctrl-C among the shards: say how far it got
         print(f"apcg dataset: {stop}", file=sys.stderr)
         return 130  # as shells do; main() answers a Ctrl-C before the shards alike

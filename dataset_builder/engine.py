@@ -23,6 +23,7 @@ import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import CancelledError
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,6 +44,7 @@ class RunSettings:
     address: str | None = None  # a running cluster's scheduler; None: start one here
     tasks_per_process: int | None = None  # as given; None: workers live for the whole build
     output: str = ""  # the dataset directory, which a cluster's workers must see too
+    connect_timeout_s: float | None = None  # as given; None: CONNECT_TIMEOUT_S
 
     @property
     def writers_are_local(self) -> bool:
@@ -77,6 +79,7 @@ class LocalEngine:
         if settings.address:
             raise InputError(f"--address needs a cluster engine: --engine "
                              f"{' or '.join(n for n in ENGINES if n != self.name)}")
+        _check_timeout_needs_address(settings)
 
     @contextlib.contextmanager
     def start(self, settings: RunSettings) -> Iterator[Runner]:
@@ -99,7 +102,14 @@ class LocalEngine:
 
 DASK_PIP = "pip install 'apcg[engine]' (or: pip install 'dask[distributed]')"
 DASK_PORT = 8786  # the port `dask scheduler` listens on by default
-CONNECT_TIMEOUT_S = 10
+CONNECT_TIMEOUT_S = 10.0  # --connect-timeout-s's default
+
+
+def _check_timeout_needs_address(settings: RunSettings) -> None:
+    if settings.connect_timeout_s is not None and not settings.address:
+        raise InputError(f"--connect-timeout-s {settings.connect_timeout_s:g} bounds the "
+                         "connection to a running cluster's scheduler: it needs --engine dask "
+                         "--address ADDR")
 
 
 class DaskEngine:
@@ -120,14 +130,17 @@ class DaskEngine:
         if settings.address and settings.workers > 1:
             raise InputError("--workers sets the size of a local cluster; with --address the "
                              "cluster's own workers build the shards: leave --workers out")
+        _check_timeout_needs_address(settings)
         if settings.address:
-            _check_reachable(settings.address)
+            _check_scheduler(settings.address, _connect_timeout(settings))
 
     @contextlib.contextmanager
     def start(self, settings: RunSettings) -> Iterator[Runner]:
         distributed = _import_distributed()
         with _dask_client(distributed, settings) as client:
-            yield lambda fn, tasks: _dask_results(distributed, client, fn, tasks)
+            where = (f"the Dask scheduler at {settings.address}" if settings.address
+                     else "the local Dask cluster")
+            yield lambda fn, tasks: _dask_results(distributed, client, fn, tasks, where)
             if settings.address:  # a long-lived cluster: free the workers' cached meshes
                 with contextlib.suppress(Exception):
                     client.run(close_simulators)
@@ -168,22 +181,63 @@ def _host_port(address: str) -> tuple[str, int]:
     return host, int(port)
 
 
-def _check_reachable(address: str) -> None:
-    """Fail in seconds, before anything is written, when nothing listens at ``address``."""
+def _connect_timeout(settings: RunSettings) -> float:
+    return settings.connect_timeout_s or CONNECT_TIMEOUT_S
+
+
+def _check_scheduler(address: str, timeout_s: float) -> None:
+    """Fail in seconds, before anything is written, unless a Dask scheduler answers at
+    ``address``: nothing listening, a silent server, or a server of another protocol (an HTTP
+    server, a database) get one line naming the address, never a wait without end."""
+    import asyncio
+
+    from distributed import Security
+    from distributed.comm import connect
+
     host, port = _host_port(address)
-    try:
-        socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S).close()
+    fix = (f"start one with `dask scheduler` on that machine (it listens on port {DASK_PORT}), "
+           "or leave out --address to start a local cluster")
+    try:  # first the plain socket: "refused" or "no route" say more than Dask's wrapping
+        socket.create_connection((host, port), timeout=timeout_s).close()
     except OSError as exc:
         raise InputError(f"cannot reach a Dask scheduler at --address {address} ({exc}); "
-                         f"start one with `dask scheduler` on that machine, or leave out "
-                         f"--address to start a local cluster") from None
+                         f"{fix}") from None
+
+    async def identity():
+        # Dask's own limit later than ours, so that a silent server is told as one
+        comm = await connect(address, timeout=2 * timeout_s,
+                             **Security().get_connection_args("client"))
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    try:
+        reply = asyncio.run(asyncio.wait_for(identity(), timeout_s))
+    except TimeoutError:
+        raise InputError(f"nothing at --address {address} answered as a Dask scheduler within "
+                         f"{timeout_s:g} s (--connect-timeout-s): something else listens on port "
+                         f"{port}, or a scheduler there is too busy to answer; {fix}, or raise "
+                         "--connect-timeout-s") from None
+    except Exception as exc:  # noqa: BLE001 - whatever another protocol makes Dask's comm raise
+        # a network error says what happened; another protocol's bytes read as Dask's frames
+        # give nonsense (an exabyte-sized message), better left out
+        why = f" ({exc})" if isinstance(exc, OSError) else ""
+        raise InputError(f"--address {address} is not a Dask scheduler: what answers there "
+                         f"does not speak Dask's protocol{why}; {fix}") from None
+    kind = reply.get("type") if isinstance(reply, dict) else None
+    if kind != "Scheduler":
+        raise InputError(f"--address {address} is not a Dask scheduler (it answers as "
+                         f"{kind or 'something else'}); {fix}")
 
 
 @contextlib.contextmanager
 def _dask_client(distributed, settings: RunSettings):
     if settings.address:
-        with distributed.Client(settings.address, timeout=f"{CONNECT_TIMEOUT_S}s",
-                                set_as_default=False) as client:
+        with _dask_logs_quiet(), distributed.Client(
+                settings.address, timeout=f"{_connect_timeout(settings)}s",
+                set_as_default=False) as client:
             _check_workers(client, settings)
             yield client
         return
@@ -196,6 +250,23 @@ def _dask_client(distributed, settings: RunSettings):
         client = stack.enter_context(distributed.Client(cluster, set_as_default=False))
         client.register_worker_callbacks(setup=worker_init)
         yield client
+
+
+@contextlib.contextmanager
+def _dask_logs_quiet():
+    """Dask's client logs its own tracebacks on stderr (a lost scheduler, each reconnection
+    tried); what went wrong is said once, in the build's own one line."""
+    # Dask's logging config gives some of its loggers levels of their own
+    logs = [logging.getLogger(name) for name in list(logging.root.manager.loggerDict)
+            if name == "distributed" or name.startswith("distributed.")]
+    levels = [log.level for log in logs]
+    for log in logs:
+        log.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        for log, level in zip(logs, levels, strict=True):
+            log.setLevel(level)
 
 
 @contextlib.contextmanager
@@ -262,7 +333,7 @@ def _file_digest(path: Path) -> str | None:
         return None
 
 
-def _dask_results(distributed, client, fn: Callable, tasks: list) -> Iterator:
+def _dask_results(distributed, client, fn: Callable, tasks: list, where: str) -> Iterator:
     # Named keys: the dashboard shows which shard runs where; the token keeps two builds on
     # one cluster apart. pure=False: a rerun after a crash must run, not be looked up.
     token = uuid.uuid4().hex[:8]
@@ -277,6 +348,13 @@ def _dask_results(distributed, client, fn: Callable, tasks: list) -> Iterator:
                                 "(distributed.scheduler.allowed-failures + 1 times): out of "
                                 "memory? See the workers' logs. Finished shards are kept: run "
                                 "the same command again to resume") from None
+            except CancelledError as exc:  # the scheduler went away, or someone cancelled it
+                raise APCGError(f"shard task {future.key} was cancelled by {where} "
+                                f"({getattr(exc, 'reason', None) or exc}): did the scheduler "
+                                "stop? Finished shards are kept: run the same command again "
+                                "to resume") from None
     finally:
-        # Stopped early (Ctrl-C, an error): unstarted tasks must not run on a shared cluster.
-        client.cancel(futures)
+        # Stopped early (Ctrl-C, an error): unstarted tasks must not run on a shared cluster;
+        # a scheduler that is gone has nothing left to cancel.
+        with contextlib.suppress(Exception):
+            client.cancel(futures)

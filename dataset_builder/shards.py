@@ -125,6 +125,7 @@ def part_suffix() -> str:
 
 def run_task(task: ShardTask) -> tuple[int, int, float]:
     t0 = time.perf_counter()
+    wait_point("build.shard-computing")
     shard = compute_shard(task)
     path = Path(task.path)
     write_atomic(path, shard.to_bytes(), part_suffix=part_suffix())

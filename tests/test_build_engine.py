@@ -96,83 +96,34 @@ def test_engine_build_of_cpu_part_equals_single_process(cpu_reference, tmp_path)
     _assert_same(tmp_path / "ds", cpu_reference)
 
 
-# Loaded into each worker of the test's cluster (`dask worker --preload`): the first shard
-# task still running DELAY_S after it started gets its worker process SIGKILLed, once for the
-# whole cluster (the marker file, created with O_EXCL, says which task and worker).
-KILLER = '''
-import os, signal, threading
-from distributed import WorkerPlugin
-
-MARKER = os.environ["APCG_TEST_KILL_MARKER"]
-DELAY_S = 0.02
-
-
-class KillMidShard(WorkerPlugin):
-    def setup(self, worker):
-        self.worker, self.timer = worker, None
-
-    def transition(self, key, start, finish, **kwargs):
-        if not str(key).startswith("apcg-shard-"):
-            return
-        if finish == "executing" and not os.path.exists(MARKER):
-            self.timer = threading.Timer(DELAY_S, self.kill, args=(key,))
-            self.timer.start()
-        elif start == "executing" and self.timer is not None:
-            self.timer.cancel()  # finished first: try the next one
-
-    def kill(self, key):
-        state = self.worker.state.tasks.get(key)
-        if state is None or state.state != "executing":
-            return
-        try:
-            fd = os.open(MARKER, os.O_WRONLY | os.O_CREAT | os.O_EXCL)
-        except FileExistsError:
-            return
-        os.write(fd, f"{key} {os.getpid()}".encode())
-        os.close(fd)
-        os.kill(os.getpid(), signal.SIGKILL)
-
-
-async def dask_setup(worker):
-    await worker.plugin_add(KillMidShard(), name="kill-mid-shard")
-'''
-
-
 def _dask_cli(*args: str) -> list[str]:
     return [str(Path(sys.executable).with_name("dask")), *args]
 
 
-@pytest.fixture
-def cluster_with_killer(tmp_path, request):
-    """A scheduler and two single-threaded workers (nannies restart a killed one), started as
-    the docs' cluster recipe does; yields (address, marker). The scheduler reruns a task whose
-    worker died ``request.param`` times (Dask's default, 3, when not parametrized)."""
-    killer = tmp_path / "kill_mid_shard.py"
-    killer.write_text(KILLER)
-    marker = tmp_path / "killed"
-    env = {**os.environ, "APCG_TEST_KILL_MARKER": str(marker)}
-    if hasattr(request, "param"):
-        env["DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES"] = str(request.param)
+@contextlib.contextmanager
+def _dask_cluster(tmp_path: Path, env: dict, *worker_args: str):
+    """A `dask scheduler` and `dask worker WORKER_ARGS`, started as the docs' cluster recipe
+    does, each in its own process group (the teardown stops a nanny's workers too), the
+    workers in a directory that is not the build's; yields (address, processes)."""
     scheduler_file = tmp_path / "scheduler.json"
     log = open(tmp_path / "cluster.log", "w")  # noqa: SIM115 - closed below
-    # Each in its own process group, so that the teardown stops a nanny's workers too.
     procs = [subprocess.Popen(_dask_cli("scheduler", "--host", "127.0.0.1", "--port", "0",
                                         "--no-dashboard", "--scheduler-file",
                                         str(scheduler_file)), stdout=log, stderr=log,
                               env=env, start_new_session=True)]
     try:
-        deadline = time.monotonic() + 60
-        while not scheduler_file.exists() and time.monotonic() < deadline:
+        deadline = time.monotonic() + 120
+        while not scheduler_file.exists():
+            assert time.monotonic() < deadline, "no scheduler in 120 s"
             time.sleep(0.05)
         address = json.loads(scheduler_file.read_text())["address"]
-        elsewhere = tmp_path / "workers-cwd"  # not the build's working directory
+        elsewhere = tmp_path / "workers-cwd"
         elsewhere.mkdir()
         procs.append(subprocess.Popen(
-            _dask_cli("worker", address, "--nworkers", "2", "--nthreads", "1",
-                      "--no-dashboard", "--local-directory", str(tmp_path / "scratch"),
-                      "--preload", str(killer)),
+            _dask_cli("worker", address, "--nthreads", "1", "--no-dashboard",
+                      "--local-directory", str(tmp_path / "scratch"), *worker_args),
             stdout=log, stderr=log, env=env, cwd=elsewhere, start_new_session=True))
-        yield address, marker
+        yield address, procs
     finally:
         for p in procs:  # the test is over: no orderly shutdown needed
             with contextlib.suppress(ProcessLookupError):
@@ -189,31 +140,81 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def test_worker_killed_mid_shard_is_redone_byte_identical(cpu_reference, cluster_with_killer,
-                                                          tmp_path):
-    address, marker = cluster_with_killer
-    # -o relative to the build's own working directory, which the workers do not share
-    r = subprocess.run(_build_cmd(Path("ds"), "--engine", "dask", "--address", address),
-                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
-    # the kill happened, to a worker running a shard task, and that process is gone
-    key, pid = marker.read_text().split()
-    assert key.startswith("apcg-shard-") and not _alive(int(pid))
-    _assert_same(tmp_path / "ds", cpu_reference)
+def _kill_a_worker_mid_shard(cmd, hold, cwd=None) -> tuple[subprocess.CompletedProcess, int]:
+    """Run the build ``cmd`` on a cluster whose workers hold at build.shard-computing; SIGKILL
+    the first worker process seen running a shard task there, then let the others go on:
+    (the build's result, the killed pid)."""
+    point = "build.shard-computing"
+    build = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             cwd=cwd)
+    try:
+        pid = hold.wait(point, build)
+        os.kill(pid, signal.SIGKILL)
+        while _alive(pid):  # gone (the nanny reaps it) before the others may finish
+            time.sleep(0.01)
+        hold.release(point)
+        out, err = build.communicate(timeout=300)
+    finally:
+        if build.poll() is None:
+            build.kill()
+            build.wait()
+    return subprocess.CompletedProcess(cmd, build.returncode, out, err), pid
 
 
-@pytest.mark.parametrize("cluster_with_killer", [0], indirect=True)
-def test_without_retries_the_killed_shard_fails_the_build_in_one_line(cluster_with_killer,
-                                                                      tmp_path):
-    # The other side of the test above: the rerun is what saved that build.
-    address, marker = cluster_with_killer
-    r = subprocess.run(_build_cmd(tmp_path / "ds", "--engine", "dask", "--address", address),
-                       capture_output=True, text=True, timeout=300)
-    assert marker.exists()
+@pytest.mark.parametrize("retries", [None, 0], ids=["rerun", "no-retries"])
+def test_a_worker_killed_mid_shard(cpu_reference, tmp_path, hold, retries):
+    """A shard task whose worker dies is run again (Dask's allowed-failures, 3 by default) and
+    the dataset is the single-process one byte for byte; without retries the build fails in
+    one line and writes no manifest."""
+    env = hold.env("build.shard-computing")
+    if retries is not None:
+        env["DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES"] = str(retries)
+    with _dask_cluster(tmp_path, env, "--nworkers", "2") as (address, _):
+        # -o relative to the build's own working directory, which the workers do not share
+        r, pid = _kill_a_worker_mid_shard(
+            _build_cmd(Path("ds"), "--engine", "dask", "--address", address), hold,
+            cwd=tmp_path)
+    assert not _alive(pid)
+    if retries is None:
+        assert r.returncode == 0, r.stderr
+        _assert_same(tmp_path / "ds", cpu_reference)
+        return
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("apcg dataset: error: every worker "
                                                         "that ran shard task apcg-shard-")
     assert not (tmp_path / "ds" / "manifest.json").exists()
+
+
+def test_a_scheduler_lost_mid_build_is_one_line_and_the_build_resumes(demo_reference,
+                                                                       tmp_path, hold):
+    point = "build.shard-written"
+    with _dask_cluster(tmp_path, hold.env(point), "--nworkers", "1") as (address, procs):
+        cmd = _build_cmd(tmp_path / "ds", "--engine", "dask", "--address", address,
+                         config="demo")
+        build = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 text=True)
+        try:
+            hold.wait(point, build)  # a shard written, the worker holding its task
+            os.killpg(procs[0].pid, signal.SIGKILL)  # the scheduler, and nothing else
+            procs[0].wait()
+            hold.release(point)
+            t0 = time.monotonic()
+            _, err = build.communicate(timeout=300)
+            took = time.monotonic() - t0
+        finally:
+            if build.poll() is None:
+                build.kill()
+                build.wait()
+    assert build.returncode == 2 and len(err.strip().splitlines()) == 1, err
+    last = err.strip()
+    assert last.startswith("apcg dataset: error: shard task apcg-shard-") and (
+        f"was cancelled by the Dask scheduler at {address}" in last and
+        "run the same command again to resume" in last), err
+    assert took < 120, took  # Dask's reconnection attempts, then the line: no hang
+    r = subprocess.run(_build_cmd(tmp_path / "ds", config="demo"), capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    _assert_same(tmp_path / "ds", demo_reference)
 
 
 def _ctrl_c_at(cmd, hold, point: str) -> tuple[int, str]:
@@ -287,8 +288,14 @@ def _closed_port() -> int:
     (["--engine", "dask", "--tasks-per-process", "2"], "applies to the local engine only"),
     (["--engine", "dask", "--workers", "2", "--address", "tcp://127.0.0.1:{port}"],
      "with --address the cluster's own workers build the shards"),
+    (["--connect-timeout-s", "5"], "--connect-timeout-s 5 bounds the connection to a running "
+     "cluster's scheduler: it needs --engine dask --address ADDR"),
+    (["--engine", "dask", "--connect-timeout-s", "5"], "it needs --engine dask --address ADDR"),
+    (["--engine", "dask", "--address", "tcp://127.0.0.1:{port}", "--connect-timeout-s", "0"],
+     "--connect-timeout-s 0.0 not accepted: a number of seconds > 0 and <= 3600"),
 ], ids=["unknown", "unreachable", "malformed", "scheme", "no-engine", "tasks-per-process",
-        "workers-and-address"])
+        "workers-and-address", "timeout-without-address", "timeout-local-cluster",
+        "timeout-zero"])
 def test_engine_mistakes_get_one_line_and_write_nothing(tmp_path, extra, says):
     port = _closed_port()
     extra = [e.format(port=port) for e in extra]
@@ -301,6 +308,92 @@ def test_engine_mistakes_get_one_line_and_write_nothing(tmp_path, extra, says):
     assert says.format(port=port) in lines[0]
     assert not (tmp_path / "ds").exists()  # refused before anything was written
     assert time.monotonic() - t0 < 60
+
+
+@contextlib.contextmanager
+def _server(kind: str, tmp_path: Path):
+    """A real server on a free port of this machine that is not a Dask scheduler; yields the
+    port. silent: accepts and never says a word; http: Python's HTTP server; hangs-up: writes
+    a line and closes; dask-worker: a Dask worker (a Dask server, not a scheduler)."""
+    import http.server
+    import threading
+    if kind == "dask-worker":
+        port = _closed_port()
+        with _dask_cluster(tmp_path, dict(os.environ), "--no-nanny", "--host", "127.0.0.1",
+                           "--worker-port", str(port)):
+            deadline = time.monotonic() + 120
+            while True:  # listening once a connection is accepted
+                assert time.monotonic() < deadline, "no worker in 120 s"
+                try:
+                    socket.create_connection(("127.0.0.1", port), timeout=5).close()
+                    break
+                except OSError:
+                    time.sleep(0.05)
+            yield port
+        return
+    if kind == "http":
+        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0),
+                                                 http.server.SimpleHTTPRequestHandler)
+        thread = threading.Thread(target=server.serve_forever, daemon=True)
+        thread.start()
+        try:
+            yield server.server_address[1]
+        finally:
+            server.shutdown()
+            server.server_close()
+        return
+    listener = socket.create_server(("127.0.0.1", 0))
+    held = []
+
+    def serve():
+        while True:
+            try:
+                conn, _ = listener.accept()
+            except OSError:  # closed: the test is over
+                return
+            if kind == "hangs-up":
+                conn.sendall(b"220 mail.example.org ESMTP ready\r\n")
+                conn.close()
+            else:
+                held.append(conn)  # silent: open, and nothing said
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield listener.getsockname()[1]
+    finally:
+        listener.close()
+        for conn in held:
+            conn.close()
+
+
+@pytest.mark.parametrize("kind, timeout_s, says", [
+    ("silent", "2", "nothing at --address tcp://127.0.0.1:{port} answered as a Dask scheduler "
+                    "within 2 s (--connect-timeout-s)"),
+    ("silent", None, "answered as a Dask scheduler within 10 s (--connect-timeout-s)"),
+    ("http", "2", "answered as a Dask scheduler within 2 s"),
+    ("hangs-up", "2", "--address tcp://127.0.0.1:{port} is not a Dask scheduler: what answers "
+                      "there does not speak Dask's protocol"),
+    ("dask-worker", "2", "--address tcp://127.0.0.1:{port} is not a Dask scheduler (it answers "
+                         "as Worker)"),
+], ids=["silent", "silent-default-timeout", "http", "hangs-up", "dask-worker"])
+def test_an_address_where_no_scheduler_answers_fails_in_seconds(tmp_path, kind, timeout_s,
+                                                                 says):
+    with _server(kind, tmp_path) as port:
+        extra = ["--engine", "dask", "--address", f"tcp://127.0.0.1:{port}"]
+        if timeout_s:
+            extra += ["--connect-timeout-s", timeout_s]
+        t0 = time.monotonic()
+        r = subprocess.run(_build_cmd(tmp_path / "ds", *extra, config="demo"),
+                           capture_output=True, text=True, timeout=120)
+        took = time.monotonic() - t0
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("apcg dataset: error: "), r.stderr
+    assert says.format(port=port) in lines[0]
+    assert not (tmp_path / "ds").exists()  # refused before anything was written
+    # the timeout bounds the wait (start-up aside); without it this waited for ever
+    assert took < 60, took
 
 
 def _build_without_dask(out: Path, *extra: str) -> subprocess.CompletedProcess:
