@@ -246,6 +246,21 @@ def test_the_blender_binary_reads_fbx_too(files, monkeypatch, blender_binary):
     _is_test_aircraft(mesh)
 
 
+def test_a_blender_import_past_its_time_is_stopped_with_one_line(files, monkeypatch,
+                                                                 blender_binary):
+    """No import waits for ever on Blender: past $APCG_BLENDER_TIMEOUT_S its process is killed
+    and the file named. (10 ms: Blender's start-up alone takes a hundred times that.)"""
+    monkeypatch.setenv("APCG_BLENDER", blender_binary)
+    monkeypatch.setenv("APCG_BLENDER_TIMEOUT_S", "0.01")
+    with pytest.raises(InputError, match=r"plane_cm\.fbx: Blender did not finish importing it "
+                                         r"within 0\.01 s \(\$APCG_BLENDER_TIMEOUT_S\)"):
+        import_model(files / "plane_cm.fbx", forward="-Y")
+    for bad in ("soon", "0", "-5", "inf", "nan"):
+        monkeypatch.setenv("APCG_BLENDER_TIMEOUT_S", bad)
+        with pytest.raises(InputError, match=f"APCG_BLENDER_TIMEOUT_S '{bad}' not accepted"):
+            import_model(files / "plane_cm.fbx", forward="-Y")
+
+
 def test_format_table_is_one_table():
     assert len(SUFFIXES) == len(set(SUFFIXES))
     for s in (".dae", ".fbx", ".blend", ".usd", ".usda", ".usdc", ".usdz", ".abc", ".glb",

@@ -205,13 +205,38 @@ def blender_command(script: str, args: list[str]) -> list[str]:
             *args]
 
 
+BLENDER_TIMEOUT_ENV = "APCG_BLENDER_TIMEOUT_S"
+BLENDER_TIMEOUT_S = 1800.0  # a large scene imports in minutes; a stuck Blender is stopped
+
+
+def blender_timeout_s() -> float:
+    """How long one Blender import may take: ``$APCG_BLENDER_TIMEOUT_S`` seconds, else 1800."""
+    text = os.environ.get(BLENDER_TIMEOUT_ENV, "").strip()
+    if not text:
+        return BLENDER_TIMEOUT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < float("inf"):
+        raise InputError(f"${BLENDER_TIMEOUT_ENV} {text!r} not accepted: a number of seconds "
+                         "> 0")
+    return value
+
+
 def read_blender(path: Path, patterns=()) -> RawModel:
     """FBX, .blend, USD, Alembic through Blender's importers, in metres, Blender's Z up."""
     script = str(Path(__file__).with_name("blender_import.py"))
     with tempfile.TemporaryDirectory(prefix="apcg-import-") as tmp:
         out = Path(tmp) / "mesh.npz"
         cmd = blender_command(script, [str(path.resolve()), str(out), ",".join(patterns)])
-        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp)
+        limit = blender_timeout_s()
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp, timeout=limit)
+        except subprocess.TimeoutExpired:  # the child is killed: nothing waits for ever
+            raise InputError(f"{path}: Blender did not finish importing it within {limit:g} s "
+                             f"(${BLENDER_TIMEOUT_ENV}); allow more time there, or export it "
+                             "from its own program as glTF or OBJ") from None
         if proc.returncode != 0 or not out.exists():
             lines = [ln for ln in (proc.stderr + proc.stdout).splitlines() if ln.strip()]
             said = [ln for ln in lines if "blender_import:" in ln or "Error" in ln]
