@@ -52,16 +52,23 @@ print(json.dumps({"seconds_per_step": dt, "peak_rss_mb": peak, "peak_gpu_mb": gp
 """
 
 
+MEMORY_TIMEOUT_S = 3600  # a few steps of any preset take seconds to minutes
+
+
 def training_memory(train_cfg: dict, data_dir, steps: int = 5) -> dict:
     """Peak resident memory (MB) and seconds per step while training ``steps`` steps of a
     configuration (TrainConfig as a dict), in a fresh process."""
     with tempfile.TemporaryDirectory() as tmp:
         # the child runs in the repository root: a path relative to the caller's directory
         # would name another place there
-        r = subprocess.run([sys.executable, "-c", MEMORY_CHILD, json.dumps(train_cfg),
-                            str(Path(data_dir).resolve()), str(Path(tmp) / "run"), str(steps)],
-                           cwd=Path(__file__).resolve().parents[1], capture_output=True,
-                           text=True)
+        try:
+            r = subprocess.run([sys.executable, "-c", MEMORY_CHILD, json.dumps(train_cfg),
+                                str(Path(data_dir).resolve()), str(Path(tmp) / "run"),
+                                str(steps)], cwd=Path(__file__).resolve().parents[1],
+                               capture_output=True, text=True, timeout=MEMORY_TIMEOUT_S)
+        except subprocess.TimeoutExpired:  # the child is killed: nothing waits for ever
+            raise RuntimeError(f"memory measurement: {steps} training steps did not finish in "
+                               f"{MEMORY_TIMEOUT_S} s") from None
     if r.returncode:
         raise RuntimeError(f"memory measurement failed: {r.stderr[-1500:]}")
     return json.loads(r.stdout.strip().splitlines()[-1])
