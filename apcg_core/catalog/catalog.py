@@ -361,21 +361,23 @@ class Catalog:
         self._set_types(self._builtin + users)
 
     # --- user types: changes ---------------------------------------------------------------
-    def _conflict(self, name: str, force: bool, users=None) -> AircraftType | None:
+    def _conflict(self, name: str, force: bool, users=None,
+                  given: str | None = None) -> AircraftType | None:
         """The user type that ``name`` would replace (with ``force``), or None; a built-in
         type of that name, or a user type without ``force``, is refused naming it."""
         key = name_key(name)
+        shown = name if given is None else given
         same = next((t for t in self._builtin if name_key(t.name) == key), None)
         if same is not None:
-            raise InputError(f"a built-in type named {same.name!r} already exists (names are "
-                             f"compared ignoring case, spaces, '-' and '_'); choose another "
-                             "--name")
+            raise InputError(f"type name {shown!r}: a built-in type named {same.name!r} "
+                             "already exists (names are compared ignoring case, spaces, '-' "
+                             "and '_'); choose another --name")
         users = self.types[len(self._builtin):] if users is None else users
         same = next((t for t in users if name_key(t.name) == key), None)
         if same is not None and not force:
-            raise InputError(f"a type named {same.name!r} already exists (names are compared "
-                             "ignoring case, spaces, '-' and '_'); choose another --name, or "
-                             f"--force to replace {same.name!r}")
+            raise InputError(f"type name {shown!r}: a type named {same.name!r} already exists "
+                             "(names are compared ignoring case, spaces, '-' and '_'); choose "
+                             f"another --name, or --force to replace {same.name!r}")
         return same
 
     def check_new_type(self, name: str, kind: str, force: bool = False) -> str:
@@ -390,7 +392,7 @@ class Catalog:
                              "no '/' or '\\'")
         if any(unicodedata.category(c) == "Cc" for c in clean):
             raise InputError(f"type name {name!r} not accepted: it holds a control character")
-        self._conflict(clean, force)
+        self._conflict(clean, force, given=name)
         return clean
 
     def add_user_type(self, name: str, mesh: Mesh, kind: str, category: str,
