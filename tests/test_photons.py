@@ -205,8 +205,9 @@ def test_a_cell_straddling_an_edge_returns_both_ranges_in_events_mode():
     far = np.abs(pc.range_m - r_far) < 1.0
     assert near.sum() > 100 and far.sum() > 100 and (near | far).all()
     # points output: one point per cell, at the histogram's peak (the nearer surface here)
-    pts = photon_cloud(hits, [5005.0], [1.0], dataclasses.replace(s, output="points"), LIDAR,
-                       seed=17)
+    # (20,000 pulses: the nearer peak's lead, ~13 % of its count, is then 4-5 sigma)
+    pts = photon_cloud(hits, [5005.0], [1.0],
+                       dataclasses.replace(s, output="points", pulses=20_000), LIDAR, seed=17)
     assert len(pts.range_m) == 1 and abs(pts.range_m[0] - r_near) < 1.0
     assert pts.count[0] >= s.threshold and pts.label[0] == 1
 
@@ -332,3 +333,53 @@ def test_the_stages_binomial_sampler_has_the_binomial_law(n, p):
         k = int(mean)
         pk = math.comb(n, k) * p**k * (1 - p) ** (n - k)
         assert abs((draws == k).mean() - pk) < 4 * math.sqrt(pk * (1 - pk) / len(draws))
+
+
+@pytest.mark.parametrize("background_hz, mean_pe, min_per_window", [
+    (1.5e6, 0.3, 1.0),  # most pulses fire: the chain of binomials over the cell's pieces
+    (1e5, 0.15, 0.0),  # few fire: each fired pulse's piece drawn from the cell's law
+], ids=["chain", "draws"])
+def test_points_of_a_batch_follow_the_law_of_every_pulse_followed(background_hz, mean_pe,
+                                                                   min_per_window):
+    """The points output draws a batch at once (chains of binomials, rare noise peaks); the
+    events output follows every pulse. Reduced to points, both must agree in law: points per
+    window, how often and how strongly the target cell reports, and at which surface."""
+    from apcg_core.sensor.detector import peaks as reduce_to_peaks
+    from apcg_core.sensor.detector import Events
+    n = 300
+    base = sensor(background_hz=background_hz, dark_count_hz=0.0, pulses=40, threshold=3)
+    r = np.tile([5000.0, 5000.0, 5006.0, 5006.0], n)
+    hits = one_cell(r, sub_rays=4, n_samples=n)
+    base = dataclasses.replace(base, pulse_energy_j=energy_for(mean_pe, 5000.0, base, 4))
+    r0 = np.full(n, 5003.0)
+    pts = photon_cloud(hits, r0, np.ones(n), base, LIDAR, seed=23)
+    ev = photon_cloud(hits, r0, np.ones(n), dataclasses.replace(base, output="events"), LIDAR,
+                      seed=24)
+    cells = LIDAR.width * LIDAR.height
+    cell_of = (ev.h.astype(np.int64) - LIDAR.h_min) * LIDAR.width + ev.w - LIDAR.w_min
+    h = reduce_to_peaks(Events(ev.sample * cells + cell_of, np.floor(ev.range_m / LIDAR.r_r
+                                                                      ).astype(np.int64),
+                               ev.label.astype(bool)), 10**7)
+    keep = h.count >= base.threshold
+    ev_sample, ev_cell, ev_count = h.cell[keep] // cells, h.cell[keep] % cells, h.count[keep]
+    ev_range = (h.bin[keep] + 0.5) * LIDAR.r_r
+    target = (0 - LIDAR.h_min) * LIDAR.width + (0 - LIDAR.w_min)
+
+    def z_ok(a, b):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        se = np.sqrt(a.var() / len(a) + b.var() / len(b)) + 1e-12
+        return abs(a.mean() - b.mean()) < 4.5 * se, (a.mean(), b.mean(), se)
+
+    per_window = (np.bincount(pts.sample, minlength=n), np.bincount(ev_sample, minlength=n))
+    ok, why = z_ok(*per_window)
+    assert ok and per_window[0].mean() > min_per_window, why  # noise points too
+    pt_target = (pts.w == 0) & (pts.h == 0)
+    ev_target = ev_cell == target
+    hit = (np.isin(np.arange(n), pts.sample[pt_target]), np.isin(np.arange(n),
+                                                                ev_sample[ev_target]))
+    ok, why = z_ok(*hit)
+    assert ok and 0.1 < hit[0].mean() < 0.98, why
+    ok, why = z_ok(pts.count[pt_target], ev_count[ev_target])
+    assert ok, why
+    ok, why = z_ok(pts.range_m[pt_target] < 5003, ev_range[ev_target] < 5003)
+    assert ok, why

@@ -1,0 +1,309 @@
+"""The ``points`` output of a batch of samples at once (SPEC section 8), for a dead time at
+least the gate (one event per pulse, Geiger mode): the same law as following every pulse
+(``detector.detect`` then ``detector.peaks``), at a cost that follows the signal's bins and
+the rare noise peaks instead of the pulses.
+
+Cells are numbered across the batch (sample * W * H + cell). Every draw is a counter-based
+uniform of (seed, sample id, stream, index within the sample) (``draws``), so a sample's
+points do not depend on its batch.
+
+* Loud cells (those the signal reaches): the gate is cut into pieces, each signal bin and each
+  stretch of noise alone between them. A pulse that has not fired before a piece fires in it
+  with chance 1 - exp(-mu) (mu the piece's mean), so the pulses firing in each piece are a
+  chain of binomials in time order: exactly the multinomial histogram of first events. A
+  signal bin's count is kept; its signal part is binomial with the signal's share of the bin.
+  Events in a stretch of noise are placed in it one by one (the first-arrival law truncated to
+  the stretch).
+* Quiet cells (noise alone): arrivals of a pulse in a (cell, bin) are Poisson(noise), and a
+  bin's count of first events is at most Z, the pulses with an arrival there, which is
+  Binomial(pulses, 1 - exp(-noise)) independently over (cell, bin). Only (cell, bin) with
+  Z >= threshold can hold a point: their number is binomial over all quiet slots and their
+  places uniform; in their cells every other bin's Z is drawn given Z < threshold (most are
+  0); each Z gets a uniform subset of pulses, and a pulse's event is its first arrival.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import draws
+from .detector import SignalBins, _binomial_pmf
+
+
+@dataclass
+class Peaks:
+    """Per cell (batch numbering) with a point: its bin, count and signal count."""
+
+    cell: np.ndarray
+    bin: np.ndarray
+    count: np.ndarray
+    signal_count: np.ndarray
+
+
+def _first_of_groups(key: np.ndarray) -> np.ndarray:
+    first = np.empty(len(key), bool)
+    if len(key):
+        first[0] = True
+        first[1:] = key[1:] != key[:-1]
+    return first
+
+
+def _top(cell, b, count, sig) -> Peaks:
+    """Per cell, the bin with the most counts (the nearest of equal ones)."""
+    order = np.lexsort((b, -count, cell))
+    c = cell[order]
+    top = _first_of_groups(c)
+    return Peaks(c[top], b[order][top], count[order][top], sig[order][top])
+
+
+def _histogram(cell, b) -> Peaks:
+    """Counts per (cell, bin) of noise events, reduced to each cell's peak."""
+    if len(cell) == 0:
+        z = np.zeros(0, np.int64)
+        return Peaks(z, z, z, z)
+    order = np.lexsort((b, cell))
+    cell, b = cell[order], b[order]
+    first = np.flatnonzero(_first_of_groups(cell * (1 << 20) + b))
+    counts = np.diff(np.append(first, len(cell)))
+    return _top(cell[first], b[first], counts, np.zeros(len(first), np.int64))
+
+
+def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, seed: int,
+                ids: np.ndarray, n_cells: int) -> Peaks:
+    cell, b, mean = signal.cell, signal.bin, signal.mean
+    n_sig = len(cell)
+    if n_sig == 0:
+        z = np.zeros(0, np.int64)
+        return Peaks(z, z, z, z)
+    new_cell = _first_of_groups(cell)
+    last = np.empty(n_sig, bool)
+    last[-1] = True
+    last[:-1] = new_cell[1:]
+    prev_end = np.where(new_cell, 0, np.concatenate([[0], b[:-1] + 1]))
+    gap_len = b - prev_end
+    gap = gap_len > 0
+    tail_len = np.where(last, n_bins - 1 - b, 0)
+    tail = tail_len > 0
+    per = gap.astype(np.int64) + 1 + tail
+    end_slot = np.cumsum(per)
+    sig_slot = end_slot - 1 - tail
+    n_pieces = int(end_slot[-1])
+    p_cell = np.repeat(cell, per)
+    p_start = np.empty(n_pieces, np.int64)
+    p_len = np.empty(n_pieces, np.int64)
+    p_sig = np.full(n_pieces, -1, np.int64)
+    p_start[sig_slot], p_len[sig_slot], p_sig[sig_slot] = b, 1, np.arange(n_sig)
+    g = sig_slot[gap] - 1
+    p_start[g], p_len[g] = prev_end[gap], gap_len[gap]
+    t = sig_slot[tail] + 1
+    p_start[t], p_len[t] = b[tail] + 1, tail_len[tail]
+    p_mean = noise * p_len
+    p_mean[sig_slot] += mean
+    sample = p_cell // n_cells
+    p_index = draws.index_within(sample)  # a piece's number within its sample
+    # per cell: its pieces' first-event chances and how many pulses fire at all
+    head_mask = _first_of_groups(p_cell)
+    heads = np.flatnonzero(head_mask)
+    counts = np.diff(np.append(heads, n_pieces))
+    cum = np.cumsum(p_mean)
+    before = cum - p_mean - np.repeat(cum[heads] - p_mean[heads], counts)  # C before a piece
+    total = before[heads + counts - 1] + p_mean[heads + counts - 1]  # C of the whole gate
+    p_first = np.exp(-before) * -np.expm1(-p_mean)  # P(a pulse's event is in this piece)
+    c_sample = sample[heads]
+    c_index = draws.index_within(c_sample)
+    fired_cell = draws.binomial_inverse(
+        np.full(len(heads), pulses), -np.expm1(-total),
+        draws.uniforms(seed, ids[c_sample], draws.FIRED, c_index))
+    # Given F fired pulses, the pieces they fire in are F independent draws of that law: cheap
+    # when F is below the cell's number of pieces. Otherwise the chain of binomials, piece by
+    # piece (a pulse not fired before a piece fires in it with chance 1 - exp(-mu)); both are
+    # the multinomial histogram of first events.
+    by_draws = fired_cell < counts
+    fired = np.zeros(n_pieces, np.int64)
+    # -- by draws: inverse CDF over each cell's pieces (offset by the cell's rank)
+    cells_d = np.flatnonzero(by_draws & (fired_cell > 0))
+    if len(cells_d):
+        in_d = np.repeat(by_draws, counts)
+        piece_d = np.flatnonzero(in_d)
+        rank = np.repeat(np.cumsum(by_draws) - 1, counts)[piece_d]
+        norm = np.repeat(-np.expm1(-total), counts)[piece_d]
+        within = np.cumsum(p_first[piece_d])
+        first_d = _first_of_groups(p_cell[piece_d])
+        starts_d = np.flatnonzero(first_d)
+        within -= np.repeat(within[starts_d] - p_first[piece_d][starts_d],
+                            np.diff(np.append(starts_d, len(piece_d))))
+        key = rank + np.minimum(within / norm, 1.0)
+        ev_cell = np.repeat(cells_d, fired_cell[cells_d])
+        ev_sample = c_sample[ev_cell]
+        ev_u = draws.uniforms(seed, ids[ev_sample], draws.FIRST_PIECE,
+                              draws.index_within(ev_sample))
+        ev_rank = (np.cumsum(by_draws) - 1)[ev_cell]
+        at = np.searchsorted(key, ev_rank + ev_u, side="right")
+        # a draw past a cell's last piece (rounding) stays in that cell
+        at = np.minimum(at, np.searchsorted(key, ev_rank + 1.0, side="left") - 1)
+        fired += np.bincount(piece_d[at], minlength=n_pieces)
+    # -- the chain, for the cells where most pulses fire
+    chain_cells = np.flatnonzero(~by_draws)
+    if len(chain_cells):
+        piece_c = np.flatnonzero(np.repeat(~by_draws, counts))
+        u = draws.uniforms(seed, ids[sample[piece_c]], draws.PIECES,
+                           draws.index_within(sample[piece_c]))
+        pos = draws.index_within(p_cell[piece_c])
+        pos = pos.astype(np.int16 if pos.max() < 32767 else np.int64)
+        by_pos = np.argsort(pos, kind="stable")  # a radix sort on small integers
+        bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))
+        head = np.repeat(np.arange(len(heads)), counts)[piece_c]
+        remaining = fired_cell.copy()  # the chain runs over the pulses that fire at all
+        mu = p_mean[piece_c]
+        rest_all = total[head] - before[piece_c]  # C from the piece's start to the gate's end
+        for j in range(len(bounds) - 1):
+            idx = by_pos[bounds[j]:bounds[j + 1]]
+            left = remaining[head[idx]]
+            live = left > 0
+            if not live.all():
+                idx, left = idx[live], left[live]
+                if len(idx) == 0:
+                    continue
+            # given it fires somewhere after this point, a pulse fires in this piece with
+            # chance (1 - exp(-mu)) / (1 - exp(-(C_total - C_before)))
+            p = -np.expm1(-mu[idx]) / -np.expm1(-rest_all[idx])
+            x = draws.binomial_inverse(left, np.minimum(p, 1.0), u[idx])
+            fired[piece_c[idx]] = x
+            remaining[head[idx]] -= x
+    # signal bins: counts kept, their signal part drawn
+    in_sig = np.flatnonzero((p_sig >= 0) & (fired > 0))
+    k = p_sig[in_sig]
+    share = mean[k] / (mean[k] + noise)
+    sig_count = draws.binomial_inverse(
+        fired[in_sig], share, draws.uniforms(seed, ids[sample[in_sig]], draws.LABELS,
+                                             p_index[in_sig]))
+    # stretches of noise: each event placed by the first-arrival law truncated to its stretch
+    in_gap = np.flatnonzero((p_sig < 0) & (fired > 0))
+    reps = fired[in_gap]
+    e_piece = np.repeat(in_gap, reps)
+    e_index = draws.index_within(sample[e_piece])
+    uu = draws.uniforms(seed, ids[sample[e_piece]], draws.STRETCH, e_index)
+    e_len = p_len[e_piece]
+    if noise > 0:
+        off = np.floor(-np.log1p(-uu * -np.expm1(-noise * e_len)) / noise).astype(np.int64)
+    else:
+        off = np.zeros(len(uu), np.int64)
+    gaps = _histogram(p_cell[e_piece], p_start[e_piece] + np.minimum(off, e_len - 1))
+    return _top(np.concatenate([p_cell[in_sig], gaps.cell]),
+                np.concatenate([p_start[in_sig], gaps.bin]),
+                np.concatenate([fired[in_sig], gaps.count]),
+                np.concatenate([sig_count, gaps.signal_count]))
+
+
+def _distinct(seed, ids, stream, sample, group, limit) -> np.ndarray:
+    """For each element (grouped by sample), an integer uniform in [0, limit) distinct from
+    the others of its ``group`` (a sample, or a slot within one): drawn, and a repeat drawn
+    again with the sample's next indices. Depends only on each sample's own elements."""
+    n = len(sample)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    limit = np.broadcast_to(np.asarray(limit, np.int64), (n,))
+    value = np.minimum(np.floor(draws.uniforms(seed, ids[sample], stream,
+                                               draws.index_within(sample)) * limit)
+                       .astype(np.int64), limit - 1)
+    used = np.bincount(sample, minlength=len(ids))  # indices drawn so far, per sample
+    while True:
+        order = np.lexsort((np.arange(n), value, group))
+        g, v = group[order], value[order]
+        dup = np.sort(order[np.flatnonzero((g[1:] == g[:-1]) & (v[1:] == v[:-1])) + 1])
+        if len(dup) == 0:
+            return value
+        ds = sample[dup]
+        fresh = used[ds] + draws.index_within(ds)
+        u = draws.uniforms(seed, ids[ds], stream, fresh)
+        value[dup] = np.minimum(np.floor(u * limit[dup]).astype(np.int64), limit[dup] - 1)
+        used += np.bincount(ds, minlength=len(ids))
+
+
+def _quiet_peaks(n_quiet: np.ndarray, loud_global: np.ndarray, n_cells: int, n_bins: int,
+                 noise: float, pulses: int, threshold: int, seed: int,
+                 ids: np.ndarray) -> Peaks:
+    z0 = np.zeros(0, np.int64)
+    n = len(n_quiet)
+    alpha = float(-np.expm1(-noise))
+    pmf = _binomial_pmf(pulses, alpha)
+    heavy = float(pmf[threshold:].sum())
+    if heavy <= 0.0:
+        return Peaks(z0, z0, z0, z0)
+    slots = n_quiet * n_bins
+    k = draws.binomial_inverse(slots, np.full(n, heavy),
+                               draws.uniforms(seed, ids, draws.QUIET_COUNT, np.zeros(n)))
+    sample = np.repeat(np.arange(n), k)
+    if len(sample) == 0:
+        return Peaks(z0, z0, z0, z0)
+    slot = _distinct(seed, ids, draws.QUIET_SLOT, sample, sample, slots[sample])
+    # heavy Z from its law truncated to >= threshold
+    cdf = np.cumsum(pmf[threshold:])
+    cdf /= cdf[-1]
+    zu = draws.uniforms(seed, ids[sample], draws.QUIET_Z, draws.index_within(sample))
+    z_heavy = threshold + np.minimum(np.searchsorted(cdf, zu, side="right"), len(cdf) - 1)
+    # the quiet cells holding them (per sample, quiet numbering), and the light bins there
+    q_cell = slot // n_bins
+    key = sample * n_cells + q_cell
+    cells, first = np.unique(key, return_index=True)
+    c_sample = sample[first]
+    light = float(pmf[1:threshold].sum()) / float(pmf[:threshold].sum())
+    per_sample_cells = np.bincount(c_sample, minlength=n)
+    light_slots = per_sample_cells * n_bins
+    m = draws.binomial_inverse(light_slots, np.full(n, light),
+                               draws.uniforms(seed, ids, draws.LIGHT_COUNT, np.zeros(n)))
+    l_sample = np.repeat(np.arange(n), m)
+    l_pos = _distinct(seed, ids, draws.LIGHT_SLOT, l_sample, l_sample, light_slots[l_sample])
+    c_offset = np.concatenate([[0], np.cumsum(per_sample_cells)])
+    l_key = cells[c_offset[l_sample] + l_pos // n_bins]
+    l_bin = l_pos % n_bins
+    h_key, h_bin = key, slot % n_bins
+    # a light slot where a heavy one already is: the heavy one's Z stands
+    taken = np.isin(l_key * n_bins + l_bin, h_key * n_bins + h_bin)
+    l_key, l_bin, l_sample = l_key[~taken], l_bin[~taken], l_sample[~taken]
+    lcdf = np.cumsum(pmf[1:threshold])
+    lcdf /= lcdf[-1] if len(lcdf) and lcdf[-1] > 0 else 1.0
+    lu = draws.uniforms(seed, ids[l_sample], draws.LIGHT_Z, draws.index_within(l_sample))
+    z_light = 1 + np.minimum(np.searchsorted(lcdf, lu, side="right"), max(len(lcdf) - 1, 0))
+    all_key = np.concatenate([h_key, l_key])
+    all_bin = np.concatenate([h_bin, l_bin])
+    all_z = np.concatenate([z_heavy, z_light])
+    # each Z: a uniform subset of the pulses
+    arr_slot = np.repeat(np.arange(len(all_key)), all_z)
+    arr_sample = all_key[arr_slot] // n_cells
+    order = np.argsort(arr_sample, kind="stable")
+    arr_slot, arr_sample = arr_slot[order], arr_sample[order]
+    pulse = _distinct(seed, ids, draws.PULSE, arr_sample, arr_slot, pulses)
+    a_key, a_bin = all_key[arr_slot], all_bin[arr_slot]
+    # a pulse's event is its first arrival
+    order = np.lexsort((a_bin, pulse, a_key))
+    a_key, a_bin, pulse = a_key[order], a_bin[order], pulse[order]
+    first = _first_of_groups(a_key * (pulses + 1) + pulse)
+    hist = _histogram(a_key[first], a_bin[first])
+    keep = hist.count >= threshold
+    # back from quiet numbering to the window's cells
+    s = hist.cell[keep] // n_cells
+    j = hist.cell[keep] % n_cells
+    quiet_before = s * n_cells - np.searchsorted(loud_global, s * n_cells)
+    gaps = loud_global - np.arange(len(loud_global))
+    jj = quiet_before + j
+    cell = jj + np.searchsorted(gaps, jj, side="right")
+    return Peaks(cell, hist.bin[keep], hist.count[keep], np.zeros(int(keep.sum()), np.int64))
+
+
+def batch_points(signal: SignalBins, n_samples: int, n_cells: int, n_bins: int, noise: float,
+                 pulses: int, threshold: int, seed: int, ids: np.ndarray) -> Peaks:
+    """Every point (peak bin reaching ``threshold``) of a batch: ``signal`` in batch cell
+    numbering, sorted by cell and bin."""
+    loud = _loud_peaks(signal, n_bins, noise, pulses, seed, ids, n_cells)
+    loud_global = np.unique(signal.cell)
+    n_quiet = n_cells - np.bincount(loud_global // n_cells, minlength=n_samples)
+    quiet = _quiet_peaks(n_quiet, loud_global, n_cells, n_bins, noise, pulses, threshold, seed,
+                         ids)
+    cell = np.concatenate([loud.cell, quiet.cell])
+    keep = np.concatenate([loud.count, quiet.count]) >= threshold
+    order = np.argsort(cell[keep], kind="stable")
+    return Peaks(*(np.concatenate([getattr(loud, f), getattr(quiet, f)])[keep][order]
+                   for f in ("cell", "bin", "count", "signal_count")))
