@@ -245,7 +245,7 @@ def test_points_carry_counts_and_labels_and_noise_points_appear_outside_the_targ
     assert (pc.count >= 2).all() and (pc.pulse == -1).all()
 
 
-# --- seeds ------------------------------------------------------------------------------------------
+# --- seeds ---------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("output", ["points", "events"])
 def test_a_samples_photons_do_not_depend_on_its_batch(output):
@@ -265,7 +265,7 @@ def test_a_samples_photons_do_not_depend_on_its_batch(output):
                 and np.array_equal(both.range_m, other.range_m))
 
 
-# --- bad input --------------------------------------------------------------------------------------
+# --- bad input -----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("key, value", [
     ("pulse_energy_j", -1e-6), ("pulse_energy_j", 0.0), ("optics_efficiency", 1.2),
@@ -344,8 +344,8 @@ def test_points_of_a_batch_follow_the_law_of_every_pulse_followed(background_hz,
     """The points output draws a batch at once (chains of binomials, rare noise peaks); the
     events output follows every pulse. Reduced to points, both must agree in law: points per
     window, how often and how strongly the target cell reports, and at which surface."""
-    from apcg_core.sensor.detector import peaks as reduce_to_peaks
     from apcg_core.sensor.detector import Events
+    from apcg_core.sensor.detector import peaks as reduce_to_peaks
     n = 300
     base = sensor(background_hz=background_hz, dark_count_hz=0.0, pulses=40, threshold=3)
     r = np.tile([5000.0, 5000.0, 5006.0, 5006.0], n)
