@@ -63,7 +63,15 @@ def header_of(plan: Plan, catalog) -> dict:
         "shards": [{"index": s.index, "file": s.file, "split": s.split, "type_code": s.type_code,
                     "n_samples": len(s.rows)} for s in plan.shards],
         "conditions_file": "conditions.csv",
-    }
+    } | (_photon_header(plan) if plan.sensor else {})
+
+
+def _photon_header(plan: Plan) -> dict:
+    """What a photon dataset's header adds (an ideal one's header has none of it)."""
+    from apcg_core.sensor import reflectivity_of
+    return {"sensor": plan.sensor.to_dict(),
+            "supersample": int(plan.config.get("supersample", 4)),
+            "reflectivity": {t.name: reflectivity_of(t) for t in plan.types}}
 
 
 def conditions_csv(plan: Plan) -> bytes:
@@ -113,7 +121,8 @@ class BuildInterrupted(KeyboardInterrupt):
 def build_dataset(config: str | dict, out_dir, backend: str | None = None, workers: int = 1,
                   shard_spec: str | None = None, progress: bool = True,
                   tasks_per_process: int | None = None, catalog=None, engine: str = "local",
-                  address: str | None = None, connect_timeout_s: float | None = None) -> dict:
+                  address: str | None = None, connect_timeout_s: float | None = None,
+                  sensor: str | None = None) -> dict:
     """Build (or resume) the dataset of ``config`` in ``out_dir``; returns a summary.
 
     ``engine`` says where the shards are computed (``engine.ENGINES``: this machine, or a
@@ -124,7 +133,7 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
     cfg = load_config(config) if isinstance(config, str) else dict(config)
     if backend:
         check_backend(backend)
-    plan = make_plan(cfg, catalog, backend)
+    plan = make_plan(cfg, catalog, backend, sensor)
     check_backend(plan.config["backend"])
     if not isinstance(workers, int) or workers < 1:
         raise InputError(f"--workers must be an integer >= 1, got {workers!r}")
@@ -218,9 +227,11 @@ def _task(plan: Plan, catalog, s: ShardPlan, out: Path) -> ShardTask:
                      depth_length_m=catalog.depth_length_m(t), rows=s.rows, table=table,
                      nu=plan.space.encode(table), backend=plan.config["backend"],
                      quantize=bool(plan.config.get("quantize", True)),
-                     supersample=int(plan.config.get("supersample", 1)),
+                     supersample=int(plan.config.get("supersample", 4 if plan.sensor else 1)),
                      fine_cloud_points=int(plan.config.get("fine_cloud_points", 10_000)),
-                     lidar=plan.lidar.to_dict())
+                     lidar=plan.lidar.to_dict(),
+                     sensor=plan.sensor.to_dict() if plan.sensor else None,
+                     seed=int(plan.config.get("seed", 0)))
 
 
 def dataset_info(directory, verify: bool = False, require_complete: bool = False) -> dict:

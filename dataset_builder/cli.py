@@ -153,6 +153,10 @@ def register_dataset(sub) -> None:
     add_output(b, "-o", "--output", kind=DIRECTORY, required=True, help="dataset directory",
                files=DATASET_FILES, record=DATASET_RECORD)
     b.add_argument("--backend", choices=BACKENDS, help="override the config's backend")
+    b.add_argument("--sensor", metavar="PRESET|FILE.toml",
+                   help="override the config's sensor (SPEC section 8): store what that "
+                        "single-photon lidar records, with labels; default the config's, "
+                        "else the ideal standard cloud")
     b.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     b.add_argument("--shard", metavar="I/N",
                    help="build only shards with index %% N == I (0 <= I < N), for job arrays")
@@ -188,7 +192,8 @@ def _run_build(args) -> int:
                                 workers=args.workers, shard_spec=args.shard,
                                 progress=not args.no_progress,
                                 tasks_per_process=args.tasks_per_process, engine=args.engine,
-                                address=args.address, connect_timeout_s=args.connect_timeout_s)
+                                address=args.address, connect_timeout_s=args.connect_timeout_s,
+                                sensor=args.sensor)
     except BuildInterrupted as stop:  # Ctrl-C among the shards: say how far it got
         print(f"apcg dataset: {stop}", file=sys.stderr)
         return 130  # as shells do; main() answers a Ctrl-C before the shards alike
