@@ -186,3 +186,18 @@ def test_an_ideal_sensor_config_builds_the_ideal_dataset(tmp_path):
     a = {k: v for k, v in _files(tmp_path / "a").items() if k.startswith("shards/")}
     b = {k: v for k, v in _files(tmp_path / "b").items() if k.startswith("shards/")}
     assert a == b and len(a) == 9
+
+
+def test_ctrl_c_in_a_photon_build_then_the_same_command_ends_the_same_bytes(
+        photon_reference, photon_config, tmp_path, hold):
+    from test_build_engine import _ctrl_c_at
+    out = tmp_path / "ds"
+    cmd = [sys.executable, "-m", "apcg_core.cli", "dataset", "build", "--config",
+           str(photon_config), "-o", str(out), "--no-progress"]
+    rc, err = _ctrl_c_at(cmd, hold, "build.shard-written")
+    assert rc == 130 and "Traceback" not in err, err
+    assert 1 <= len(list((out / "shards").glob("*.npz"))) < 9
+    assert not (out / "manifest.json").exists()
+    r = _build(photon_config, out)
+    assert r.returncode == 0, r.stderr
+    assert _files(out) == photon_reference
