@@ -84,18 +84,63 @@ def _pose_meta(pose: dict) -> dict:
         "azimuth_deg": math.degrees(pose["azimuth"])}
 
 
-def scan_target(target, backend: str = "blender", quantize: bool = True, supersample: int = 1,
-                occlusion: bool = True, simulator=None, name: str | None = None):
-    """The lidar's view of one target as a new cloud object (``None`` if nothing is seen)."""
-    from dataset_builder.simulate import Simulator
+def sensor_of(lidar):
+    """The lidar object's sensor (its panel's Sensor: a preset or a TOML file), None for the
+    ideal lidar."""
+    from apcg_core.sensor import load_sensor
+    ref = getattr(getattr(lidar, "apcg_lidar", None), "sensor", "") or "ideal"
+    return load_sensor(ref)
+
+
+def reflectivity_of_target(target) -> float:
+    """A target's reflectivity: its own ``apcg_reflectivity`` when set, else its catalog
+    type's (SPEC section 8), else the default for an unknown category."""
+    from apcg_core.sensor.reflectivity import (
+        DEFAULT_REFLECTIVITY,
+        check_reflectivity,
+        reflectivity_of,
+    )
+    if "apcg_reflectivity" in target:
+        return check_reflectivity(target["apcg_reflectivity"],
+                                  f"apcg_reflectivity of {target.name!r}")
+    from apcg_core.catalog.catalog import default_catalog
+    try:
+        return reflectivity_of(default_catalog().get(str(target.get(TYPE_KEY, ""))))
+    except InputError:
+        return DEFAULT_REFLECTIVITY
+
+
+def scan_target(target, backend: str = "blender", quantize: bool = True,
+                supersample: int | None = None, occlusion: bool = True, simulator=None,
+                name: str | None = None, sensor="lidar", seed: int = 0):
+    """The lidar's view of one target as a new cloud object (``None`` if nothing is seen).
+
+    ``sensor``: "lidar" (the lidar object's own, default), None / "ideal", a preset, a TOML
+    file or a SensorParams; with one, the cloud is what that single-photon lidar records
+    (SPEC section 8), its points labelled signal / noise, the draws seeded by ``seed``."""
+    from apcg_core.sensor import SensorParams, load_sensor, to_cloud
+    from dataset_builder.simulate import SimResult, Simulator
     lidar = lidar_of(target)
     params = lidar_params(lidar)
+    if isinstance(sensor, str) and sensor == "lidar":
+        sensor = sensor_of(lidar)
+    elif not isinstance(sensor, SensorParams):
+        sensor = load_sensor(sensor)
     table = simulator_row(target)
     pose = pose_of(target)
     own = simulator is None
-    sim = simulator or Simulator(backend, params, quantize=quantize, supersample=supersample)
+    k = supersample or (4 if sensor else 1)
+    sim = simulator or Simulator(backend, params, quantize=quantize, supersample=k)
     try:
-        res = sim.simulate(body_mesh(target), table, key=("blender-object", target.name))
+        key = ("blender-object", target.name)
+        if sensor is not None:
+            cells, clipped, n_rays = sim.photon_cells(
+                body_mesh(target), table, sensor, reflectivity_of_target(target), seed,
+                key=key)
+            res = SimResult(to_cloud(cells, table[:, 2], params), 1, clipped, n_rays,
+                            sim.backend)
+        else:
+            res = sim.simulate(body_mesh(target), table, key=key)
     finally:
         if own:
             sim.close()
@@ -110,25 +155,36 @@ def scan_target(target, backend: str = "blender", quantize: bool = True, supersa
             "quantized": sim.quantize, "supersample": sim.supersample,
             "lidar": params.to_dict(), "depth_length_m": float(target.get(LENGTH_KEY, 0.0)),
             "clipped": bool(res.clipped[0]), "occluded_points": hidden}
+    if sensor is not None:
+        meta.update(sensor=sensor.to_dict(), seed=seed,
+                    reflectivity=reflectivity_of_target(target))
     return cloud_object(cloud, name or f"{target.name} scan", lidar=lidar, source="scan",
                         r0=pose["range_m"], beta0=pose["elevation"], azimuth=pose["azimuth"],
                         meta=meta)
 
 
 def scan(lidar, targets=None, backend: str = "blender", quantize: bool = True,
-         supersample: int = 1, occlusion: bool = True, progress=None) -> list:
-    """Scan every target of ``lidar`` (or ``targets``): one cloud object per target.
+         supersample: int | None = None, occlusion: bool = True, progress=None,
+         sensor="lidar", seed: int = 0) -> list:
+    """Scan every target of ``lidar`` (or ``targets``): one cloud object per target, with the
+    lidar's sensor unless ``sensor`` says otherwise (see :func:`scan_target`).
 
     ``progress(i, n)`` is called after each target; returning False stops early."""
+    from apcg_core.sensor import SensorParams, load_sensor
     from dataset_builder.simulate import Simulator
     targets = _lidar_and_targets(lidar, targets)
+    if isinstance(sensor, str) and sensor == "lidar":
+        sensor = sensor_of(lidar_of(targets[0]))
+    elif not isinstance(sensor, SensorParams):
+        sensor = load_sensor(sensor)
     out = []
     with Simulator(backend, lidar_params(lidar_of(targets[0])), quantize=quantize,
-                   supersample=supersample) as sim:
+                   supersample=supersample or (4 if sensor else 1)) as sim:
         for i, t in enumerate(targets):
             if lidar_params(lidar_of(t)) != sim.lidar:
                 raise InputError("targets of one scan must share a lidar's parameters")
-            out.append(scan_target(t, occlusion=occlusion, simulator=sim))
+            out.append(scan_target(t, occlusion=occlusion, simulator=sim, sensor=sensor,
+                                   seed=seed))
             if progress is not None and progress(i + 1, len(targets)) is False:
                 break
     return out

@@ -17,7 +17,7 @@ import re
 import bpy
 import numpy as np
 
-from apcg_core.cloud import PointCloud
+from apcg_core.cloud import PHOTON_FIELDS, PointCloud
 from apcg_core.errors import InputError
 from apcg_core.frames import lidar_local_to_observation, observation_to_lidar_local
 from apcg_core.io.clouds import read_cloud_attributes, write_cloud
@@ -25,6 +25,8 @@ from apcg_core.io.clouds import read_cloud_attributes, write_cloud
 CLOUD_KEY = "apcg_cloud"  # JSON: source, r0, beta0, azimuth, origin (lidar-local, m), meta
 GROUP_NAME = "APCG Points"
 MATERIAL_NAME = "APCG Range"
+PHOTON_GROUP_NAME = "APCG Photon Points"
+PHOTON_MATERIAL_NAME = "APCG Signal / Noise"
 SOURCES = {"scan": 0, "generated": 1, "imported": 2}
 
 
@@ -66,20 +68,31 @@ def _group_output(tree, name: str, socket_type: str) -> None:
 
 def range_material():
     """Emission coloured by the per-point ``range_norm`` attribute (near: yellow, far: blue)."""
-    mat = bpy.data.materials.get(MATERIAL_NAME)
+    return _ramp_material(MATERIAL_NAME, "range_norm", (1.0, 0.85, 0.1, 1.0),
+                          (0.05, 0.25, 1.0, 1.0), (1.0, 0.6, 0.1, 1.0))
+
+
+def photon_material():
+    """Emission coloured by a photon cloud's ``label`` (noise 0: red, signal 1: cyan)."""
+    return _ramp_material(PHOTON_MATERIAL_NAME, "label", (1.0, 0.12, 0.05, 1.0),
+                          (0.1, 0.9, 1.0, 1.0), (0.1, 0.9, 1.0, 1.0))
+
+
+def _ramp_material(name: str, attribute: str, low, high, solid):
+    mat = bpy.data.materials.get(name)
     if mat is not None:
         return mat
-    mat = bpy.data.materials.new(MATERIAL_NAME)
+    mat = bpy.data.materials.new(name)
     if mat.node_tree is None or bpy.app.version < (5, 0, 0):  # 5.0: always node-based
         mat.use_nodes = True
     nt = mat.node_tree
     nt.nodes.clear()
     attr = nt.nodes.new("ShaderNodeAttribute")
     attr.attribute_type = "GEOMETRY"
-    attr.attribute_name = "range_norm"
+    attr.attribute_name = attribute
     ramp = nt.nodes.new("ShaderNodeValToRGB")
-    ramp.color_ramp.elements[0].color = (1.0, 0.85, 0.1, 1.0)
-    ramp.color_ramp.elements[1].color = (0.05, 0.25, 1.0, 1.0)
+    ramp.color_ramp.elements[0].color = low
+    ramp.color_ramp.elements[1].color = high
     emit = nt.nodes.new("ShaderNodeEmission")
     _socket(emit.inputs, "Strength").default_value = 2.0
     out = nt.nodes.new("ShaderNodeOutputMaterial")
@@ -87,16 +100,18 @@ def range_material():
                  _socket(ramp.inputs, "Fac", "Factor"))
     nt.links.new(_socket(ramp.outputs, "Color"), _socket(emit.inputs, "Color"))
     nt.links.new(_socket(emit.outputs, "Emission"), _socket(out.inputs, "Surface"))
-    mat.diffuse_color = (1.0, 0.6, 0.1, 1.0)  # solid viewport colour
+    mat.diffuse_color = solid  # solid viewport colour
     return mat
 
 
-def points_group():
-    """The one node group every cloud uses: Mesh to Points (radius) + Set Material."""
-    tree = bpy.data.node_groups.get(GROUP_NAME)
+def points_group(photons: bool = False):
+    """The node group every cloud uses: Mesh to Points (radius) + Set Material (range colours;
+    for a photon cloud, signal / noise colours)."""
+    name = PHOTON_GROUP_NAME if photons else GROUP_NAME
+    tree = bpy.data.node_groups.get(name)
     if tree is not None:
         return tree
-    tree = bpy.data.node_groups.new(GROUP_NAME, "GeometryNodeTree")
+    tree = bpy.data.node_groups.new(name, "GeometryNodeTree")
     _group_input(tree, "Geometry", "NodeSocketGeometry")
     _group_input(tree, "Radius", "NodeSocketFloat", 0.1)
     _group_output(tree, "Geometry", "NodeSocketGeometry")
@@ -104,7 +119,8 @@ def points_group():
     gin, gout = nodes.new("NodeGroupInput"), nodes.new("NodeGroupOutput")
     to_points = nodes.new("GeometryNodeMeshToPoints")
     set_mat = nodes.new("GeometryNodeSetMaterial")
-    _socket(set_mat.inputs, "Material").default_value = range_material()
+    material = photon_material() if photons else range_material()
+    _socket(set_mat.inputs, "Material").default_value = material
     links.new(_socket(gin.outputs, "Geometry"), _socket(to_points.inputs, "Mesh"))
     links.new(_socket(gin.outputs, "Radius"), _socket(to_points.inputs, "Radius"))
     links.new(_socket(to_points.outputs, "Points"), _socket(set_mat.inputs, "Geometry"))
@@ -154,11 +170,15 @@ def cloud_object(cloud: PointCloud, name: str, lidar=None, source: str = "scan",
     sample = cloud.sample if cloud.sample is not None else np.zeros(len(local), np.int64)
     _add_attr(me, "sample", "INT", sample.astype(np.int32))
     _add_attr(me, "source", "INT", np.full(len(local), SOURCES[source], np.int32))
+    for field in cloud.photon_fields:  # a photon cloud: label (1 signal, 0 noise), count...
+        _add_attr(me, field, "INT", getattr(cloud, field).astype(np.int32))
+    photons = cloud.label is not None
     me.update()
     obj = bpy.data.objects.new(name, me)
     obj[CLOUD_KEY] = json.dumps({"source": source, "r0": r0, "beta0": float(beta0),
                                  "azimuth": float(azimuth), "origin": origin.tolist(),
-                                 "has_sample": cloud.sample is not None, "meta": meta or {}})
+                                 "has_sample": cloud.sample is not None, "meta": meta or {},
+                                 "photon_fields": cloud.photon_fields})
     (collection or (lidar.users_collection[0] if lidar is not None and lidar.users_collection
                     else bpy.context.scene.collection)).objects.link(obj)
     if lidar is not None:
@@ -166,12 +186,12 @@ def cloud_object(cloud: PointCloud, name: str, lidar=None, source: str = "scan",
         obj.matrix_parent_inverse.identity()
     obj.location = origin
     mod = obj.modifiers.new("APCG points", "NODES")
-    mod.node_group = points_group()
+    mod.node_group = points_group(photons)
     if radius is None:  # about half a cell across at the cloud's range
         cell = math.radians((meta or {}).get("lidar", {}).get("r_alpha_deg", 0.004))
         radius = max(0.45 * cell * max(r0, 1.0), 0.005)
     set_point_radius(obj, radius)
-    obj.data.materials.append(range_material())
+    obj.data.materials.append(photon_material() if photons else range_material())
     bpy.context.view_layer.update()  # so matrix_world is right for the caller
     return obj
 
@@ -203,8 +223,10 @@ def cloud_from_object(obj) -> tuple[PointCloud, dict]:
     h = _get_attr(me, "cell_h", np.int32, n)
     sample = _get_attr(me, "sample", np.int32, n) if info.get("has_sample") else None
     zeros = np.zeros(n, np.int32)
+    photon = {f: _get_attr(me, f, np.int32, n) for f in info.get("photon_fields", [])
+              if f in PHOTON_FIELDS}
     return PointCloud(xyz, rng, zeros if w is None else w, zeros if h is None else h,
-                      sample), info
+                      sample, **photon), info
 
 
 def import_cloud(path, lidar=None, name: str | None = None):

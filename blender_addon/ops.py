@@ -396,7 +396,9 @@ class APCG_OT_scan(_ChunkedOperator, bpy.types.Operator):
     selected_only: BoolProperty(name="Selected targets only", default=False)
     occlusion: BoolProperty(name="Occlusion by other objects", default=True)
     quantize: BoolProperty(name="Quantize ranges", default=True)
-    supersample: IntProperty(name="Rays per cell (k x k)", default=1, min=1, max=8)
+    supersample: IntProperty(name="Rays per cell (k x k)", default=0, min=0, max=8,
+                             description="0: 1, or 4 when the lidar has a sensor (its photon "
+                                         "stage takes every sub-ray)")
     backend: EnumProperty(name="Ray casting", items=[
         ("blender", "Geometry Nodes", "One Geometry Nodes Raycast evaluation per target"),
         ("blender-bvh", "BVH tree", "mathutils BVHTree.ray_cast, one ray at a time")])
@@ -407,10 +409,13 @@ class APCG_OT_scan(_ChunkedOperator, bpy.types.Operator):
         from .objects import lidar_params
         lidar = _active_lidar(context)
         ts = _targets(context, lidar, self.selected_only)
+        sensor = api.sensor_of(lidar)  # the panel's Sensor: ideal, a preset or a file
         sim = Simulator(self.backend, lidar_params(lidar), quantize=self.quantize,
-                        supersample=self.supersample)
+                        supersample=self.supersample or (4 if sensor else 1))
         self._closers = [sim.close]
-        return [(lambda t=t: api.scan_target(t, occlusion=self.occlusion, simulator=sim))
+        seed = lidar.apcg_lidar.seed
+        return [(lambda t=t: api.scan_target(t, occlusion=self.occlusion, simulator=sim,
+                                             sensor=sensor, seed=seed))
                 for t in ts]
 
 

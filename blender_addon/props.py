@@ -7,7 +7,7 @@ No `from __future__ import annotations` here: Blender reads the annotations as o
 import math
 
 import bpy
-from bpy.props import FloatProperty, IntProperty, PointerProperty
+from bpy.props import FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from .objects import POSE_KEY, is_target, pose_of, set_pose
 
@@ -24,6 +24,13 @@ class APCG_PG_lidar(bpy.types.PropertyGroup):
                        min=2, max=16384)
     height: IntProperty(name="H", description="Elevation cells of the window", default=64,
                         min=2, max=16384)
+    sensor: StringProperty(name="Sensor", default="ideal",
+                           description="What the lidar records (SPEC section 8): ideal (one "
+                           "point per cell, no photon statistics), a preset (1064nm-day, "
+                           "1064nm-night, 1550nm-day, 1550nm-night) or a TOML file with a "
+                           "[sensor] table")
+    seed: IntProperty(name="Photon seed", default=0, min=0,
+                      description="Seed of the photon draws: the same seed, the same cloud")
 
 
 def _pose_prop(key: str, label: str, degrees: bool, lo: float, hi: float, descr: str):

@@ -35,6 +35,9 @@ class APCG_PT_panel(bpy.types.Panel):
             row = box.row(align=True)
             row.prop(p, "width")
             row.prop(p, "height")
+            row = box.row(align=True)
+            row.prop(p, "sensor")
+            row.prop(p, "seed", text="Seed")
         if is_target(obj):
             box = layout.box()
             type_name = str(obj.get(TYPE_KEY, obj.name))
