@@ -34,6 +34,8 @@ from .refine import refine_ranges
 # the (rays x 3 x 3) temporaries stay around 100 MB.
 RAYS_PER_CALL = 1_000_000
 POINTS_SAMPLES_PER_CHUNK = 64
+# Rays per chunk of the photon stage: its arrays (sub-ray hits, signal bins) stay ~0.5 GB.
+PHOTON_RAYS = 2_000_000
 # Ray casters (one per mesh) a simulator keeps; the least recently used is closed beyond this.
 MAX_CASTERS = 4
 
@@ -191,12 +193,36 @@ class Simulator:
         ``sensor`` records, each sample's draws seeded by (``seed``, its id in
         ``sample_ids``, default 0..N-1). Returns the photon cells, and per sample whether the
         target's box was clipped by the window and how many rays were cast."""
-        from apcg_core.sensor import photon_cloud
-        table = np.atleast_2d(np.asarray(conditions, dtype=np.float64))
-        hits = self.sub_ray_hits(mesh, table, key)
-        cells = photon_cloud(hits, table[:, 1], np.full(len(table), float(reflectivity)),
-                             sensor, self.lidar, seed, sample_ids)
-        return cells, *self.last_boxes
+        from apcg_core.sensor import PhotonCells, photon_cloud
+        radius = bounding_radius(mesh.vertices)
+        table = check_conditions(conditions, radius)
+        ids = np.arange(len(table)) if sample_ids is None else np.asarray(sample_ids, np.int64)
+        m, c = sample_frames(table)
+        rays = angular_boxes(mesh.vertices, table, self.lidar, m, c).n_cells * \
+            self.supersample**2
+        # chunks of whole samples of about PHOTON_RAYS rays: memory stays bounded whatever the
+        # batch (a sample's photons do not depend on its chunk)
+        bounds, acc = [0], 0
+        for i, r in enumerate(rays.tolist()):
+            if acc + r > PHOTON_RAYS and i > bounds[-1]:
+                bounds.append(i)
+                acc = 0
+            acc += r
+        bounds.append(len(table))
+        parts, clipped, n_rays = [], [], []
+        for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+            if hi == lo and len(table):
+                continue
+            hits = self.sub_ray_hits(mesh, table[lo:hi], key)
+            part = photon_cloud(hits, table[lo:hi, 1], np.full(hi - lo, float(reflectivity)),
+                                sensor, self.lidar, seed, ids[lo:hi])
+            part.sample = part.sample + lo
+            part.target_sample = part.target_sample + lo
+            parts.append(part)
+            clipped.append(self.last_boxes[0])
+            n_rays.append(self.last_boxes[1])
+        cells = PhotonCells.concatenate(parts, len(table))
+        return cells, np.concatenate(clipped), np.concatenate(n_rays)
 
     def photon_cells_type(self, catalog, type_key, conditions, sensor, seed: int,
                           sample_ids=None):

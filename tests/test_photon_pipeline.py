@@ -201,3 +201,28 @@ def test_ctrl_c_in_a_photon_build_then_the_same_command_ends_the_same_bytes(
     r = _build(photon_config, out)
     assert r.returncode == 0, r.stderr
     assert _files(out) == photon_reference
+
+
+@pytest.mark.parametrize("output", ["points", "events"])
+def test_the_photon_stage_in_chunks_gives_the_same_cells(monkeypatch, output):
+    """A batch is cut into chunks of bounded memory; a sample's photons must not notice."""
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.sensor import load_sensor
+    from dataset_builder import simulate
+    cat = default_catalog()
+    t = cat.get("F-16C Fighting Falcon")
+    deg = np.pi / 180
+    rng = np.random.default_rng(5)
+    table = np.stack([np.full(7, t.index), rng.uniform(3000, 9000, 7), np.full(7, 3.5 * deg),
+                      np.full(7, 2 * deg), rng.uniform(-1, 1, 7), np.zeros(7)], 1)
+    sensor = load_sensor("1550nm-day").with_output(output)
+    with simulate.Simulator(supersample=4) as sim:
+        whole, clipped, rays = sim.photon_cells_type(cat, t, table, sensor, 3)
+        monkeypatch.setattr(simulate, "PHOTON_RAYS", 1000)  # a chunk per sample
+        parts, clipped2, rays2 = sim.photon_cells_type(cat, t, table, sensor, 3)
+        empty, _, _ = sim.photon_cells_type(cat, t, table[:0], sensor, 3)
+    for f in ("sample", "w", "h", "range_m", "label", "count", "pulse", "target_sample",
+              "target_signal_pe"):
+        assert np.array_equal(getattr(whole, f), getattr(parts, f)), f
+    assert np.array_equal(clipped, clipped2) and np.array_equal(rays, rays2)
+    assert len(np.unique(whole.sample)) >= 4 and len(empty.sample) == 0

@@ -379,13 +379,16 @@ def _run_choose_tau(args) -> int:
 
 
 def register_figure(sub) -> None:
-    p = sub.add_parser("figure", help="the paper's figures 13, 14, 16, 18, 19 as PNG + JSON",
+    p = sub.add_parser("figure", help="the paper's figures 13, 14, 16, 18, 19 (and photons) "
+                                      "as PNG + JSON",
                        description="13: |L_D| and L_G per epoch from a run's log. 14: MMD and "
                                    "JSD of the run's kept checkpoints against training time. "
                                    "16: generated clouds beside standard ones, 6 types x 3 "
                                    "ranges. 18: generation time against the number of clouds. 19: "
                                    "generated clouds against standard and cell-jittered ones.")
-    p.add_argument("number", type=int, choices=[13, 14, 16, 18, 19])
+    p.add_argument("number", choices=["13", "14", "16", "18", "19", "photons"],
+                   help="a figure of the paper, or photons: what a single-photon lidar "
+                        "records against range and background (SPEC section 8)")
     p.add_argument("--run", action="append", metavar="[NAME=]RUN",
                    help="training run directory (13; 14 takes several, any family)")
     p.add_argument("--tau", type=float,
@@ -407,7 +410,12 @@ def _run_figure(args) -> int:
 
     from apcg_core.errors import InputError
 
-    from .figures import fig13, fig14, fig16, fig18, fig19
+    from .figures import fig13, fig14, fig16, fig18, fig19, fig_photons
+    if args.number == "photons":
+        fig_photons(args.output)
+        print(f"wrote {args.output} and its .json")
+        return 0
+    args.number = int(args.number)
     if args.number in (13, 14) and not args.run:
         raise InputError(f"figure {args.number} needs --run (a training run directory)")
     if args.number in (14, 19) and not args.data:

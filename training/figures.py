@@ -320,3 +320,102 @@ def fig16(model, out, types=FIG16_TYPES, pose_deg=None) -> dict:
                  f"(paper Fig. 16): {Path(model.directory).name}", fontsize=9)
     _save(fig, out, data)
     return data
+
+
+PHOTON_TYPES = ("A320neo", "F-16C Fighting Falcon", "Mavic 3")
+PHOTON_SENSORS = ("1064nm-night", "1550nm-night")
+
+
+def fig_photons(out, types=PHOTON_TYPES, sensors=PHOTON_SENSORS, poses: int = 6,
+                seed: int = 0) -> dict:
+    """What a single-photon lidar records (SPEC section 8, issue "Photons"): for a few types
+    and the two example systems, against range, the detection probability (the share of the
+    cells the target covers that report a signal point) and the points per cloud; and for
+    the 1550 nm system, the share of noise points against the background rate. Each point of
+    a curve averages ``poses`` random Table-1 attitudes (seeded)."""
+    import dataclasses
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.sensor import load_sensor, photon_cloud, reflectivity_of
+    from dataset_builder.simulate import Simulator
+
+    cat = default_catalog()
+    rng = np.random.default_rng(seed)
+    sim = Simulator("embree", supersample=4)
+    deg = np.pi / 180
+
+    def table(t, ranges):
+        n = len(ranges) * poses
+        r = np.repeat(ranges, poses)
+        return np.stack([np.full(n, t.index), r, rng.uniform(3, 4, n) * deg,
+                         rng.uniform(1, 5, n) * deg, rng.uniform(-60, 60, n) * deg,
+                         rng.uniform(-5, 5, n) * deg], 1)
+
+    curves = []
+    for name in types:
+        t = cat.get(name)
+        ranges = (np.linspace(100, 600, 6) if t.range_band == "near"
+                  else np.linspace(3000, 18000, 6))
+        tab = table(t, ranges)
+        hits = sim.sub_ray_hits(cat.mesh(t), tab, ("type", t.index))
+        covered = np.bincount(np.unique(hits.sample * 10**6 + (hits.h + 500) * 1000 + hits.w
+                                        + 500) // 10**6, minlength=len(tab))
+        for s_name in sensors:
+            sensor = load_sensor(s_name)
+            pc = photon_cloud(hits, tab[:, 1], np.full(len(tab), reflectivity_of(t)), sensor,
+                              sim.lidar, seed)
+            sig = np.bincount(pc.sample, weights=pc.label, minlength=len(tab))
+            pts = np.bincount(pc.sample, minlength=len(tab))
+            pd = np.where(covered > 0, sig / np.maximum(covered, 1), np.nan)
+            curves.append({"type": name, "sensor": s_name, "range_m": ranges.tolist(),
+                           "detection_probability": np.nanmean(pd.reshape(-1, poses), 1)
+                           .tolist(),
+                           "points_per_cloud": pts.reshape(-1, poses).mean(1).tolist(),
+                           "signal_points_per_cloud": sig.reshape(-1, poses).mean(1).tolist(),
+                           "covered_cells": covered.reshape(-1, poses).mean(1).tolist()})
+    # noise share against the background, the 1550 nm system, an A320neo at 6 km
+    base = load_sensor("1550nm-night")
+    t = cat.get(types[0])
+    tab = table(t, np.array([6000.0]))
+    hits = sim.sub_ray_hits(cat.mesh(t), tab, ("type", t.index))
+    rates = np.logspace(3, 7, 9)
+    share = []
+    for rate in rates:
+        s = dataclasses.replace(base, background_hz=float(rate))
+        pc = photon_cloud(hits, tab[:, 1], np.full(len(tab), reflectivity_of(t)), s,
+                          sim.lidar, seed)
+        share.append(float((pc.label == 0).sum() / max(len(pc.label), 1)))
+    sim.close()
+    data = {"figure": "photons", "seed": seed, "poses_per_range": poses,
+            "sensors": {s: dataclasses.asdict(load_sensor(s)) for s in sensors},
+            "curves": curves,
+            "noise_share": {"type": types[0], "range_m": 6000.0, "sensor": "1550nm-night",
+                            "threshold": base.threshold, "background_hz": rates.tolist(),
+                            "noise_share": share}}
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), constrained_layout=True)
+    styles = {s: st for s, st in zip(sensors, ("-", "--", ":"), strict=False)}
+    for c in curves:
+        km = np.asarray(c["range_m"]) / 1000
+        label = f"{c['type']}, {c['sensor']}"
+        axes[0].plot(km, c["detection_probability"], "o" + styles[c["sensor"]], label=label)
+        axes[1].plot(km, c["points_per_cloud"], "o" + styles[c["sensor"]], label=label)
+    for ax, ylabel in zip(axes[:2], ("detection probability per covered cell",
+                                     "points per cloud"), strict=True):
+        ax.set_xscale("log")
+        ax.set_xlabel("range (km)")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    axes[1].set_yscale("log")
+    axes[0].legend(fontsize=7)
+    axes[2].semilogx(rates, share, "o-")
+    axes[2].set_xlabel("background count rate (Hz)")
+    axes[2].set_ylabel("noise share of the points")
+    axes[2].set_title(f"{types[0]} at 6 km, 1550 nm, threshold {base.threshold}")
+    axes[2].grid(alpha=0.3)
+    fig.suptitle("What a single-photon lidar records (100 pulses a cell, points output)")
+    _save(fig, out, data)
+    return data

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import draws
-from .detector import SignalBins, _binomial_pmf
+from .detector import SignalBins, _binomial_pmf, _bisect
 
 
 @dataclass
@@ -70,6 +70,15 @@ def _histogram(cell, b) -> Peaks:
     return _top(cell[first], b[first], counts, np.zeros(len(first), np.int64))
 
 
+def _sum_before(values: np.ndarray, steps: list) -> np.ndarray:
+    """For each piece, the sum of its cell's earlier pieces' ``values`` (``steps[j]``: the
+    pieces at position j of their cell, each one right after its cell's piece j - 1)."""
+    out = np.zeros(len(values))
+    for idx in steps[1:]:
+        out[idx] = out[idx - 1] + values[idx - 1]
+    return out
+
+
 def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, seed: int,
                 ids: np.ndarray, n_cells: int) -> Peaks:
     cell, b, mean = signal.cell, signal.bin, signal.mean
@@ -103,75 +112,62 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, seed
     p_mean[sig_slot] += mean
     sample = p_cell // n_cells
     p_index = draws.index_within(sample)  # a piece's number within its sample
-    # per cell: its pieces' first-event chances and how many pulses fire at all
-    head_mask = _first_of_groups(p_cell)
-    heads = np.flatnonzero(head_mask)
+    # pieces by their position in their cell: the sums and the chain below run position by
+    # position, so a cell's numbers never depend on the other cells of the batch
+    heads = np.flatnonzero(_first_of_groups(p_cell))
     counts = np.diff(np.append(heads, n_pieces))
-    cum = np.cumsum(p_mean)
-    before = cum - p_mean - np.repeat(cum[heads] - p_mean[heads], counts)  # C before a piece
-    total = before[heads + counts - 1] + p_mean[heads + counts - 1]  # C of the whole gate
-    p_first = np.exp(-before) * -np.expm1(-p_mean)  # P(a pulse's event is in this piece)
+    pos = draws.index_within(p_cell)
+    pos = pos.astype(np.int16 if pos.max() < 32767 else np.int64)
+    by_pos = np.argsort(pos, kind="stable")  # a radix sort on small integers
+    bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))
+    steps = [by_pos[bounds[j]:bounds[j + 1]] for j in range(len(bounds) - 1)]
+    before = _sum_before(p_mean, steps)  # C before each piece, within its cell
+    last = heads + counts - 1
+    total = before[last] + p_mean[last]  # C of the whole gate, per cell
+    p_first = np.exp(-before) * -np.expm1(-p_mean)  # P(a pulse's first event is in the piece)
     c_sample = sample[heads]
-    c_index = draws.index_within(c_sample)
     fired_cell = draws.binomial_inverse(
         np.full(len(heads), pulses), -np.expm1(-total),
-        draws.uniforms(seed, ids[c_sample], draws.FIRED, c_index))
+        draws.uniforms(seed, ids[c_sample], draws.FIRED, draws.index_within(c_sample)))
     # Given F fired pulses, the pieces they fire in are F independent draws of that law: cheap
     # when F is below the cell's number of pieces. Otherwise the chain of binomials, piece by
-    # piece (a pulse not fired before a piece fires in it with chance 1 - exp(-mu)); both are
-    # the multinomial histogram of first events.
+    # piece; both are the multinomial histogram of first events.
     by_draws = fired_cell < counts
     fired = np.zeros(n_pieces, np.int64)
-    # -- by draws: inverse CDF over each cell's pieces (offset by the cell's rank)
+    cell_of_piece = np.repeat(np.arange(len(heads)), counts)
+    # -- by draws: inverse CDF over each cell's pieces, by bisection within the cell's run
     cells_d = np.flatnonzero(by_draws & (fired_cell > 0))
     if len(cells_d):
-        in_d = np.repeat(by_draws, counts)
-        piece_d = np.flatnonzero(in_d)
-        rank = np.repeat(np.cumsum(by_draws) - 1, counts)[piece_d]
-        norm = np.repeat(-np.expm1(-total), counts)[piece_d]
-        within = np.cumsum(p_first[piece_d])
-        first_d = _first_of_groups(p_cell[piece_d])
-        starts_d = np.flatnonzero(first_d)
-        within -= np.repeat(within[starts_d] - p_first[piece_d][starts_d],
-                            np.diff(np.append(starts_d, len(piece_d))))
-        key = rank + np.minimum(within / norm, 1.0)
+        upto = _sum_before(p_first, steps) + p_first  # within the cell, up to each piece
         ev_cell = np.repeat(cells_d, fired_cell[cells_d])
         ev_sample = c_sample[ev_cell]
         ev_u = draws.uniforms(seed, ids[ev_sample], draws.FIRST_PIECE,
                               draws.index_within(ev_sample))
-        ev_rank = (np.cumsum(by_draws) - 1)[ev_cell]
-        at = np.searchsorted(key, ev_rank + ev_u, side="right")
-        # a draw past a cell's last piece (rounding) stays in that cell
-        at = np.minimum(at, np.searchsorted(key, ev_rank + 1.0, side="left") - 1)
-        fired += np.bincount(piece_d[at], minlength=n_pieces)
-    # -- the chain, for the cells where most pulses fire
-    chain_cells = np.flatnonzero(~by_draws)
-    if len(chain_cells):
-        piece_c = np.flatnonzero(np.repeat(~by_draws, counts))
-        u = draws.uniforms(seed, ids[sample[piece_c]], draws.PIECES,
-                           draws.index_within(sample[piece_c]))
-        pos = draws.index_within(p_cell[piece_c])
-        pos = pos.astype(np.int16 if pos.max() < 32767 else np.int64)
-        by_pos = np.argsort(pos, kind="stable")  # a radix sort on small integers
-        bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))
-        head = np.repeat(np.arange(len(heads)), counts)[piece_c]
-        remaining = fired_cell.copy()  # the chain runs over the pulses that fire at all
-        mu = p_mean[piece_c]
-        rest_all = total[head] - before[piece_c]  # C from the piece's start to the gate's end
-        for j in range(len(bounds) - 1):
-            idx = by_pos[bounds[j]:bounds[j + 1]]
-            left = remaining[head[idx]]
+        target = ev_u * -np.expm1(-total[ev_cell])
+        lo, hi = heads[ev_cell], heads[ev_cell] + counts[ev_cell]
+        at = np.minimum(_bisect(upto, lo, hi, target, right=True), hi - 1)
+        fired += np.bincount(at, minlength=n_pieces)
+    # -- the chain, for the cells where most pulses fire: of the pulses that fire at all and
+    # have not yet, a piece takes each with chance (1 - exp(-mu)) / (1 - exp(-C_rest)), C_rest
+    # the mean from the piece's start to the gate's end
+    if (~by_draws).any():
+        chain = ~by_draws[cell_of_piece]
+        u = np.zeros(n_pieces)
+        u[chain] = draws.uniforms(seed, ids[sample[chain]], draws.PIECES,
+                                  draws.index_within(sample[chain]))
+        remaining = np.where(by_draws, 0, fired_cell)
+        rest = total[cell_of_piece] - before
+        for idx in steps:
+            left = remaining[cell_of_piece[idx]]
             live = left > 0
             if not live.all():
                 idx, left = idx[live], left[live]
                 if len(idx) == 0:
                     continue
-            # given it fires somewhere after this point, a pulse fires in this piece with
-            # chance (1 - exp(-mu)) / (1 - exp(-(C_total - C_before)))
-            p = -np.expm1(-mu[idx]) / -np.expm1(-rest_all[idx])
+            p = -np.expm1(-p_mean[idx]) / -np.expm1(-rest[idx])
             x = draws.binomial_inverse(left, np.minimum(p, 1.0), u[idx])
-            fired[piece_c[idx]] = x
-            remaining[head[idx]] -= x
+            fired[idx] = x
+            remaining[cell_of_piece[idx]] -= x
     # signal bins: counts kept, their signal part drawn
     in_sig = np.flatnonzero((p_sig >= 0) & (fired > 0))
     k = p_sig[in_sig]

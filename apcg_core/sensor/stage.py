@@ -84,6 +84,13 @@ class PhotonCells:
     target_h: np.ndarray
     target_signal_pe: np.ndarray
 
+    @classmethod
+    def concatenate(cls, parts: list, n_samples: int) -> PhotonCells:
+        """Parts of one batch, their ``sample`` already in the batch's numbering."""
+        fields = [f for f in cls.__dataclass_fields__ if f != "n_samples"]
+        return cls(**{f: np.concatenate([getattr(p, f) for p in parts]) for f in fields},
+                   n_samples=n_samples)
+
 
 def to_cloud(cells: PhotonCells, beta0: np.ndarray, lidar: LidarParams) -> PointCloud:
     """The photon cloud in the observation frame: each point on its cell's centre ray at its
