@@ -244,10 +244,11 @@ class Guard:
 
     def commit(self) -> None:
         """Every held output under its final name, Ctrl-C and SIGTERM held meanwhile."""
+        if not self.pending:
+            return
         from .testpoints import wait_point
         with _signals_held():
-            if self.pending:
-                wait_point("output.committing")
+            wait_point("output.committing")
             while self.pending:
                 final, tmp = next(iter(self.pending.items()))
                 os.replace(tmp, final)
@@ -277,8 +278,9 @@ def _signals_held():
     done, ends as it would have."""
     import signal
     import threading
-    if threading.current_thread() is not threading.main_thread():
-        yield
+    olds = [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)]
+    if threading.current_thread() is not threading.main_thread() or None in olds:
+        yield  # not ours to change (another thread; a handler set outside Python: Blender)
         return
     caught = []
     old = {s: signal.signal(s, lambda n, f: caught.append(n))
