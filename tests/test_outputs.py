@@ -19,7 +19,6 @@ from pathlib import Path
 
 import pytest
 from output_helpers import (
-    INPUT,
     NOT_OUTPUTS,
     argv_for,
     commands,
