@@ -383,3 +383,23 @@ def test_points_of_a_batch_follow_the_law_of_every_pulse_followed(background_hz,
     assert ok, why
     ok, why = z_ok(pts.range_m[pt_target] < 5003, ev_range[ev_target] < 5003)
     assert ok, why
+
+
+def test_the_two_routes_for_cells_of_noise_alone_agree_in_law():
+    """Quiet cells' points come from their rare heavy bins, or, under strong noise, from
+    every pulse that fires: the same law either way."""
+    from apcg_core.sensor.points import _quiet_peaks, _quiet_peaks_every_pulse
+    n, cells, n_bins, noise, pulses, thr = 400, 64, 120, 0.004, 60, 3
+    n_quiet = np.full(n, cells)
+    loud = np.zeros(0, np.int64)
+    a = _quiet_peaks(n_quiet, loud, cells, n_bins, noise, pulses, thr, 1, np.arange(n))
+    b = _quiet_peaks_every_pulse(n_quiet, loud, cells, n_bins, noise, pulses, thr, 2,
+                                 np.arange(n))
+    per_a = np.bincount(a.cell // cells, minlength=n)
+    per_b = np.bincount(b.cell // cells, minlength=n)
+    se = math.sqrt(per_a.var() / n + per_b.var() / n)
+    assert per_a.mean() > 2 and abs(per_a.mean() - per_b.mean()) < 4.5 * se
+    assert (a.count >= thr).all() and (b.count >= thr).all()
+    # where the peaks sit in the gate: the first bins are busier (first events come early)
+    assert abs(a.bin.mean() - b.bin.mean()) < 4.5 * math.sqrt(a.bin.var() / len(a.bin)
+                                                              + b.bin.var() / len(b.bin))

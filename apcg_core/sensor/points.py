@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import draws
-from .detector import SignalBins, _binomial_pmf, _bisect
+from .detector import SignalBins, _binomial_pmf, _bisect, _quiet_cost
 
 
 @dataclass
@@ -279,14 +279,38 @@ def _quiet_peaks(n_quiet: np.ndarray, loud_global: np.ndarray, n_cells: int, n_b
     first = _first_of_groups(a_key * (pulses + 1) + pulse)
     hist = _histogram(a_key[first], a_bin[first])
     keep = hist.count >= threshold
-    # back from quiet numbering to the window's cells
-    s = hist.cell[keep] // n_cells
-    j = hist.cell[keep] % n_cells
+    return Peaks(_window_cells(hist.cell[keep], loud_global, n_cells), hist.bin[keep],
+                 hist.count[keep], np.zeros(int(keep.sum()), np.int64))
+
+
+def _window_cells(quiet_key: np.ndarray, loud_global: np.ndarray, n_cells: int) -> np.ndarray:
+    """Batch cell numbers of quiet cells given as sample * n_cells + j (the sample's j-th
+    quiet cell)."""
+    s, j = quiet_key // n_cells, quiet_key % n_cells
     quiet_before = s * n_cells - np.searchsorted(loud_global, s * n_cells)
     gaps = loud_global - np.arange(len(loud_global))
     jj = quiet_before + j
-    cell = jj + np.searchsorted(gaps, jj, side="right")
-    return Peaks(cell, hist.bin[keep], hist.count[keep], np.zeros(int(keep.sum()), np.int64))
+    return jj + np.searchsorted(gaps, jj, side="right")
+
+
+def _quiet_peaks_every_pulse(n_quiet: np.ndarray, loud_global: np.ndarray, n_cells: int,
+                             n_bins: int, noise: float, pulses: int, threshold: int, seed: int,
+                             ids: np.ndarray) -> Peaks:
+    """The quiet cells' points by following every pulse that fires (one event each): cheaper
+    than the heavy-bin route when the noise is so strong that heavy bins are common."""
+    p_fire = float(-np.expm1(-noise * n_bins))
+    sample = np.repeat(np.arange(len(n_quiet)), n_quiet)
+    j = draws.index_within(sample)
+    fired = draws.binomial_inverse(np.full(len(sample), pulses), np.full(len(sample), p_fire),
+                                   draws.uniforms(seed, ids[sample], draws.QUIET_COUNT, j))
+    key = np.repeat(sample * n_cells + j, fired)
+    ev_sample = key // n_cells
+    u = draws.uniforms(seed, ids[ev_sample], draws.QUIET_SLOT, draws.index_within(ev_sample))
+    b = np.minimum(np.floor(-np.log1p(-u * p_fire) / noise).astype(np.int64), n_bins - 1)
+    hist = _histogram(key, b)
+    keep = hist.count >= threshold
+    return Peaks(_window_cells(hist.cell[keep], loud_global, n_cells), hist.bin[keep],
+                 hist.count[keep], np.zeros(int(keep.sum()), np.int64))
 
 
 def batch_points(signal: SignalBins, n_samples: int, n_cells: int, n_bins: int, noise: float,
@@ -296,8 +320,12 @@ def batch_points(signal: SignalBins, n_samples: int, n_cells: int, n_bins: int, 
     loud = _loud_peaks(signal, n_bins, noise, pulses, seed, ids, n_cells)
     loud_global = np.unique(signal.cell)
     n_quiet = n_cells - np.bincount(loud_global // n_cells, minlength=n_samples)
-    quiet = _quiet_peaks(n_quiet, loud_global, n_cells, n_bins, noise, pulses, threshold, seed,
-                         ids)
+    # the heavy-bin route unless the noise makes heavy bins common (a choice made from the
+    # sensor alone, so the same for every batch)
+    pmf = _binomial_pmf(pulses, float(-np.expm1(-noise)))
+    heavy_route, every_pulse = _quiet_cost(n_cells, n_bins, pmf, pulses, threshold, noise)
+    route = _quiet_peaks if heavy_route <= every_pulse else _quiet_peaks_every_pulse
+    quiet = route(n_quiet, loud_global, n_cells, n_bins, noise, pulses, threshold, seed, ids)
     cell = np.concatenate([loud.cell, quiet.cell])
     keep = np.concatenate([loud.count, quiet.count]) >= threshold
     order = np.argsort(cell[keep], kind="stable")
