@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import InputError
+from .io.atomic import GUARDS, active, publish
 
 FILE, DIRECTORY = "file", "directory"
 # A directory output whose files are known only once the command has run (a model directory:
@@ -292,18 +293,11 @@ def _signals_held():
             signal.signal(s, h)
 
 
-_ACTIVE: list[Guard] = []
-
-
-def active() -> Guard | None:
-    return _ACTIVE[-1] if _ACTIVE else None
-
-
 @contextmanager
 def guarding(args):
     """Run a command under its guard: held outputs appear when it returns, none on failure."""
     guard = Guard(args)
-    _ACTIVE.append(guard)
+    GUARDS.append(guard)
     try:
         yield guard
         guard.commit()
@@ -311,7 +305,7 @@ def guarding(args):
         guard.abort()
         raise
     finally:
-        _ACTIVE.remove(guard)
+        GUARDS.remove(guard)
 
 
 def allow_update(path) -> None:
@@ -389,7 +383,6 @@ def staged_directory(out):
     block ends without error its files are published into ``out`` one by one through the
     guard (``out`` is never removed, files of other names in it are kept); the staging
     directory is removed whatever happens."""
-    from .io.atomic import publish
     out = Path(os.path.abspath(out))
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = out.with_name(f".{out.name}.staging-{os.getpid()}")

@@ -7,12 +7,20 @@ import os
 from contextlib import contextmanager
 from pathlib import Path
 
+# The running command's output guards (apcg_core.outputs.Guard; a stack, innermost last): set
+# by apcg_core.outputs.guarding, asked by every write here. Empty outside a command.
+GUARDS: list = []
+
+
+def active():
+    """The running command's guard, or None."""
+    return GUARDS[-1] if GUARDS else None
+
 
 def claim(path) -> bool:
     """Ask the running command's guard before a file is made for ``path``: an InputError when
     it may not be replaced (a user's file without --force, an input of the command); True when
     the file is to be held until the command ends. Outside a command: False."""
-    from ..outputs import active
     guard = active()
     return guard.claim(path) if guard is not None else False
 
@@ -20,7 +28,6 @@ def claim(path) -> bool:
 def publish(tmp, path, held: bool | None = None) -> None:
     """``tmp`` (complete) becomes ``path``: renamed now, or, for a command's own result, moved
     beside ``path`` and renamed when the command ends (``apcg_core.outputs.Guard.commit``)."""
-    from ..outputs import active
     path = Path(path)
     if held is None:
         held = claim(path)
