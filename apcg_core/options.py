@@ -71,6 +71,7 @@ RULES: dict[str, Rule] = {
     "length_m": Rule("a finite length in metres > 0 and <= 1000", lo=0, hi=1000,
                      lo_open=True),
     "unit_scale": Rule("a finite factor > 0 and <= 1000", lo=0, hi=1000, lo_open=True),
+    "reflectivity": Rule("a diffuse reflectance > 0 and <= 1", lo=0, hi=1, lo_open=True),
 }
 
 

@@ -5,6 +5,7 @@ byte-identical; photon builds are byte-identical across workers, engines and res
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -226,3 +227,47 @@ def test_the_photon_stage_in_chunks_gives_the_same_cells(monkeypatch, output):
         assert np.array_equal(getattr(whole, f), getattr(parts, f)), f
     assert np.array_equal(clipped, clipped2) and np.array_equal(rays, rays2)
     assert len(np.unique(whole.sample)) >= 4 and len(empty.sample) == 0
+
+
+def test_catalog_add_takes_a_reflectivity_and_the_photons_follow_it(tmp_path, monkeypatch):
+    """`catalog add --reflectivity` stores the type's own value; a photon scan of it gets more
+    signal from a whiter copy; a bad value is named."""
+    from apcg_core.catalog import catalog as catalog_module
+    from apcg_core.catalog.catalog import Catalog
+    from apcg_core.catalog.mesh import Mesh
+    from apcg_core.sensor import reflectivity_of
+    from dataset_builder.simulate import Simulator
+    src = default_mesh_file(tmp_path)
+    env = {**os.environ, "APCG_DATA_DIR": str(tmp_path / "data")}
+
+    def add(name, rho):
+        return subprocess.run([sys.executable, "-m", "apcg_core.cli", "catalog", "add",
+                               str(src), "--name", name, "--reflectivity", rho],
+                              capture_output=True, text=True, env=env, timeout=300)
+    for name, rho in (("Dark Jet", "0.05"), ("White Jet", "0.9")):
+        r = add(name, rho)
+        assert r.returncode == 0, r.stderr
+    r = add("Bad Jet", "1.5")
+    assert r.returncode == 2 and "--reflectivity" in r.stderr and "Traceback" not in r.stderr
+    monkeypatch.setenv("APCG_DATA_DIR", str(tmp_path / "data"))
+    cat = Catalog(user_path=catalog_module.user_dir())
+    dark, white = cat.get("Dark Jet"), cat.get("White Jet")
+    assert reflectivity_of(dark) == 0.05 and reflectivity_of(white) == 0.9
+    assert isinstance(cat.mesh(dark), Mesh)
+    from apcg_core.sensor import load_sensor
+    deg = np.pi / 180
+    row = [[0, 9000.0, 3.5 * deg, 2 * deg, 10 * deg, 0.0]]
+    signal = {}
+    with Simulator(supersample=4) as sim:
+        for t in (dark, white):
+            cells, _, _ = sim.photon_cells_type(cat, t, np.array(row), load_sensor(
+                "1550nm-night").with_output("events"), 1)
+            signal[t.name] = int(cells.label.sum())
+    assert signal["White Jet"] > 3 * signal["Dark Jet"]
+
+
+def default_mesh_file(tmp_path: Path) -> Path:
+    """The catalog's own A320neo written as a PLY (what a user would import)."""
+    out = tmp_path / "jet.ply"
+    assert main(["catalog", "export", "A320neo", "-o", str(out)]) == 0
+    return out

@@ -59,12 +59,21 @@ class AircraftType:
     diagonal_wheelbase_m: float | None = None
     confidence: str = ""
     source: str = "builtin"  # or the path of the imported model for user types
+    # diffuse reflectivity at the lidar's wavelength (SPEC section 8); None: the category's
+    # default (apcg_core/sensor/reflectivity.py)
+    reflectivity: float | None = None
 
     def summary(self) -> dict:
         return {"name": self.name, "index": self.index, "kind": self.kind,
                 "category": self.category, "length_m": self.length_m, "span_m": self.span_m,
                 "height_m": self.height_m, "range_band": self.range_band,
-                "source": self.source}
+                "source": self.source, "reflectivity": self.effective_reflectivity}
+
+    @property
+    def effective_reflectivity(self) -> float:
+        """Its own reflectivity, else its category's default (SPEC section 8)."""
+        from ..sensor.reflectivity import reflectivity_of
+        return reflectivity_of(self)
 
 
 _TEXT_COLUMNS = ("manufacturer", "dims_note", "n_engines", "propulsion", "engine_placement",
@@ -320,6 +329,13 @@ class Catalog:
         for k, v in e.items():
             if k in ("index", "name", "kind", "range_band"):
                 continue
+            if k == "reflectivity":
+                ok = v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                   and math.isfinite(v) and 0 < v <= 1)
+                if not ok:
+                    raise self._damaged(f"{at}: reflectivity {v!r} is not a number in (0, 1] "
+                                        "(or null)")
+                continue
             if k.endswith("_m") or k.endswith("_deg"):
                 finite = (isinstance(v, (int, float)) and not isinstance(v, bool)
                           and math.isfinite(v))
@@ -397,7 +413,8 @@ class Catalog:
 
     def add_user_type(self, name: str, mesh: Mesh, kind: str, category: str,
                       source: str, force: bool = False,
-                      unit_scale: float = 1.0) -> AircraftType:
+                      unit_scale: float = 1.0, reflectivity: float | None = None
+                      ) -> AircraftType:
         """Register an imported model as a new type (stored under :attr:`user_path`).
 
         A size implausible for ``kind`` (checks.SIZE_LIMITS_M) is refused, with the likely unit
@@ -405,6 +422,9 @@ class Catalog:
         a user type of the same name (:func:`name_key`) is refused unless ``force``, which
         replaces it (its index kept)."""
         name = self.check_new_type(name, kind, force)
+        if reflectivity is not None:
+            from ..sensor.reflectivity import check_reflectivity
+            reflectivity = check_reflectivity(reflectivity, "--reflectivity")
         check_size(mesh.extents, kind, force, unit_scale, name=repr(name))
         ext = mesh.extents
         band = "near" if kind == "drone" and max(ext[0], ext[1]) < 5.0 else "far"
@@ -414,7 +434,8 @@ class Catalog:
                 max([USER_INDEX_START - 1] + [t.index for t in users]) + 1
             t = AircraftType(index=index, name=name, kind=kind, range_band=band,
                              category=category, length_m=float(ext[0]), span_m=float(ext[1]),
-                             height_m=float(ext[2]), source=str(source))
+                             height_m=float(ext[2]), source=str(source),
+                             reflectivity=reflectivity)
             with _database_file(self._user_mesh_file(name), suffix=".part.npz") as tmp:
                 np.savez(tmp, vertices=mesh.vertices, faces=mesh.faces)
             if old is not None:

@@ -58,6 +58,9 @@ def register(sub) -> None:
                          "comma-separated, e.g. 'Fuselage*,Wing*')")
     ad.add_argument("--kind", choices=("aircraft", "drone"), default="aircraft")
     ad.add_argument("--category", default="user")
+    ad.add_argument("--reflectivity", type=float, metavar="R",
+                    help="diffuse reflectivity at the lidar's wavelength, in (0, 1], for "
+                         "--sensor scans (default: the category's, SPEC section 8)")
     ad.add_argument("--dry-run", action="store_true",
                     help="import, check and report (and --preview) without adding the type")
     ad.add_argument("--force", action="store_true",
@@ -155,7 +158,8 @@ def _add(args) -> int:
     cat = _catalog()
     # add_user_type refuses an implausible size unless --force, and takes the catalog's lock
     t = cat.add_user_type(name, mesh, args.kind, args.category, source=args.file,
-                          force=args.force, unit_scale=rep.scale)
+                          force=args.force, unit_scale=rep.scale,
+                          reflectivity=args.reflectivity)
     replaced = cat.last_replaced
     if problem:
         print(f"warning: {name!r}: {problem}; added anyway (--force)", file=sys.stderr)
