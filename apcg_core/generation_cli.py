@@ -9,6 +9,7 @@ import numpy as np
 from .cli import add_pose_arguments
 from .io.clouds import FORMATS as CLOUD_FORMATS
 from .outputs import FILE, add_output
+from .sensor.options import add_sensor_arguments, sensor_of
 
 
 def register_generate(sub) -> None:
@@ -29,6 +30,7 @@ def register_generate(sub) -> None:
                         "torch; the same images either way")
     p.add_argument("--tau", type=float, help="output threshold (default: the model's): the "
                                              "cGAN's Im2PC tau, APCG+'s hit logit")
+    add_sensor_arguments(p, seed=False)  # --seed seeds the photons too
     add_output(p, "-o", "--output", kind=FILE, suffixes=CLOUD_FORMATS, required=True,
                    help=".ply / .npz / .las / .laz; several clouds go in one file, told apart by "
                         "their `sample` attribute")
@@ -40,6 +42,7 @@ def _run_generate(args) -> int:
     from .families import conditions_from_csv, load_model
     from .lidar import DEG
 
+    sensor = sensor_of(args)
     model = load_model(args.model, runtime=args.runtime)
     if args.tau is not None:
         if getattr(model, "tau", None) is None:
@@ -59,6 +62,8 @@ def _run_generate(args) -> int:
     meta = {"model": str(model.directory), "family": model.family,
             "runtime": getattr(model, "runtime", None), "seed": args.seed,
             "count": args.count, "tau": getattr(model, "tau", None)}
+    if sensor is not None:  # SPEC section 8: the photon stage on the generated clouds
+        meta["sensor"] = sensor.to_dict()
     if len(table) <= MAX_LISTED_CONDITIONS:
         meta["conditions"] = [{"type": name, "range_m": float(r[1]),
                                "elevation_rad": float(r[2]), "pitch_rad": float(r[3]),
@@ -71,10 +76,16 @@ def _run_generate(args) -> int:
     from .testpoints import wait_point
     progress = Progress(total, "cloud", enabled=total > BLOCK_CLOUDS)
     points = empty = 0
-    with CloudWriter(args.output, meta) as out:
+    fields = () if sensor is None else ("label", "count") + (
+        ("pulse",) if sensor.output == "events" else ())
+    with CloudWriter(args.output, meta, photon_fields=fields) as out:
         for block, (part, count, offset) in enumerate(blocks(table, args.count, BLOCK_CLOUDS)):
             res = model.generate(part, count=count, seed=block_seed(args.seed, block))
             cloud = res.cloud
+            if sensor is not None:
+                from .sensor.generated import photon_generated
+                cloud = photon_generated(cloud, res.table, res.conditions.names, model.lidar,
+                                         sensor, args.seed, offset)
             cloud.sample = np.asarray(cloud.sample, np.int64) + offset
             if out.ext == ".npz" and block == 0 and total > BLOCK_CLOUDS:
                 _check_npz_memory(len(cloud) / max(1, len(res.table)), total)

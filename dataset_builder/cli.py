@@ -9,6 +9,7 @@ from apcg_core.cli import add_pose_arguments, print_mapping
 from apcg_core.io.clouds import FORMATS as CLOUD_FORMATS
 from apcg_core.io.images import DEPTH_IMAGE_SUFFIXES
 from apcg_core.outputs import DIRECTORY, FILE, add_output
+from apcg_core.sensor.options import add_sensor_arguments, sensor_of
 
 from .backends import BACKENDS
 from .engine import ENGINES
@@ -39,36 +40,6 @@ def register_simulate(sub) -> None:
     add_output(p, "--normalized-image", kind=FILE, suffixes=DEPTH_IMAGE_SUFFIXES,
                help="also write Norm(depth image): .npy or .png")
     p.set_defaults(func=_run_simulate)
-
-
-def add_sensor_arguments(p) -> None:
-    """``--sensor``, ``--seed`` and ``--photon-output``: the photon stage (SPEC section 8)."""
-    from apcg_core.sensor import OUTPUTS, preset_names
-    p.add_argument("--sensor", metavar="PRESET|FILE.toml",
-                   help="what a real single-photon lidar records (SPEC section 8): a preset ("
-                        + ", ".join(preset_names()) + ") or a TOML file with a [sensor] "
-                        "table; default ideal (the standard cloud, no photon statistics)")
-    p.add_argument("--seed", type=int, default=0,
-                   help="seed of the photon draws (default 0); the same seed, the same bytes")
-    p.add_argument("--photon-output", choices=OUTPUTS,
-                   help="override the sensor's output: points (one per cell at the "
-                        "histogram's peak) or events (every detector event)")
-
-
-def sensor_of(args):
-    """The sensor the options ask for (None: the ideal lidar), with ``--photon-output``."""
-    from apcg_core.errors import InputError
-    from apcg_core.sensor import load_sensor
-    sensor = load_sensor(args.sensor)
-    if sensor is not None and getattr(args, "backend", None) == "points":
-        raise InputError("--sensor needs a ray-casting backend (the photon stage takes every "
-                         "sub-ray's range and incidence); accepted: embree, blender, "
-                         "blender-bvh")
-    if sensor is None:
-        if args.photon_output:
-            raise InputError("--photon-output needs a --sensor other than ideal")
-        return None
-    return sensor.with_output(args.photon_output) if args.photon_output else sensor
 
 
 def _run_simulate(args) -> int:

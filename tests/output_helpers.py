@@ -38,7 +38,7 @@ NOT_OUTPUTS = {
     ("generate", "model"): INPUT, ("generate", "type"): VALUE,
     ("generate", "conditions"): INPUT,
     ("simulate", "type"): VALUE, ("simulate", "sensor"): INPUT,
-    ("dataset build", "sensor"): INPUT,
+    ("dataset build", "sensor"): INPUT, ("generate", "sensor"): INPUT,
     ("teach", "model"): INPUT, ("teach", "type"): VALUE,
     ("train", "data"): INPUT,
 }

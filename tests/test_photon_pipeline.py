@@ -271,3 +271,25 @@ def default_mesh_file(tmp_path: Path) -> Path:
     out = tmp_path / "jet.ply"
     assert main(["catalog", "export", "A320neo", "-o", str(out)]) == 0
     return out
+
+
+def test_generate_with_a_sensor(tmp_path):
+    """`apcg generate --sensor`: ideal gives the bytes of no sensor; a sensor labels the
+    generated clouds' points, seeded by --seed."""
+    pose = POSE[2:]
+    out = {}
+    for name, extra in (("plain", []), ("ideal", ["--sensor", "ideal"]),
+                        ("a", ["--sensor", "1550nm-night", "--count", "2"]),
+                        ("b", ["--sensor", "1550nm-night", "--count", "2"]),
+                        ("c", ["--sensor", "1550nm-night", "--count", "2", "--seed", "9"])):
+        out[name] = tmp_path / f"{name}.npz"
+        assert main(["generate", "--type", "A320neo", *pose, "-o", str(out[name]),
+                     *extra]) == 0
+    assert out["plain"].read_bytes() == out["ideal"].read_bytes()
+    a, b, c = (np.load(out[k]) for k in "abc")
+    assert np.array_equal(a["range_m"], b["range_m"]) and np.array_equal(a["label"], b["label"])
+    assert not (len(a["range_m"]) == len(c["range_m"])
+                and np.array_equal(a["range_m"], c["range_m"]))
+    assert set(np.unique(a["sample"])) <= {0, 1} and (a["count"] >= 3).all()
+    plain = np.load(out["plain"])
+    assert 0 < len(a["label"]) < 2 * len(plain["xyz"])  # 1550 nm at 4.5 km: some cells only

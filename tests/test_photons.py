@@ -403,3 +403,21 @@ def test_the_two_routes_for_cells_of_noise_alone_agree_in_law():
     # where the peaks sit in the gate: the first bins are busier (first events come early)
     assert abs(a.bin.mean() - b.bin.mean()) < 4.5 * math.sqrt(a.bin.var() / len(a.bin)
                                                               + b.bin.var() / len(b.bin))
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 30.0, 60.0])
+def test_a_generated_clouds_incidence_comes_from_its_range_slope(tilt_deg):
+    """A plane tilted about the vertical axis by ``tilt`` shows a range slope across cells of
+    tan(tilt) times the cell width: the stage must read cos = cos(tilt) off it."""
+    from apcg_core.cloud import PointCloud
+    from apcg_core.sensor.generated import hits_of_cloud
+    lidar = LidarParams.from_degrees(width=16, height=8)
+    r0, beta0 = 3000.0, math.radians(3.5)
+    w, h = np.meshgrid(np.arange(-4, 4), np.arange(-2, 2))
+    w, h = w.ravel(), h.ravel()
+    dx = r0 * lidar.r_alpha * math.cos(beta0)
+    r = r0 + w * dx * math.tan(math.radians(tilt_deg))
+    cloud = PointCloud(np.zeros((len(w), 3)), r, w, h, np.zeros(len(w), np.int64))
+    hits = hits_of_cloud(cloud, np.array([beta0]), lidar, 1)
+    assert hits.sub_rays == 1 and len(hits.range_m) == len(w)
+    assert np.allclose(hits.cos, math.cos(math.radians(tilt_deg)), rtol=2e-3)

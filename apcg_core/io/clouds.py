@@ -125,10 +125,13 @@ class CloudWriter:
     STREAMING = (".ply", ".las", ".laz")
     _COUNT_DIGITS = 20  # the PLY vertex count, zero-padded so it can be patched in place
 
-    def __init__(self, path, meta: dict | None = None) -> None:
+    def __init__(self, path, meta: dict | None = None, photon_fields=()) -> None:
         self.path = Path(path)
         self.ext = _fmt(self.path)
         self.meta = meta or {}
+        # a photon cloud's attributes: fixed up front (a PLY header is written first)
+        self.photon_fields = tuple(photon_fields)
+        self._held_output = claim(self.path)  # the guard first: a refusal costs no work
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = self.path.with_name(self.path.name + ".part")
         self.n = 0
@@ -137,18 +140,20 @@ class CloudWriter:
         self._las = None
         if self.ext == ".ply":
             self._file = open(self.tmp, "wb")  # noqa: SIM115 - closed in close()
-            head = _own_ply_header(self.meta, "0" * self._COUNT_DIGITS)
+            head = _own_ply_header(self.meta, "0" * self._COUNT_DIGITS, self.photon_fields)
             self._count_at = head.index(b"element vertex ") + len(b"element vertex ")
             self._file.write(head)
 
     def write(self, cloud: PointCloud) -> None:
+        if tuple(cloud.photon_fields) != self.photon_fields:
+            raise ValueError(f"this writer takes clouds with {self.photon_fields or 'no'} "
+                             f"photon attributes, got {cloud.photon_fields or 'none'}")
         if self.ext == ".npz":
             self._held.append(cloud)
         elif self.ext == ".ply":
             self._file.write(_ply_records(cloud))
         else:
             laspy = _laspy(self.ext == ".laz")
-        self._held_output = claim(self.path)  # the guard first: a refusal costs no work
             if self._las is None:
                 header = _las_header(laspy, cloud, self.meta)
                 # the writer counts its points in its header: each block starts from a copy
@@ -163,9 +168,12 @@ class CloudWriter:
         if self.ext == ".npz":
             cat = (PointCloud(*(np.concatenate([getattr(c, k) for c in self._held])
                                 for k in ("xyz", "range_m", "cell_w", "cell_h")),
-                              np.concatenate([_sample_of(c) for c in self._held]))
+                              np.concatenate([_sample_of(c) for c in self._held]),
+                              **{k: np.concatenate([getattr(c, k) for c in self._held])
+                                 for k in self.photon_fields})
                    if self._held else PointCloud(np.zeros((0, 3)), [], [], [],
-                                                 np.zeros(0, np.int64)))
+                                                 np.zeros(0, np.int64),
+                                                 **{k: [] for k in self.photon_fields}))
             self._held = []
             return write_cloud(self.path, cat, self.meta)
         if self.ext == ".ply":
@@ -175,7 +183,8 @@ class CloudWriter:
         elif self._las is not None:
             self._las.close()
         else:  # nothing written: an empty LAS, as write_cloud makes it
-            empty = PointCloud(np.zeros((0, 3)), [], [], [], np.zeros(0, np.int64))
+            empty = PointCloud(np.zeros((0, 3)), [], [], [], np.zeros(0, np.int64),
+                               **{k: [] for k in self.photon_fields})
             return write_cloud(self.path, empty, self.meta)
         _replace(self.tmp, self.path, self._held_output)
         return self.path

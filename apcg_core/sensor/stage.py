@@ -83,13 +83,14 @@ class PhotonCells:
     target_w: np.ndarray
     target_h: np.ndarray
     target_signal_pe: np.ndarray
+    events: bool = False  # the sensor's output was events (then ``pulse`` is meaningful)
 
     @classmethod
     def concatenate(cls, parts: list, n_samples: int) -> PhotonCells:
         """Parts of one batch, their ``sample`` already in the batch's numbering."""
-        fields = [f for f in cls.__dataclass_fields__ if f != "n_samples"]
+        fields = [f for f in cls.__dataclass_fields__ if f not in ("n_samples", "events")]
         return cls(**{f: np.concatenate([getattr(p, f) for p in parts]) for f in fields},
-                   n_samples=n_samples)
+                   n_samples=n_samples, events=bool(parts) and parts[0].events)
 
 
 def to_cloud(cells: PhotonCells, beta0: np.ndarray, lidar: LidarParams) -> PointCloud:
@@ -97,7 +98,7 @@ def to_cloud(cells: PhotonCells, beta0: np.ndarray, lidar: LidarParams) -> Point
     bin's centre range, as the ideal cloud places a quantized range (``beta0`` per sample)."""
     alpha, beta = lidar.cell_centre_angles(cells.w, cells.h,
                                            np.asarray(beta0, np.float64)[cells.sample])
-    pulse = cells.pulse if (cells.pulse >= 0).all() and len(cells.pulse) else None
+    pulse = cells.pulse if cells.events else None
     return PointCloud(spherical_to_cartesian(alpha, beta, cells.range_m), cells.range_m,
                       cells.w, cells.h, cells.sample, cells.label, cells.count, pulse)
 
@@ -240,7 +241,8 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
                        label.astype(np.uint8), count.astype(np.int32), pulse.astype(np.int32),
                        n, (uniq // n_cells).astype(np.int64),
                        (tcell % lidar.width + lidar.w_min).astype(np.int32),
-                       (tcell // lidar.width + lidar.h_min).astype(np.int32), tpe)
+                       (tcell // lidar.width + lidar.h_min).astype(np.int32), tpe,
+                       sensor.output == "events")
 
 
 __all__ = ["LIGHT_M_S", "PhotonCells", "SubRayHits", "gate_first_bin", "photon_cloud",
