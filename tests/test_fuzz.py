@@ -1073,3 +1073,79 @@ def test_a_y_up_collada_with_z_up_vertices_is_warned(tmp_path, capsys, name):
     warned = [ln for ln in err.splitlines() if "contradict the shape" in ln]
     assert rc == 0 and len(warned) == 1 and "use --up Z" in warned[0], err
     _record("round trip", f"{name} as a Y_UP COLLADA with Z-up vertices: warned", "handled")
+
+
+# --- sensor files (issue "Photons"): every key's bad value, unknown and missing keys, junk ------
+
+SENSOR_BAD = {
+    "wavelength_nm": [-1064.0, 0.0, 1e9, "1064"], "pulse_energy_j": [-1e-6, 0.0, 11.0],
+    "cells_per_pulse": [0, -4, 2.5, "1"], "aperture_m": [0.0, -0.1, 1e3],
+    "optics_efficiency": [0.0, 1.5, -0.2], "detector_efficiency": [0.0, 1.01, True],
+    "visibility_km": [0.0, -3.0, 1e9], "background_hz": [-1.0, 1e12, "day"],
+    "dark_count_hz": [-5.0, 1e11], "pulse_fwhm_ps": [-1.0, 1e7], "jitter_ps": [-0.5, 1e7],
+    "gate_m": [0.0, -100.0, 1e6], "dead_time_ns": [-1.0, 1e8], "pulses": [0, -1, 1.5, 10**6],
+    "threshold": [0, -2, 3.5, False], "output": ["cloud", "", 3],
+}
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return json.dumps(v)
+    return repr(v)
+
+
+def _sensor_text(table: dict) -> str:
+    return "[sensor]\n" + "".join(f"{k} = {_toml_value(v)}\n" for k, v in table.items())
+
+
+SENSOR_CASES = st.one_of(
+    st.tuples(st.just("bad value"), st.sampled_from(sorted(SENSOR_BAD)), st.integers(0, 3)),
+    st.tuples(st.just("unknown key"), st.sampled_from(["pulse_energy", "Pulses", "gate",
+                                                       "jitter"]), st.just(0)),
+    st.tuples(st.just("missing key"), st.sampled_from(sorted(SENSOR_BAD)), st.just(0)),
+    st.tuples(st.just("junk"), st.sampled_from(["[sensor\n", "sensor = 3\n", "\x00\x01",
+                                                "[lidar]\nwidth = 4\n", ""]), st.just(0)),
+    st.tuples(st.just("nan"), st.sampled_from(["pulse_energy_j", "gate_m", "jitter_ps",
+                                               "visibility_km"]), st.just(0)),
+)
+
+
+@fuzz(60)
+@given(SENSOR_CASES)
+def test_a_sensor_file_is_refused_by_key_or_used(tmp_path_factory, capsys, case):
+    import tomllib
+
+    from apcg_core.sensor import PRESET_DIR
+    kind, key, i = case
+    tmp = tmp_path_factory.mktemp("sensor")
+    base = tomllib.loads((PRESET_DIR / "1550nm-night.toml").read_text())["sensor"]
+    base.pop("name")
+    f = tmp / "s.toml"
+    if kind == "bad value":
+        bad = SENSOR_BAD[key][i % len(SENSOR_BAD[key])]
+        f.write_text(_sensor_text({**base, key: bad}))
+        names = [key]
+    elif kind == "unknown key":
+        f.write_text(_sensor_text({**base, key: 1.0}))
+        names = [key]
+    elif kind == "missing key":
+        table = {k: v for k, v in base.items() if k != key}
+        f.write_text(_sensor_text(table))
+        names = [key] if key != "output" else []
+    elif kind == "nan":
+        f.write_text(_sensor_text(base).replace(f"{key} = {_toml_value(base[key])}",
+                                                f"{key} = nan"))
+        names = [key]
+    else:
+        f.write_bytes(key.encode("latin-1"))
+        names = ["s.toml"]
+    out = tmp / "c.npz"
+    rc, _, err = run(["simulate", *POSE, "-o", out, "--sensor", f], capsys)
+    if kind == "missing key" and key == "output":  # output has a default: points
+        assert rc == 0 and "label" in __import__("numpy").load(out).files, err
+        _record("sensor file", kind, "handled")
+        return
+    assert not out.exists()
+    clear_error("sensor file", kind, rc, err, *names)
