@@ -20,7 +20,7 @@ import numpy as np
 
 from apcg_core.errors import InputError
 
-from . import hits_of
+from .hits import hits_of
 
 _PREFIX = "APCG raycast"
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from apcg_core.errors import InputError
 
-from . import hits_of, is_hit
+from .hits import hits_of, is_hit
 
 
 def _import_embreex():
