@@ -7,7 +7,6 @@ type's fine point cloud, with no rays at all.
 
 from __future__ import annotations
 
-
 from apcg_core.errors import InputError
 
 from .hits import hits_of, is_hit, surface_hits  # noqa: F401 - the backends' shared arithmetic
