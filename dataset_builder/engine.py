@@ -203,10 +203,16 @@ def _check_scheduler(address: str, timeout_s: float) -> None:
         raise InputError(f"cannot reach a Dask scheduler at --address {address} ({exc}); "
                          f"{fix}") from None
 
+    tls = Security().get_connection_args("client")
+    if address.startswith("tls://") and tls.get("ssl_context") is None:
+        raise InputError(f"--address {address} is a TLS scheduler, and Dask's TLS settings are "
+                         "not set: give distributed.comm.tls.ca-file, .client.cert and "
+                         ".client.key in the Dask config (or DASK_DISTRIBUTED__COMM__TLS__* "
+                         "variables)")
+
     async def identity():
         # Dask's own limit later than ours, so that a silent server is told as one
-        comm = await connect(address, timeout=2 * timeout_s,
-                             **Security().get_connection_args("client"))
+        comm = await connect(address, timeout=2 * timeout_s, **tls)
         try:
             await comm.write({"op": "identity", "reply": True})
             return await comm.read()

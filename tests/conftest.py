@@ -25,6 +25,13 @@ def pytest_sessionfinish(session, exitstatus):
 
 
 def pytest_configure(config):
+    # A test run started in the background of a script (`pytest ... &`, nohup) inherits Ctrl-C
+    # ignored, and so would every command it starts: Python keeps an ignored SIGINT ignored,
+    # and the Ctrl-C tests would see their commands run to the end. A handler of our own is
+    # reset to the default in each child, so the commands answer Ctrl-C as in a terminal.
+    import signal
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     # The tests' networks are tiny: one torch thread is as fast, and it keeps a busy machine
     # (another job using every core) from slowing the tests many times over through thread
     # oversubscription.

@@ -284,6 +284,8 @@ def _closed_port() -> int:
      "cannot reach a Dask scheduler at --address tcp://127.0.0.1:{port}"),
     (["--engine", "dask", "--address", "tcp://head:node:x"], "is not a scheduler address"),
     (["--engine", "dask", "--address", "inproc://x"], "only tcp:// and tls://"),
+    (["--engine", "dask", "--address", "tls://127.0.0.1:{port}"],
+     "cannot reach a Dask scheduler at --address tls://127.0.0.1:{port}"),
     (["--address", "tcp://127.0.0.1:8786"], "--address needs a cluster engine: --engine dask"),
     (["--engine", "dask", "--tasks-per-process", "2"], "applies to the local engine only"),
     (["--engine", "dask", "--workers", "2", "--address", "tcp://127.0.0.1:{port}"],
@@ -293,7 +295,8 @@ def _closed_port() -> int:
     (["--engine", "dask", "--connect-timeout-s", "5"], "it needs --engine dask --address ADDR"),
     (["--engine", "dask", "--address", "tcp://127.0.0.1:{port}", "--connect-timeout-s", "0"],
      "--connect-timeout-s 0.0 not accepted: a number of seconds > 0 and <= 3600"),
-], ids=["unknown", "unreachable", "malformed", "scheme", "no-engine", "tasks-per-process",
+], ids=["unknown", "unreachable", "malformed", "scheme", "tls-unreachable", "no-engine",
+        "tasks-per-process",
         "workers-and-address", "timeout-without-address", "timeout-local-cluster",
         "timeout-zero"])
 def test_engine_mistakes_get_one_line_and_write_nothing(tmp_path, extra, says):
@@ -394,6 +397,17 @@ def test_an_address_where_no_scheduler_answers_fails_in_seconds(tmp_path, kind, 
     assert not (tmp_path / "ds").exists()  # refused before anything was written
     # the timeout bounds the wait (start-up aside); without it this waited for ever
     assert took < 60, took
+
+
+def test_a_tls_address_without_dasks_tls_settings_is_named(tmp_path):
+    with _server("silent", tmp_path) as port:
+        r = subprocess.run(_build_cmd(tmp_path / "ds", "--engine", "dask", "--address",
+                                      f"tls://127.0.0.1:{port}", config="demo"),
+                           capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert (f"--address tls://127.0.0.1:{port} is a TLS scheduler, and Dask's TLS settings are "
+            "not set: give distributed.comm.tls.ca-file") in r.stderr
+    assert not (tmp_path / "ds").exists()
 
 
 def _build_without_dask(out: Path, *extra: str) -> subprocess.CompletedProcess:
