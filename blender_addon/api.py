@@ -273,12 +273,15 @@ def check_model_knows(model, target) -> str:
 
 
 def add_to_catalog(target, kind: str = "aircraft", category: str = "other",
-                   name: str | None = None, force: bool = False, catalog=None):
+                   name: str | None = None, force: bool = False, catalog=None,
+                   reflectivity: float | None = None):
     """Save a target's body mesh as a new type of the user catalog (``apcg catalog list`` shows
     it; the command line finds it under the same APCG_DATA_DIR). ``name`` defaults to the
     target's type name. A size implausible for ``kind`` ("aircraft" or "drone") is refused
     (InputError, naming the likely unit) unless ``force``. The target then carries the new
-    type's name. Returns the new catalog type (apcg_core.catalog.AircraftType)."""
+    type's name. ``reflectivity`` (at the lidar's wavelength, in (0, 1]) defaults to the
+    target's own ``apcg_reflectivity`` when it has one, else the category's (SPEC section 8).
+    Returns the new catalog type (apcg_core.catalog.AircraftType)."""
     import bpy
 
     from apcg_core.catalog import default_catalog
@@ -292,8 +295,12 @@ def add_to_catalog(target, kind: str = "aircraft", category: str = "other",
     src = source_of(target)
     where = bpy.data.filepath or "an unsaved .blend"
     source = f"Blender object {(src or target).name!r} in {where}"
+    if reflectivity is None and "apcg_reflectivity" in target:
+        reflectivity = float(target["apcg_reflectivity"])
     t = catalog.add_user_type(name, Mesh(mesh.vertices, mesh.faces), kind, category,
-                              source=source, force=force)
+                              source=source, force=force, reflectivity=reflectivity)
+    if reflectivity is not None:
+        target["apcg_reflectivity"] = float(t.reflectivity)
     target[TYPE_KEY] = t.name
     target[LENGTH_KEY] = float(catalog.depth_length_m(t))
     return t

@@ -242,6 +242,9 @@ class APCG_OT_add_to_catalog(bpy.types.Operator):
                                          "helicopter, light_GA, multirotor_drone, other")
     force: BoolProperty(name="Force", default=False,
                         description="Add it even when its size is implausible for its kind")
+    reflectivity: FloatProperty(name="Reflectivity", default=0.0, min=0.0, max=1.0,
+                                description="Diffuse reflectivity at the lidar's wavelength, "
+                                            "for sensor scans (0: the category's default)")
 
     @classmethod
     def poll(cls, context):
@@ -261,7 +264,8 @@ class APCG_OT_add_to_catalog(bpy.types.Operator):
         obj = context.active_object
         try:
             t = api.add_to_catalog(obj, self.kind, self.category or "other",
-                                   name=self.type_name or None, force=self.force)
+                                   name=self.type_name or None, force=self.force,
+                                   reflectivity=self.reflectivity or None)
         except InputError as exc:
             msg = str(exc)
             if "implausible" in msg:

@@ -324,3 +324,22 @@ def test_make_target_and_scan_in_a_window(tmp_path, big_display):
     assert rep["clicked"]
     assert rep["redo_axes"] == ["-Y", "Z", True, "axes: forward -Y, up Z (guessed)"]
     assert png.exists() and png.stat().st_size > 50_000
+
+
+def test_add_to_catalog_keeps_a_reflectivity_and_scans_use_it(scene, tmp_path):
+    """The add-on sets a type's reflectivity (SPEC section 8): the catalog stores it, the
+    command line lists it, and a scan with a sensor records it in the cloud's metadata."""
+    lidar = api.add_lidar()
+    target = api.make_target(lidar, box.add_box_aircraft(name="White box"), **POSE)
+    t = api.add_to_catalog(target, "aircraft", "other", reflectivity=0.8)
+    assert t.reflectivity == pytest.approx(0.8) and target["apcg_reflectivity"] == 0.8
+    env = dict(os.environ, APCG_DATA_DIR=str(tmp_path / "data"))
+    r = subprocess.run([*APCG, "catalog", "list", "--json"], capture_output=True, text=True,
+                       env=env)
+    rows = {row["name"]: row for row in json.loads(r.stdout)}
+    assert rows["White box"]["reflectivity"] == pytest.approx(0.8)
+    assert rows["A320neo"]["reflectivity"] == pytest.approx(0.6)  # its category's default
+    (cloud,) = api.scan(lidar, sensor="1064nm-night", seed=2)
+    assert api.cloud_from_object(cloud)[1]["meta"]["reflectivity"] == pytest.approx(0.8)
+    with pytest.raises(Exception, match="reflectivity"):
+        api.add_to_catalog(target, "aircraft", "other", name="Too white", reflectivity=1.7)
