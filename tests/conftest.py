@@ -13,6 +13,13 @@ settings.register_profile("ci", deadline=None, max_examples=150, derandomize=Tru
                           suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
+# The tests' user catalog is their own, never the developer's (~/.local/share/apcg): a test that
+# adds a type must not leave it there, and a type left there must not change a test. Set
+# before anything reads the catalog; the commands the tests start inherit it.
+if "APCG_TEST_KEEP_DATA_DIR" not in os.environ:
+    import tempfile
+    os.environ["APCG_DATA_DIR"] = tempfile.mkdtemp(prefix="apcg-tests-data-")
+
 
 def pytest_sessionfinish(session, exitstatus):
     # In CI a skipped test is a failed test: CI installs everything the tests need.
