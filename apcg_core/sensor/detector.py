@@ -248,34 +248,10 @@ def _binomial_pmf(n: int, p: float) -> np.ndarray:
         return np.exp(log_choose + z * np.log(p) + (n - z) * np.log1p(-p))
 
 
-def _draw_from(rng: np.random.Generator, pmf: np.ndarray, offset: int, size: int) -> np.ndarray:
-    """``size`` draws of offset + i with chances pmf[i] / sum(pmf)."""
-    cdf = np.cumsum(pmf)
-    cdf /= cdf[-1]
-    return offset + np.minimum(np.searchsorted(cdf, rng.random(size), side="right"),
-                               len(pmf) - 1)
-
-
-def _subsets(rng: np.random.Generator, sizes: np.ndarray, pulses: int) -> np.ndarray:
-    """For each slot, ``sizes[i]`` distinct pulses drawn uniformly (flat, slot by slot, in
-    ascending order): uniform draws, a repeat within a slot drawn again until none is left
-    (the sizes here are mostly 1 to 3 of ``pulses``)."""
-    if len(sizes) == 0:
-        return np.zeros(0, np.int64)
-    slot = np.repeat(np.arange(len(sizes), dtype=np.int64), sizes)
-    pulse = rng.integers(0, pulses, len(slot))
-    while True:
-        order = np.lexsort((pulse, slot))
-        slot, pulse = slot[order], pulse[order]
-        dup = np.flatnonzero((slot[1:] == slot[:-1]) & (pulse[1:] == pulse[:-1])) + 1
-        if len(dup) == 0:
-            return pulse
-        pulse[dup] = rng.integers(0, pulses, len(dup))
-
-
 def _quiet_cost(n_quiet: int, n_bins: int, pmf: np.ndarray, pulses: int, threshold: int,
                 noise: float) -> tuple[float, float]:
-    """Expected work (arrivals handled) of :func:`_quiet_points` and of drawing every event."""
+    """Expected work (arrivals handled) of the quiet cells' heavy-bin route
+    (``points._quiet_peaks``) and of following every pulse that fires."""
     z = np.arange(len(pmf))
     heavy = float(pmf[threshold:].sum())
     cells = min(float(n_quiet), n_quiet * n_bins * heavy)
@@ -283,54 +259,6 @@ def _quiet_cost(n_quiet: int, n_bins: int, pmf: np.ndarray, pulses: int, thresho
     fast = n_quiet * n_bins * heavy * pulses / 2 + cells * n_bins * light_z
     full = n_quiet * pulses * float(-np.expm1(-noise * n_bins))
     return fast, full
-
-
-def quiet_point_rate(n_bins: int, noise: float, pulses: int, threshold: int) -> float:
-    """The chance that one (cell, bin) of noise alone has at least ``threshold`` pulses with an
-    arrival in it: the candidates :func:`_quiet_points` follows."""
-    pmf = _binomial_pmf(pulses, float(-np.expm1(-noise)))
-    return float(pmf[threshold:].sum())
-
-
-def _quiet_points(rng: np.random.Generator, n_quiet: int, n_bins: int, noise: float,
-                  pulses: int, threshold: int):
-    """(quiet cell, bin, count) of the quiet cells whose histogram peaks at ``threshold`` or
-    more, for one event per pulse (the dead time covers the gate).
-
-    Arrivals (not events) of a pulse in a bin: Poisson(noise), independent over (cell, pulse,
-    bin); a pulse's event is its first arrival. Z = pulses with an arrival in a (cell, bin) is
-    Binomial(pulses, 1 - exp(-noise)), independent over (cell, bin), and a bin's count of
-    events is at most its Z. So: the (cell, bin) with Z >= threshold are drawn by skipping;
-    in their cells every other bin's Z is drawn given Z < threshold (most are 0, skipped too);
-    each Z gets a uniform subset of pulses; a pulse's event is its first arrival bin."""
-    alpha = float(-np.expm1(-noise))
-    pmf = _binomial_pmf(pulses, alpha)
-    heavy = float(pmf[threshold:].sum())
-    slot = _skip(rng, n_quiet * n_bins, heavy)
-    if len(slot) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    z_heavy = _draw_from(rng, pmf[threshold:], threshold, len(slot))
-    cells = np.unique(slot // n_bins)
-    light = float(pmf[1:threshold].sum()) / float(pmf[:threshold].sum())
-    other = _skip(rng, len(cells) * n_bins, light)  # bins of those cells with 0 < Z < thr
-    other_cell = cells[other // n_bins]
-    other_slot = other_cell * n_bins + other % n_bins
-    keep = ~np.isin(other_slot, slot)  # a heavy bin's Z is already drawn
-    other_slot = other_slot[keep]
-    z_other = _draw_from(rng, pmf[1:threshold], 1, len(other_slot))
-    slots = np.concatenate([slot, other_slot])
-    sizes = np.concatenate([z_heavy, z_other])
-    pulse = _subsets(rng, sizes, pulses)
-    s = np.repeat(slots, sizes)
-    cell, b = s // n_bins, s % n_bins
-    first = np.lexsort((b, pulse, cell))  # per (cell, pulse), earliest arrival first
-    cell, b, pulse = cell[first], b[first], pulse[first]
-    is_first = np.ones(len(cell), bool)
-    is_first[1:] = (cell[1:] != cell[:-1]) | (pulse[1:] != pulse[:-1])
-    hist = peaks(Events(cell[is_first], b[is_first], np.zeros(int(is_first.sum()), bool)),
-                 n_bins)
-    keep = hist.count >= threshold
-    return hist.cell[keep], hist.bin[keep], hist.count[keep]
 
 
 def _signal_share(signal: SignalBins, k: np.ndarray, noise: float) -> np.ndarray:
@@ -360,102 +288,6 @@ class Window:
         return j + np.searchsorted(self._gaps, j, side="right")
 
 
-def _loud_points(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_bins: int,
-                 noise: float, pulses: int) -> Histogram:
-    """The peak bins of the loud cells for one event per pulse (the dead time covers the
-    gate), drawn without following each pulse.
-
-    Cut each cell's gate into its signal bins and the stretches of noise alone between them.
-    A pulse that has not fired before a piece fires in it with chance 1 - exp(-mu) (mu the
-    piece's mean), so the pulses that fire in each piece are a chain of binomials, piece by
-    piece in time order: exactly the multinomial histogram of first events. Counts in signal
-    bins are kept as they are (their signal part binomial with the signal's share); events in
-    a stretch of noise are placed in it one by one (the first-arrival law truncated to it).
-    The cost follows the pieces, not the pulses."""
-    cell, b, mean = signal.cell, signal.bin, signal.mean
-    n_sig = len(cell)
-    if n_sig == 0:
-        z = np.zeros(0, np.int64)
-        return Histogram(z, z, z, z)
-    # Pieces in time order per cell, laid out without sorting: for each signal bin (sorted by
-    # cell and bin) the stretch of noise before it when there is one, then the bin; after a
-    # cell's last bin, the stretch to the gate's end.
-    new_cell = np.empty(n_sig, bool)
-    new_cell[0] = True
-    new_cell[1:] = cell[1:] != cell[:-1]
-    last = np.empty(n_sig, bool)
-    last[-1] = True
-    last[:-1] = new_cell[1:]
-    prev_end = np.where(new_cell, 0, np.concatenate([[0], b[:-1] + 1]))
-    gap_len = b - prev_end
-    gap = gap_len > 0
-    tail_len = np.where(last, n_bins - 1 - b, 0)
-    tail = tail_len > 0
-    per = gap.astype(np.int64) + 1 + tail
-    end_slot = np.cumsum(per)
-    sig_slot = end_slot - 1 - tail
-    n_pieces = int(end_slot[-1])
-    piece_cell = np.repeat(cell, per)
-    piece_start = np.empty(n_pieces, np.int64)
-    piece_len = np.empty(n_pieces, np.int64)
-    piece_sig = np.full(n_pieces, -1, np.int64)
-    piece_start[sig_slot] = b
-    piece_len[sig_slot] = 1
-    piece_sig[sig_slot] = np.arange(n_sig)
-    g = sig_slot[gap] - 1
-    piece_start[g], piece_len[g] = prev_end[gap], gap_len[gap]
-    t = sig_slot[tail] + 1
-    piece_start[t], piece_len[t] = b[tail] + 1, tail_len[tail]
-    piece_mean = noise * piece_len
-    piece_mean[sig_slot] += mean
-    # the chain, one piece position at a time across all cells
-    cell_first = np.repeat(np.flatnonzero(np.concatenate([[True], piece_cell[1:]
-                                                           != piece_cell[:-1]])),
-                           np.diff(np.append(np.flatnonzero(np.concatenate(
-                               [[True], piece_cell[1:] != piece_cell[:-1]])), n_pieces)))
-    pos = (np.arange(n_pieces) - cell_first).astype(np.int16 if n_pieces < 32767 else np.int64)
-    by_pos = np.argsort(pos, kind="stable")  # a radix sort on small integers
-    bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))
-    remaining = np.full(n_cells, pulses, np.int64)
-    fired = np.zeros(n_pieces, np.int64)
-    p_piece = -np.expm1(-piece_mean)
-    for j in range(len(bounds) - 1):
-        idx = by_pos[bounds[j]:bounds[j + 1]]
-        left = remaining[piece_cell[idx]]
-        live = left > 0
-        if not live.all():
-            if not live.any():
-                continue
-            idx, left = idx[live], left[live]
-        x = binomial(rng, left, p_piece[idx])
-        fired[idx] = x
-        remaining[piece_cell[idx]] -= x
-    # signal bins: their counts and how many of them are signal
-    in_sig = (piece_sig >= 0) & (fired > 0)
-    k = piece_sig[in_sig]
-    share = mean[k] / (mean[k] + noise)
-    sig_count = binomial(rng, fired[in_sig], share)
-    # stretches of noise: place each event (first-arrival law truncated to the stretch)
-    in_gap = (piece_sig < 0) & (fired > 0)
-    g_cell = np.repeat(piece_cell[in_gap], fired[in_gap])
-    g_start = np.repeat(piece_start[in_gap], fired[in_gap])
-    g_len = np.repeat(piece_len[in_gap], fired[in_gap])
-    u = rng.random(len(g_cell))
-    if noise > 0:
-        off = np.floor(-np.log1p(-u * -np.expm1(-noise * g_len)) / noise).astype(np.int64)
-    else:
-        off = np.zeros(len(u), np.int64)
-    g_bin = g_start + np.minimum(off, g_len - 1)
-    gaps = peaks(Events(g_cell, g_bin, np.zeros(len(g_cell), bool)), n_bins)
-    sig = Histogram(piece_cell[in_sig], piece_start[in_sig], fired[in_sig], sig_count)
-    both = [np.concatenate([getattr(h, f) for h in (sig, gaps)])
-            for f in ("cell", "bin", "count", "signal_count")]
-    order = np.lexsort((both[1], -both[2], both[0]))  # per cell: most counts, then nearest
-    c = both[0][order]
-    top = np.concatenate([[True], c[1:] != c[:-1]]) if len(c) else np.zeros(0, bool)
-    return Histogram(*(x[order][top] for x in both))
-
-
 def detect(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_bins: int,
            noise_per_bin: float, dead_bins: float, pulses: int, with_pulse: bool) -> Events:
     """Every event of ``pulses`` pulses in each of ``n_cells`` cells (SPEC section 8), labelled
@@ -482,28 +314,17 @@ def detect_points(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_
                   noise_per_bin: float, dead_bins: float, pulses: int,
                   threshold: int) -> Histogram:
     """The peak bin (nearest of equal peaks) of each cell whose histogram reaches ``threshold``
-    counts there, and how many of its counts were signal."""
+    counts there, and how many of its counts were signal, from every event (for a dead time
+    shorter than the gate; ``points.batch_points`` draws the usual case without them)."""
     win = Window(signal, n_cells, n_bins, noise_per_bin)
-    if dead_bins >= n_bins:
-        loud = _loud_points(rng, win.signal, len(win.loud), n_bins, noise_per_bin, pulses)
-        loud.cell = win.loud[loud.cell]
-    else:
-        cell, b, _, k, _, _ = _loud_events(rng, win.inten, pulses, dead_bins)
-        is_signal = rng.random(len(cell)) < _signal_share(win.signal, k, noise_per_bin)
-        loud = peaks(Events(win.loud[cell], b, is_signal), n_bins)
-    pmf = _binomial_pmf(pulses, float(-np.expm1(-noise_per_bin)))
-    fast, full = _quiet_cost(win.n_quiet, n_bins, pmf, pulses, threshold, noise_per_bin)
-    if dead_bins >= n_bins and fast < full:
-        q_cell, q_b, q_count = _quiet_points(rng, win.n_quiet, n_bins, noise_per_bin, pulses,
-                                             threshold)
-        quiet = Histogram(q_cell, q_b, q_count, np.zeros(len(q_cell), np.int64))
-    else:
-        q_cell, q_b, _, _ = _quiet_events(rng, win.n_quiet, n_bins, noise_per_bin, pulses,
-                                          dead_bins)
-        quiet = peaks(Events(q_cell, q_b, np.zeros(len(q_cell), bool)), n_bins)
+    cell, b, _, k, _, _ = _loud_events(rng, win.inten, pulses, dead_bins)
+    is_signal = rng.random(len(cell)) < _signal_share(win.signal, k, noise_per_bin)
+    loud = peaks(Events(win.loud[cell], b, is_signal), n_bins)
+    q_cell, q_b, _, _ = _quiet_events(rng, win.n_quiet, n_bins, noise_per_bin, pulses,
+                                      dead_bins)
+    quiet = peaks(Events(q_cell, q_b, np.zeros(len(q_cell), bool)), n_bins)
     quiet.cell = win.quiet_cell(quiet.cell)
-    out = [h for h in (loud, quiet)]
-    cat = [np.concatenate([getattr(h, f) for h in out]) for f in
+    cat = [np.concatenate([getattr(h, f) for h in (loud, quiet)]) for f in
            ("cell", "bin", "count", "signal_count")]
     keep = cat[2] >= threshold
     order = np.argsort(cat[0][keep], kind="stable")
