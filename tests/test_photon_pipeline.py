@@ -84,6 +84,7 @@ def test_events_output_has_pulses_and_several_events_per_cell(tmp_path):
     (["--sensor", "nope"], "unknown sensor 'nope'"),
     (["--sensor", "1550nm-day", "--backend", "points"], "--sensor needs a ray-casting backend"),
     (["--photon-output", "events"], "--photon-output needs a --sensor"),
+    (["--sensor", "1550nm-day", "--no-quantize"], "--no-quantize does not apply with --sensor"),
 ])
 def test_sensor_mistakes_are_one_line(tmp_path, capsys, extra, says):
     rc = main(["simulate", *POSE, "-o", str(tmp_path / "x.npz"), *extra])

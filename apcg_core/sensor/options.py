@@ -29,6 +29,9 @@ def sensor_of(args):
         raise InputError("--sensor needs a ray-casting backend (the photon stage takes every "
                          "sub-ray's range and incidence); accepted: embree, blender, "
                          "blender-bvh")
+    if sensor is not None and getattr(args, "no_quantize", False):
+        raise InputError("--no-quantize does not apply with --sensor: a sensor's points sit at "
+                         "their time bins' centres (SPEC section 8); drop one of the two")
     if sensor is None:
         if args.photon_output:
             raise InputError("--photon-output needs a --sensor other than ideal")
