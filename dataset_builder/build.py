@@ -250,6 +250,7 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
             "n_samples": head["n_samples"], "n_train": head["n_train"], "n_test": head["n_test"],
             "shards_total": len(shards), "shards_present": len(present),
             "complete": (out / "manifest.json").exists() and len(present) == len(shards),
+            "sensor": head.get("sensor", {}).get("name", "ideal"),
             "bytes_on_disk": sum((out / s["file"]).stat().st_size for s in present)}
     n_done = sum(s["n_samples"] for s in present)
     info["samples_present"] = n_done
@@ -257,7 +258,7 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
         from apcg_core.catalog.catalog import default_catalog
         sums = {m.get("file"): m.get("sha256") for m in read_manifest(out)["shards"]
                 if isinstance(m, dict)}
-        n_points = clipped = clamped = empty = 0
+        n_points = clipped = clamped = empty = signal = 0
         bad = []
         for s in present:
             p = out / s["file"]
@@ -272,8 +273,12 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
             clipped += int(sh.clipped.sum())
             clamped += int(sh.n_clamped.sum())
             empty += int((np.diff(sh.offsets) == 0).sum())
+            signal += int(sh.label.sum()) if sh.label is not None else 0
+        cfg = dict(head["config"])
+        if "sensor" in head:  # the sensor as recorded: its file need not exist any more
+            cfg["sensor"] = dict(head["sensor"])
         if (out / "conditions.csv").exists() and (out / "conditions.csv").read_bytes() != \
-                conditions_csv(make_plan(head["config"], default_catalog())):
+                conditions_csv(make_plan(cfg, default_catalog())):
             bad.append("conditions.csv")  # a pure function of the config: made again, compared
         if bad:
             raise InputError(f"corrupt files in {out}: {bad}; delete them and run the same "
@@ -281,6 +286,8 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
         info.update({"points": n_points, "mean_points_per_sample": n_points / max(n_done, 1),
                      "clipped_samples": clipped, "clamped_pixels": clamped,
                      "empty_samples": empty, "verified": True})
+        if "sensor" in head:
+            info.update({"signal_points": signal, "noise_points": n_points - signal})
     return info
 
 

@@ -143,6 +143,12 @@ def test_photon_dataset_holds_labels_counts_and_the_expected_signal(photon_refer
         n_points += len(s.pixel)
         n_targets += len(s.target_pixel)
     assert n_points > 100 and n_targets > n_points
+    # info names the sensor and splits the points; verify re-plans from the recorded sensor
+    info = json.loads(subprocess.run([sys.executable, "-m", "apcg_core.cli", "dataset", "info",
+                                      str(out), "--verify", "--json"], capture_output=True,
+                                     text=True, check=True).stdout)
+    assert info["sensor"] == "1550nm-day" and info["verified"]
+    assert info["signal_points"] + info["noise_points"] == info["points"] == n_points
 
 
 @pytest.mark.parametrize("how", [["--workers", "2"], ["--sensor", "1550nm-day"]],
