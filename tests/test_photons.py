@@ -320,8 +320,9 @@ def test_presets_and_files(tmp_path):
 @pytest.mark.parametrize("n, p", [(100, 0.003), (100, 0.08), (100, 0.97), (40, 0.5),
                                   (5000, 0.001), (100, 0.0), (100, 1.0)])
 def test_the_stages_binomial_sampler_has_the_binomial_law(n, p):
-    from apcg_core.sensor.detector import binomial
-    draws = binomial(np.random.default_rng(0), np.full(200_000, n), np.full(200_000, p))
+    from apcg_core.sensor.draws import binomial_inverse, uniforms
+    draws = binomial_inverse(np.full(200_000, n), np.full(200_000, p),
+                             uniforms(0, np.zeros(200_000, np.int64), 1, np.arange(200_000)))
     assert draws.min() >= 0 and draws.max() <= n
     mean, var = n * p, n * p * (1 - p)
     assert abs(draws.mean() - mean) <= 4 * math.sqrt(var / len(draws)) + 1e-12

@@ -125,41 +125,6 @@ class Intensity:
         return c
 
 
-# Below this mean (of the smaller of p and 1 - p) :func:`binomial` inverts the CDF itself.
-_INVERT_BELOW = 16.0
-
-
-def binomial(rng: np.random.Generator, n: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Binomial(n, p) draws, elementwise. numpy's sampler costs 100-600 ns a draw; here most
-    draws have a small mean (of p or of 1 - p), and for those the CDF is inverted directly
-    (one uniform each, a few vectorised steps); the rest go to numpy."""
-    n = np.asarray(n, np.int64)
-    p = np.clip(np.asarray(p, np.float64), 0.0, 1.0)
-    flip = p > 0.5
-    q = np.where(flip, 1.0 - p, p)
-    out = np.zeros(len(n), np.int64)
-    big = n * q >= _INVERT_BELOW
-    if big.any():
-        out[big] = rng.binomial(n[big], q[big])
-    small = np.flatnonzero(~big & (n > 0) & (q > 0))
-    if len(small):
-        nn, qq = n[small], q[small]
-        u = rng.random(len(small))
-        pk = np.exp(nn * np.log1p(-qq))  # P(X = 0)
-        cdf = pk.copy()
-        x = np.zeros(len(small), np.int64)
-        ratio = qq / (1.0 - qq)
-        act = np.flatnonzero(u > cdf)
-        while len(act):
-            x[act] += 1
-            k = x[act]
-            pk[act] *= (nn[act] - k + 1) / k * ratio[act]
-            cdf[act] += pk[act]
-            act = act[(u[act] > cdf[act]) & (x[act] < nn[act])]
-        out[small] = x
-    return np.where(flip, n - out, out)
-
-
 def _skip(rng: np.random.Generator, n: int, p: float) -> np.ndarray:
     """Indices of the successes among ``n`` independent trials of chance ``p`` each: the gaps
     between successes are geometric, so the cost is the number of successes, not of trials."""
@@ -187,7 +152,7 @@ def _loud_events(rng: np.random.Generator, inten: Intensity, pulses: int, dead_b
     n_bins = inten.n_bins
     total = inten.total()
     p_fire = -np.expm1(-total)
-    fired = binomial(rng, np.full(len(total), pulses), p_fire)
+    fired = rng.binomial(pulses, p_fire)
     cell = np.repeat(np.arange(len(total), dtype=np.int64), fired)
     u = rng.random(len(cell))
     # the first event: an Exp(1) draw conditioned on falling inside the gate
