@@ -8,6 +8,7 @@ import numpy as np
 
 from .cli import add_pose_arguments
 from .io.clouds import FORMATS as CLOUD_FORMATS
+from .lidar_options import add_lidar_argument, model_at_lidar
 from .outputs import FILE, add_output
 from .sensor.options import add_sensor_arguments, sensor_of
 
@@ -30,6 +31,8 @@ def register_generate(sub) -> None:
                         "torch; the same images either way")
     p.add_argument("--tau", type=float, help="output threshold (default: the model's): the "
                                              "cGAN's Im2PC tau, APCG+'s hit logit")
+    add_lidar_argument(p, default_help="the model's own (its model.json lidar); another is "
+                                       "read at its cells where the family can (apcg-plus)")
     add_sensor_arguments(p, seed=False)  # --seed seeds the photons too
     add_output(p, "-o", "--output", kind=FILE, suffixes=CLOUD_FORMATS, required=True,
                    help=".ply / .npz / .las / .laz; several clouds go in one file, told apart by "
@@ -43,7 +46,7 @@ def _run_generate(args) -> int:
     from .lidar import DEG
 
     sensor = sensor_of(args)
-    model = load_model(args.model, runtime=args.runtime)
+    model = model_at_lidar(load_model(args.model, runtime=args.runtime), args, "generate")
     if args.tau is not None:
         if getattr(model, "tau", None) is None:
             raise InputError(f"--tau is an output threshold; {model.directory} is a "
@@ -59,9 +62,11 @@ def _run_generate(args) -> int:
         table = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
                                 args.pitch_deg * DEG, args.yaw_deg * DEG, args.roll_deg * DEG)
     total = len(table) * args.count
+    _warn_window(model, table)
     meta = {"model": str(model.directory), "family": model.family,
             "runtime": getattr(model, "runtime", None), "seed": args.seed,
-            "count": args.count, "tau": getattr(model, "tau", None)}
+            "count": args.count, "tau": getattr(model, "tau", None),
+            "lidar": model.lidar.to_dict()}
     if sensor is not None:  # SPEC section 8: the photon stage on the generated clouds
         meta["sensor"] = sensor.to_dict()
     if len(table) <= MAX_LISTED_CONDITIONS:
@@ -103,6 +108,23 @@ def _run_generate(args) -> int:
                       "empty_clouds": empty,
                       "family": model.family, "runtime": getattr(model, "runtime", None)}))
     return 0
+
+
+def _warn_window(model, table) -> None:
+    """One "window too small" line when the lidar's window cuts a requested target."""
+    import sys
+
+    from .catalog.catalog import default_catalog
+    from .errors import InputError
+    from .plausibility import WINDOW_CHECK_ROWS, window_fit, window_warning
+    cat, part = default_catalog(), table[:WINDOW_CHECK_ROWS]
+    try:
+        fit = window_fit(model.lidar, lambda n: cat.mesh(n).vertices, part.names, part.table)
+    except InputError:  # a type of the model that this catalog no longer holds: no mesh
+        return
+    warning = window_warning(model.lidar, *fit, "the requested targets")
+    if warning:
+        print(f"apcg generate: warning: {warning}", file=sys.stderr)
 
 
 # Clouds generated per block: large requests are made and written block by block, so memory

@@ -1,15 +1,27 @@
-"""SPC-Lidar parameters (SPEC section 1) and the geometry of its depth-image window."""
+"""SPC-Lidar parameters (SPEC section 1), the geometry of its depth-image window, and the one
+lidar description every command takes (``--lidar PRESET|FILE``): a TOML file whose ``[lidar]``
+table is the one the dataset configs hold, plus an optional ``[sensor]`` table (SPEC section 8,
+read by ``apcg_core.sensor``). Presets are the files beside this module in ``lidar_presets/``;
+``paper`` is the default.
+"""
 
 from __future__ import annotations
 
 import math
+import tomllib
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError, check_finite
 
 DEG = math.pi / 180.0
+LIDAR_PRESET_DIR = Path(__file__).with_name("lidar_presets")
+DEFAULT_LIDAR_PRESET = "paper"  # the paper's SPC-Lidar (SPEC section 1; its file cites it)
+LIDAR_KEYS = ("r_alpha_deg", "r_beta_deg", "r_r_m", "width", "height")
+# The tables a lidar file may hold: [lidar] (here) and [sensor] (apcg_core.sensor.params).
+LIDAR_FILE_TABLES = ("lidar", "sensor")
 
 
 @dataclass(frozen=True)
@@ -50,7 +62,23 @@ class LidarParams:
 
     @classmethod
     def from_dict(cls, d: dict) -> LidarParams:
-        return cls.from_degrees(**d)
+        return lidar_from_table(d)
+
+    def describe(self) -> str:
+        """One line: cells, bins, window (for messages)."""
+        d = self.to_dict()
+        return (f"{d['r_alpha_deg']:.6g} x {d['r_beta_deg']:.6g} deg cells, {self.r_r:g} m bins, "
+                f"{self.width} x {self.height} window")
+
+    def window_that_fits(self, alpha_lo, alpha_hi, beta_lo, beta_hi, beta0) -> tuple[int, int]:
+        """The smallest even W x H window (at these cells) holding every cell that the angular
+        extents [alpha_lo, alpha_hi] x [beta_lo, beta_hi] (rad, arrays: one per target) touch,
+        the window centred as in SPEC section 5 (w in [-W/2, W/2 - 1])."""
+        w_lo, h_lo = self.cell_of_angles(alpha_lo, beta_lo, beta0)
+        w_hi, h_hi = self.cell_of_angles(alpha_hi, beta_hi, beta0)
+        half_w = int(max(np.max(-np.asarray(w_lo)), np.max(np.asarray(w_hi)) + 1, 1))
+        half_h = int(max(np.max(-np.asarray(h_lo)), np.max(np.asarray(h_hi)) + 1, 1))
+        return 2 * half_w, 2 * half_h
 
     # --- pixel <-> centred cell coordinates (SPEC section 5) -------------------------------
     @property
@@ -96,3 +124,96 @@ class LidarParams:
     def quantize_range(self, r):
         """Range quantized to the centre of its time bin: (floor(r / R_r) + 0.5) R_r."""
         return (np.floor(np.asarray(r, dtype=np.float64) / self.r_r) + 0.5) * self.r_r
+
+
+# --- the lidar description: presets, files and tables ----------------------------------------
+def lidar_preset_names() -> list[str]:
+    return sorted(p.stem for p in LIDAR_PRESET_DIR.glob("*.toml"))
+
+
+def _where(source: str) -> str:
+    return f" in {source}" if source else ""
+
+
+def lidar_from_table(table, source: str = "") -> LidarParams:
+    """A ``[lidar]`` table (a lidar file's, a dataset config's, a model's or a dataset's record)
+    as :class:`LidarParams`, every value checked by name. A key left out takes the paper's
+    value (SPEC section 1), as the dataset configs always have."""
+    if not isinstance(table, dict):
+        raise InputError(f"the [lidar] table{_where(source)} must be a table of keys "
+                         f"({', '.join(LIDAR_KEYS)}), got {table!r}")
+    unknown = sorted(set(table) - set(LIDAR_KEYS))
+    if unknown:
+        raise InputError(f"unknown lidar key(s) {', '.join(map(repr, unknown))}"
+                         f"{_where(source)}; accepted: {', '.join(LIDAR_KEYS)}")
+    values = {}
+    for key in LIDAR_KEYS[:3]:
+        if key in table:
+            v = table[key]
+            ok = (isinstance(v, (int, float)) and not isinstance(v, bool)
+                  and math.isfinite(v) and v > 0)
+            if not ok:
+                raise InputError(f"lidar value {key}{_where(source)} must be a finite number "
+                                 f"> 0, got {v!r}")
+            values[key] = float(v)
+    for key in LIDAR_KEYS[3:]:
+        if key in table:
+            v = table[key]
+            if (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not
+                    2 <= v <= 65536 or v % 2):
+                raise InputError(f"lidar value {key}{_where(source)} must be an even integer "
+                                 f"from 2 to 65536, got {v!r}")
+            values[key] = int(v)
+    try:
+        return LidarParams.from_degrees(**values)
+    except InputError as exc:
+        raise InputError(f"{exc}{_where(source)}") from None
+
+
+def lidar_file(ref) -> Path:
+    """The file of a lidar preset name or a lidar file path; a named error otherwise."""
+    ref_s = str(ref).strip()
+    path = LIDAR_PRESET_DIR / f"{ref_s}.toml"
+    if ref_s and "/" not in ref_s and path.is_file():
+        return path
+    path = Path(ref_s).expanduser()
+    if not ref_s or not path.is_file():
+        raise InputError(f"unknown lidar {ref_s!r}: not a preset and no such file; presets: "
+                         f"{', '.join(lidar_preset_names())}, or a TOML file with a [lidar] "
+                         "table")
+    return path
+
+
+def read_lidar_file(ref) -> tuple[Path, dict]:
+    """The path and parsed tables of a lidar preset or file, its tables checked by name."""
+    path = lidar_file(ref)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not a readable TOML file ({exc})") from exc
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror})") from exc
+    unknown = sorted(set(doc) - set(LIDAR_FILE_TABLES))
+    if unknown:
+        raise InputError(f"{path}: unknown table(s) or key(s) {', '.join(map(repr, unknown))}; "
+                         f"a lidar file holds a [lidar] table and optionally a [sensor] table")
+    if "lidar" not in doc:
+        raise InputError(f"{path} has no [lidar] table (keys {', '.join(LIDAR_KEYS)}); see the "
+                         f"presets in {LIDAR_PRESET_DIR}")
+    return path, doc
+
+
+def load_lidar(ref=None) -> LidarParams:
+    """The lidar of a preset name or a lidar file (its ``[lidar]`` table); None: the default
+    preset, ``paper``."""
+    path, doc = read_lidar_file(DEFAULT_LIDAR_PRESET if ref is None else ref)
+    return lidar_from_table(doc["lidar"], source=str(path))
+
+
+def lidar_sensor_file(ref) -> Path | None:
+    """The lidar file itself when it also holds a ``[sensor]`` table (the sensor module reads
+    that table from it), else None."""
+    if ref is None:
+        return None
+    path, doc = read_lidar_file(ref)
+    return path if "sensor" in doc else None

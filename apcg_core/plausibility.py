@@ -57,8 +57,11 @@ def sparse_cloud_warning(n_points: int, what: str) -> str | None:
 
 def _lidar_words(lidar: dict) -> str:
     known = ("r_alpha_deg", "r_beta_deg", "r_r_m", "width", "height")
-    words = (f"{lidar.get('r_alpha_deg')} x {lidar.get('r_beta_deg')} deg cells, "
-             f"{lidar.get('r_r_m')} m bins, {lidar.get('width')} x {lidar.get('height')} cells")
+    def g(v):
+        return f"{v:.6g}" if isinstance(v, float) else str(v)
+    words = (f"{g(lidar.get('r_alpha_deg'))} x {g(lidar.get('r_beta_deg'))} deg cells, "
+             f"{g(lidar.get('r_r_m'))} m bins, {lidar.get('width')} x {lidar.get('height')} "
+             "cells")
     rest = [f"{k} {lidar[k]}" for k in sorted(lidar) if k not in known]
     return words + "".join(f", {r}" for r in rest)
 
@@ -73,12 +76,63 @@ def _same_value(a, b) -> bool:
 def lidar_mismatch_warning(data_lidar: dict, data_name, model_lidar: dict,
                            model_name) -> str | None:
     """A dataset made by another lidar than the one a model was trained for (its model.json):
-    the model's clouds and the dataset's standard clouds are not comparable cell for cell."""
+    the model's clouds and the dataset's standard clouds are not comparable cell for cell.
+    ``model_lidar`` is the lidar the model generates at (its own, or ``--lidar``'s)."""
     data_lidar, model_lidar = dict(data_lidar or {}), dict(model_lidar or {})
     differ = [k for k in sorted(set(data_lidar) | set(model_lidar))
               if not _same_value(data_lidar.get(k), model_lidar.get(k))]
     if not differ:
         return None
     return (f"the dataset {data_name} was made by another lidar ({_lidar_words(data_lidar)}) "
-            f"than the model {model_name} was trained for ({_lidar_words(model_lidar)}); "
+            f"than the model {model_name} generates at ({_lidar_words(model_lidar)}; "
+            "--lidar sets it); "
             f"they differ in {', '.join(differ)}, so its scores compare clouds of two lidars")
+
+
+# Conditions a command checks against the window (the first ones, in order): enough for any
+# request a person types, and bounded for 10^6-cloud requests (issue 33).
+WINDOW_CHECK_ROWS = 1024
+
+
+def window_fit(lidar, vertices_of, names, table) -> tuple[int, int, int, int]:
+    """(targets cut by the window, targets checked, W, H): W x H the smallest even window at
+    ``lidar``'s cells holding every checked target whole. ``vertices_of(name)`` gives a type's
+    body-frame vertices; ``table`` rows are (code, r0 m, beta0, pitch, yaw, roll) rad, one per
+    name; the first :data:`WINDOW_CHECK_ROWS` rows are checked, from the exact directions of the
+    vertices (the simulator's angular boxes without their padding)."""
+    import numpy as np
+
+    from .frames import body_to_observation_matrices, target_centres
+    table = np.asarray(table, np.float64)[:WINDOW_CHECK_ROWS]
+    names = list(names)[:WINDOW_CHECK_ROWS]
+    if not len(table):
+        return 0, 0, lidar.width, lidar.height
+    m = body_to_observation_matrices(table[:, 3], table[:, 4], table[:, 5])
+    c = target_centres(table[:, 1], table[:, 2])
+    ext = np.zeros((len(table), 4))
+    for name in dict.fromkeys(names):
+        rows = np.flatnonzero(np.array(names) == name)
+        v = np.asarray(vertices_of(name), np.float64)
+        obs = np.einsum("nij,vj->nvi", m[rows], v) + c[rows, None, :]
+        alpha = np.arctan2(obs[..., 0], obs[..., 2])
+        beta = np.arctan2(obs[..., 1], np.hypot(obs[..., 0], obs[..., 2]))
+        ext[rows] = np.stack([alpha.min(1), alpha.max(1), beta.min(1), beta.max(1)], axis=1)
+    w_lo, h_lo = lidar.cell_of_angles(ext[:, 0], ext[:, 2], table[:, 2])
+    w_hi, h_hi = lidar.cell_of_angles(ext[:, 1], ext[:, 3], table[:, 2])
+    cut = ~(lidar.inside(w_lo, h_lo) & lidar.inside(w_hi, h_hi))
+    width, height = lidar.window_that_fits(ext[:, 0], ext[:, 1], ext[:, 2], ext[:, 3],
+                                           table[:, 2])
+    return int(cut.sum()), len(table), max(width, lidar.width), max(height, lidar.height)
+
+
+def window_warning(lidar, n_cut: int, n_checked: int, width: int, height: int,
+                   what: str) -> str | None:
+    """"window too small": the lidar's window cuts the target (its cloud ends at the window's
+    edge), with the window at the same cells that holds it whole."""
+    if not n_cut:
+        return None
+    share = "" if n_checked == 1 else f" ({n_cut:,} of the {n_checked:,} checked)"
+    return (f"window too small: the lidar's {lidar.width} x {lidar.height} window cuts "
+            f"{what}{share} at its edge; a window of width = {width}, height = {height} "
+            f"at the same cells holds {'it' if n_checked == 1 else 'them'} whole (the [lidar] "
+            "table's width and height)")

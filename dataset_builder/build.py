@@ -122,8 +122,9 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
                   shard_spec: str | None = None, progress: bool = True,
                   tasks_per_process: int | None = None, catalog=None, engine: str = "local",
                   address: str | None = None, connect_timeout_s: float | None = None,
-                  sensor: str | None = None) -> dict:
+                  sensor: str | None = None, lidar: str | None = None, warn=None) -> dict:
     """Build (or resume) the dataset of ``config`` in ``out_dir``; returns a summary.
+    ``warn(message)``, when given, hears a window too small for the plan's targets first.
 
     ``engine`` says where the shards are computed (``engine.ENGINES``: this machine, or a
     Dask cluster at ``address``, which must answer within ``connect_timeout_s``); the bytes
@@ -133,8 +134,21 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
     cfg = load_config(config) if isinstance(config, str) else dict(config)
     if backend:
         check_backend(backend)
-    plan = make_plan(cfg, catalog, backend, sensor)
+    plan = make_plan(cfg, catalog, backend, sensor, lidar)
     check_backend(plan.config["backend"])
+    if warn is not None:  # before the work: a window too small for the plan's targets
+        from apcg_core.plausibility import WINDOW_CHECK_ROWS, window_fit, window_warning
+        # each type's nearest conditions (the largest in the window), WINDOW_CHECK_ROWS in all
+        per = max(1, WINDOW_CHECK_ROWS // max(1, len(plan.types)))
+        codes = plan.table[:, 0].astype(np.int64)
+        rows = np.concatenate([np.flatnonzero(codes == c)[np.argsort(
+            plan.table[codes == c, 1], kind="stable")[:per]] for c in np.unique(codes)])
+        names = [plan.types[int(c)].name for c in plan.table[rows, 0]]
+        warning = window_warning(plan.lidar, *window_fit(
+            plan.lidar, lambda n: catalog.mesh(n).vertices, names, plan.table[rows]),
+            "the config's nearest targets")
+        if warning:
+            warn(warning)
     if not isinstance(workers, int) or workers < 1:
         raise InputError(f"--workers must be an integer >= 1, got {workers!r}")
     part_i, part_n = parse_shard_spec(shard_spec)

@@ -8,6 +8,7 @@ import sys
 from apcg_core.cli import add_pose_arguments, print_mapping
 from apcg_core.io.clouds import FORMATS as CLOUD_FORMATS
 from apcg_core.io.images import DEPTH_IMAGE_SUFFIXES
+from apcg_core.lidar_options import add_lidar_argument, lidar_or_default
 from apcg_core.outputs import DIRECTORY, FILE, add_output
 from apcg_core.sensor.options import add_sensor_arguments, sensor_of
 
@@ -32,6 +33,7 @@ def register_simulate(sub) -> None:
                         "whose stage takes every sub-ray)")
     p.add_argument("--no-quantize", action="store_true",
                    help="keep exact ranges instead of the time-bin centres")
+    add_lidar_argument(p)
     add_sensor_arguments(p)
     add_output(p, "-o", "--output", kind=FILE, suffixes=CLOUD_FORMATS, required=True,
                help="cloud file: .ply, .npz, .las or .laz")
@@ -53,6 +55,7 @@ def _run_simulate(args) -> int:
 
     from .simulate import Simulator
 
+    lidar = lidar_or_default(args)
     sensor = sensor_of(args)
     supersample = args.supersample or (4 if sensor else 1)
     cat = default_catalog()
@@ -60,7 +63,7 @@ def _run_simulate(args) -> int:
     cond = Condition.from_degrees(t.index, args.range_m, args.elevation_deg, args.pitch_deg,
                                   args.yaw_deg, args.roll_deg)
     table = cond.as_array()[None]
-    with Simulator(args.backend, quantize=not args.no_quantize,
+    with Simulator(args.backend, lidar, quantize=not args.no_quantize,
                    supersample=supersample) as sim:
         if sensor:
             from apcg_core.sensor import to_cloud
@@ -95,11 +98,12 @@ def _run_simulate(args) -> int:
         summary.update(sensor=sensor.name, photon_output=sensor.output,
                        signal=int((cloud.label == 1).sum()), noise=int((cloud.label == 0).sum()))
     print(json.dumps(summary))
+    from apcg_core.plausibility import window_fit, window_warning
     warnings = [range_band_warning(t, args.range_m),
-                sparse_cloud_warning(len(cloud), f"the cloud of {t.name} at {args.range_m:g} m")]
-    if res.clipped[0]:
-        warnings.append("the target is larger than the lidar window; its cloud is cut at the "
-                        "window's edge")
+                sparse_cloud_warning(len(cloud), f"the cloud of {t.name} at {args.range_m:g} m"),
+                window_warning(lidar, *window_fit(lidar, lambda n: cat.mesh(n).vertices,
+                                                  [t.name], table),
+                               f"{t.name} at {args.range_m:g} m")]
     for w in filter(None, warnings):
         print(f"apcg simulate: warning: {w}", file=sys.stderr)
     return 0
@@ -124,6 +128,8 @@ def register_dataset(sub) -> None:
     add_output(b, "-o", "--output", kind=DIRECTORY, required=True, help="dataset directory",
                files=DATASET_FILES, record=DATASET_RECORD)
     b.add_argument("--backend", choices=BACKENDS, help="override the config's backend")
+    add_lidar_argument(b, default_help="the config's [lidar] table, else the paper's; a "
+                                       "--lidar overrides the config's")
     b.add_argument("--sensor", metavar="PRESET|FILE.toml",
                    help="override the config's sensor (SPEC section 8): store what that "
                         "single-photon lidar records, with labels; default the config's, "
@@ -164,7 +170,9 @@ def _run_build(args) -> int:
                                 progress=not args.no_progress,
                                 tasks_per_process=args.tasks_per_process, engine=args.engine,
                                 address=args.address, connect_timeout_s=args.connect_timeout_s,
-                                sensor=args.sensor)
+                                sensor=args.sensor, lidar=args.lidar,
+                                warn=lambda w: print(f"apcg dataset: warning: {w}",
+                                                     file=sys.stderr, flush=True))
     except BuildInterrupted as stop:  # Ctrl-C among the shards: say how far it got
         print(f"apcg dataset: {stop}", file=sys.stderr)
         return 130  # as shells do; main() answers a Ctrl-C before the shards alike

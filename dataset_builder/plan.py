@@ -115,9 +115,18 @@ def _check_size(n: int, what: str) -> None:
 
 
 def make_plan(cfg: dict, catalog, backend: str | None = None,
-              sensor: str | None = None) -> Plan:
+              sensor: str | None = None, lidar: str | None = None) -> Plan:
     """The plan of a config (see the committed configs for every key, and ``schema``);
-    ``backend`` and ``sensor`` (a preset or file) override the config's."""
+    ``backend``, ``sensor`` (a preset or file) and ``lidar`` (a lidar preset or file, whose
+    ``[sensor]`` table counts unless ``sensor`` is given) override the config's. The config
+    records the tables used, so the dataset's header names its lidar and sensor whole."""
+    if lidar is not None:
+        from apcg_core.lidar import lidar_from_table, read_lidar_file
+        path, doc = read_lidar_file(lidar)
+        lidar_from_table(doc["lidar"], source=str(path))  # its own errors name the file
+        cfg = {**cfg, "lidar": dict(doc["lidar"])}
+        if sensor is None and "sensor" in doc:
+            cfg["sensor"] = {"name": path.stem, **doc["sensor"]}
     if sensor is not None:
         cfg = {**cfg, "sensor": sensor}
     check_config(cfg)

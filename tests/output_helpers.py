@@ -40,6 +40,10 @@ NOT_OUTPUTS = {
     ("simulate", "type"): VALUE, ("simulate", "sensor"): INPUT,
     ("dataset build", "sensor"): INPUT, ("generate", "sensor"): INPUT,
     ("teach", "model"): INPUT, ("teach", "type"): VALUE,
+    # --lidar PRESET|FILE (apcg_core/lidar_options.py), a lidar file read, never written
+    ("simulate", "lidar"): INPUT, ("generate", "lidar"): INPUT,
+    ("dataset build", "lidar"): INPUT, ("evaluate", "lidar"): INPUT,
+    ("compare", "lidar"): INPUT, ("teach", "lidar"): INPUT, ("figure", "lidar"): INPUT,
     ("train", "data"): INPUT,
 }
 

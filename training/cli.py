@@ -7,6 +7,7 @@ import os
 import sys
 from pathlib import Path
 
+from apcg_core.lidar_options import add_lidar_argument, lidar_or_default, model_at_lidar
 from apcg_core.outputs import ANY, DIRECTORY, FILE, PICTURE_SUFFIXES, add_output
 
 
@@ -258,7 +259,7 @@ def warn_other_lidar(command: str, data_dir, model) -> None:
     from apcg_core.io.dataset import read_header
     from apcg_core.plausibility import lidar_mismatch_warning
     warning = lidar_mismatch_warning(read_header(data_dir).get("lidar"), data_dir,
-                                     model.meta.get("lidar"), model.directory)
+                                     model.lidar.to_dict(), model.directory)
     if warning:
         print(f"apcg {command}: warning: {warning}", file=sys.stderr, flush=True)
 
@@ -278,6 +279,8 @@ def register_evaluate(sub) -> None:
                files=_evaluate_files)
     add_protocol_arguments(p)
     add_runtime_argument(p)
+    add_lidar_argument(p, default_help="the model's own; give the dataset's lidar to score "
+                                       "the model at another lidar")
     p.add_argument("--jsd-bins-study", action="store_true",
                    help="instead: measure which bin count separates good from wrong clouds")
     p.add_argument("--with-untrained", action="store_true",
@@ -300,7 +303,7 @@ def _run_evaluate(args) -> int:
     from apcg_core.families import load_model
 
     from .evaluate import evaluate, jsd_bins_study, markdown, write_report
-    model = load_model(args.model, runtime=args.runtime)
+    model = model_at_lidar(load_model(args.model, runtime=args.runtime), args, "evaluate")
     warn_other_lidar("evaluate", args.data, model)
     command = "apcg evaluate " + " ".join(sys.argv[2:])
     if args.jsd_bins_study:
@@ -315,6 +318,7 @@ def _run_evaluate(args) -> int:
                       with_untrained=args.with_untrained, progress=True,
                       faithfulness=args.faithfulness)
     report["command"] = command
+    report["lidar"] = model.lidar.to_dict()  # the lidar the model generated at
     out = write_report(report, args.output)
     print(markdown(report))
     print(f"wrote {out}/metrics.json, report.md, fig17.png")
@@ -397,6 +401,8 @@ def register_figure(sub) -> None:
     p.add_argument("--model", help="model directory (16, 18, 19; default: the default model)")
     p.add_argument("--data", help="dataset directory (figure 14)")
     p.add_argument("--pairs", type=int, default=400, help="test pairs per checkpoint (14)")
+    add_lidar_argument(p, default_help="the model's own (16, 18, 19), the paper's (photons); "
+                                       "13 and 14 take none")
     p.add_argument("--max-checkpoints", type=int, metavar="K",
                    help="figure 14: score at most K kept checkpoints per run, evenly spaced, "
                         "the last always (default: all)")
@@ -412,10 +418,13 @@ def _run_figure(args) -> int:
 
     from .figures import fig13, fig14, fig16, fig18, fig19, fig_photons
     if args.number == "photons":
-        fig_photons(args.output)
+        fig_photons(args.output, lidar=lidar_or_default(args))
         print(f"wrote {args.output} and its .json")
         return 0
     args.number = int(args.number)
+    if args.number in (13, 14) and args.lidar is not None:
+        raise InputError(f"figure {args.number} draws a run's log or checkpoints at their own "
+                         "lidar; --lidar applies to figures 16, 18, 19 and photons")
     if args.number in (13, 14) and not args.run:
         raise InputError(f"figure {args.number} needs --run (a training run directory)")
     if args.number in (14, 19) and not args.data:
@@ -434,7 +443,7 @@ def _run_figure(args) -> int:
               max_checkpoints=args.max_checkpoints)
     else:
         from apcg_core.families import load_model
-        model = load_model(args.model)
+        model = model_at_lidar(load_model(args.model), args, "figure")
         if args.number == 16:
             fig16(model, args.output)
         elif args.number == 18:
@@ -532,6 +541,8 @@ def register_compare(sub) -> None:
     add_model_argument(p, many=True)
     add_protocol_arguments(p)
     add_runtime_argument(p)
+    add_lidar_argument(p, default_help="each model's own; give the dataset's lidar to score "
+                                       "the models at another lidar")
     p.add_argument("--memory-steps", type=int, default=5,
                    help="training steps timed for the memory peak (0: skip)")
     p.add_argument("--no-untrained", action="store_true",
@@ -546,7 +557,7 @@ def _run_compare(args) -> int:
     from apcg_core.families import load_model
 
     from .compare import compare, markdown, method_names, write
-    models = [(name, load_model(path, runtime=args.runtime))
+    models = [(name, model_at_lidar(load_model(path, runtime=args.runtime), args, "compare"))
               for name, path in method_names(args.model)]
     for _, model in models:
         warn_other_lidar("compare", args.data, model)

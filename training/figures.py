@@ -327,12 +327,13 @@ PHOTON_SENSORS = ("1064nm-night", "1550nm-night")
 
 
 def fig_photons(out, types=PHOTON_TYPES, sensors=PHOTON_SENSORS, poses: int = 6,
-                seed: int = 0) -> dict:
+                seed: int = 0, lidar=None) -> dict:
     """What a single-photon lidar records (SPEC section 8, issue "Photons"): for a few types
     and the two example systems, against range, the detection probability (the share of the
     cells the target covers that report a signal point) and the points per cloud; and for
     the 1550 nm system, the share of noise points against the background rate. Each point of
-    a curve averages ``poses`` random Table-1 attitudes (seeded)."""
+    a curve averages ``poses`` random Table-1 attitudes (seeded). ``lidar``: the paper's
+    when None."""
     import dataclasses
 
     import matplotlib
@@ -345,7 +346,8 @@ def fig_photons(out, types=PHOTON_TYPES, sensors=PHOTON_SENSORS, poses: int = 6,
 
     cat = default_catalog()
     rng = np.random.default_rng(seed)
-    sim = Simulator("embree", supersample=4)
+    sim = (Simulator("embree", supersample=4) if lidar is None
+           else Simulator("embree", lidar, supersample=4))
     deg = np.pi / 180
 
     def table(t, ranges):

@@ -42,9 +42,10 @@ def teach_config(model, type_name: str, samples: int, seed: int) -> dict:
 
 def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float = 10.0,
           steps: int | None = None, workers: int = 1, seed: int = 0, data_dir=None,
-          force: bool = False, progress: bool = True) -> dict:
+          force: bool = False, progress: bool = True, lidar=None) -> dict:
     """Teach the model in ``model_dir`` the catalog type ``type_name``; the new model goes to
-    ``out_dir``. Returns the report (also written as ``out_dir/teach.json``)."""
+    ``out_dir``. Returns the report (also written as ``out_dir/teach.json``). ``lidar``
+    (LidarParams): simulate, fit and score the type at that lidar (default: the model's)."""
     from apcg_core.catalog.catalog import default_catalog
     from apcg_core.families import load_model
     from dataset_builder.build import build_dataset
@@ -58,6 +59,8 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
     if not (minutes > 0):
         raise InputError(f"--minutes must be > 0, got {minutes!r}")
     model = load_model(model_dir)
+    if lidar is not None:
+        model.use_lidar(lidar)  # refused by a family that draws at its own lidar only
     family = get_family(model.family, need="load")
     if not callable(getattr(family, "teach", None)):
         raise InputError(f"{model.directory} is a {model.family} model, which cannot be taught "
@@ -89,6 +92,7 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
             fit = family.teach(model, data_dir, stage, minutes=minutes - t_data / 60.0,
                                steps=steps, seed=seed, progress=progress)
             taught = load_model(stage)
+            taught.use_lidar(model.lidar)
             # nothing is chosen on this small dataset's validation half: score all it holds out
             pairs = protocol.draw_pairs(data_dir, None, seed, half=protocol.WHOLE)
             score = protocol.score(taught, pairs, floor=False, pointflow=False,
@@ -96,6 +100,7 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
             score.pop("per_pair", None)
             report = {"type": t.name, "model": str(model.directory), "taught_model": str(out),
                       "samples": samples, "seed": seed, "fit": fit,
+                      "lidar": model.lidar.to_dict(),
                       "seconds": {"dataset": round(t_data, 2),
                                   "total": round(time.perf_counter() - t0, 2)},
                       "score": score}
@@ -128,6 +133,9 @@ def register_teach(sub) -> None:
     p.add_argument("--steps", type=int, help="stop after this many fitting steps")
     p.add_argument("--workers", type=int, default=1, help="dataset build processes")
     p.add_argument("--seed", type=int, default=0)
+    from apcg_core.lidar_options import add_lidar_argument
+    add_lidar_argument(p, default_help="the model's own: the type is simulated, fitted and "
+                                       "scored at this lidar")
     from dataset_builder.cli import DATASET_FILES, DATASET_RECORD
     add_output(p, "--data", kind=DIRECTORY, files=DATASET_FILES, record=DATASET_RECORD,
                help="keep the type's dataset here (default: a temporary one)")
@@ -135,9 +143,10 @@ def register_teach(sub) -> None:
 
 
 def _run_teach(args) -> int:
+    from apcg_core.lidar_options import lidar_of
     rep = teach(args.model, args.type, args.output, samples=args.samples, minutes=args.minutes,
                 steps=args.steps, workers=args.workers, seed=args.seed, data_dir=args.data,
-                force=args.force)
+                force=args.force, lidar=lidar_of(args))
     s = rep["score"]
     print(json.dumps({"model": rep["taught_model"], "type": rep["type"],
                       "seconds": rep["seconds"], "mmd": s["mean"]["mmd"],

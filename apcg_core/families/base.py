@@ -14,7 +14,7 @@ import numpy as np
 from ..cloud import PointCloud
 from ..condition import NOISE_DIM, Condition, ConditionSpace
 from ..errors import InputError, check_int
-from ..lidar import LidarParams
+from ..lidar import LidarParams, lidar_from_table
 from ..typetable import Conditions, TypeTable
 from .registry import family_of, get_family, read_model_meta
 
@@ -62,6 +62,52 @@ class ModelTypes:
             raise InputError(f"{self.directory / 'model.json'} is incomplete ({exc!r})") from exc
         self.types = TypeTable.from_records(self.meta["types"],
                                             owner=f"model {self.directory}")
+
+    # Whether the family draws at any lidar's cells (APCG+ reads its sheet at them), or only
+    # at the lidar it was trained on (the cGAN's fixed H x W image; the baselines' point counts).
+    ANY_LIDAR = False
+
+    @property
+    def trained_lidar(self) -> LidarParams:
+        """The lidar the model was trained on (model.json ``lidar``)."""
+        return LidarParams.from_dict(self.meta["lidar"])
+
+    def measured_lidars(self) -> list[LidarParams]:
+        """The lidars the model was measured on: its training lidar and model.json's
+        ``measured_lidars`` (each ``{"lidar": {...}, "source": ...}``, issue 33)."""
+        out = [self.trained_lidar]
+        for i, rec in enumerate(self.meta.get("measured_lidars") or []):
+            table = rec.get("lidar") if isinstance(rec, dict) else None
+            out.append(lidar_from_table(table, source=f"{self.directory / 'model.json'} "
+                                                      f"measured_lidars[{i}]"))
+        return out
+
+    def use_lidar(self, lidar: LidarParams) -> None:
+        """Generate at ``lidar``'s cells from now on; a family that cannot is refused."""
+        if lidar == self.lidar:
+            return
+        if not self.ANY_LIDAR:
+            raise InputError(f"a {self.family} model draws at the lidar it was trained on only "
+                             f"({self.trained_lidar.describe()}), not at {lidar.describe()}; "
+                             "an apcg-plus model draws at any lidar (the shipped default)")
+        self.lidar = lidar
+
+    def lidar_warning(self, lidar: LidarParams) -> str | None:
+        """One line when ``lidar``'s cells or bin lie outside the span of the lidars the model
+        was measured on (each of r_alpha, r_beta, r_r against its measured min..max)."""
+        measured = self.measured_lidars()
+        out = []
+        for key in ("r_alpha_deg", "r_beta_deg", "r_r_m"):
+            vals = [m.to_dict()[key] for m in measured]
+            v = lidar.to_dict()[key]
+            lo, hi = min(vals), max(vals)
+            if not lo * (1 - 1e-9) <= v <= hi * (1 + 1e-9):
+                span = f"{lo:.6g}" if lo == hi else f"{lo:.6g}..{hi:.6g}"
+                out.append(f"{key} {v:.6g} (measured: {span})")
+        if not out:
+            return None
+        return (f"the lidar {lidar.describe()} lies outside what the model {self.directory} "
+                f"was measured on: {'; '.join(out)}; its clouds there are unmeasured")
 
     @property
     def family(self) -> str:

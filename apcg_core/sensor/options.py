@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from ..errors import InputError
+from ..lidar import lidar_sensor_file
 from .params import OUTPUTS, load_sensor, preset_names
 
 
@@ -23,8 +24,12 @@ def add_sensor_arguments(p, seed: bool = True) -> None:
 
 
 def sensor_of(args):
-    """The sensor the options ask for (None: the ideal lidar), with ``--photon-output``."""
-    sensor = load_sensor(args.sensor)
+    """The sensor the options ask for (None: the ideal lidar), with ``--photon-output``;
+    without ``--sensor``, the ``[sensor]`` table of the ``--lidar`` file when it has one."""
+    ref = args.sensor
+    if ref is None:
+        ref = lidar_sensor_file(getattr(args, "lidar", None))
+    sensor = load_sensor(ref)
     if sensor is not None and getattr(args, "backend", None) == "points":
         raise InputError("--sensor needs a ray-casting backend (the photon stage takes every "
                          "sub-ray's range and incidence); accepted: embree, blender, "
