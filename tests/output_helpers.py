@@ -45,6 +45,8 @@ NOT_OUTPUTS = {
     ("dataset build", "lidar"): INPUT, ("evaluate", "lidar"): INPUT,
     ("compare", "lidar"): INPUT, ("teach", "lidar"): INPUT, ("figure", "lidar"): INPUT,
     ("train", "data"): INPUT,
+    ("benchmark recognize", "source"): INPUT, ("benchmark recognize", "types"): VALUE,
+    ("benchmark recognize", "sensor"): INPUT,
 }
 
 

@@ -1,0 +1,104 @@
+"""`apcg benchmark recognize` (training/recognize.py): real embree clouds, real torch, tiny sizes.
+
+Each test can fail: the controls (shuffled labels, a source of pure noise, a training set of one
+type) must score chance or below while the same run's classifier trained on exact clouds with
+the true labels scores well above it."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from training import recognize
+
+_SCRIPT = Path(sys.executable).parent / "apcg"
+APCG = str(_SCRIPT) if _SCRIPT.exists() else shutil.which("apcg")
+
+# three types told apart by shape and size at every range of their band
+TYPES = ["777-300ER", "F-16C Fighting Falcon", "UH-60 Black Hawk"]
+# a narrow network on few points: the true labels reach 80-90% in seconds
+SMALL = dict(types=TYPES, train_per_type=30, test_per_type=20, epochs=24, n_boot=200, width=16,
+             n_points=96)
+
+
+def _cli(*args):
+    return subprocess.run([APCG, "benchmark", "recognize", *args], capture_output=True,
+                          text=True, timeout=300)
+
+
+def _without_cost(rep: dict) -> dict:
+    return {k: v for k, v in rep.items() if k not in ("cost", "command")}
+
+
+def test_the_command_runs_end_to_end_and_is_deterministic(tmp_path):
+    args = ["--types", "777-300ER,Mavic 3", "--train-per-type", "6", "--test-per-type", "5",
+            "--epochs", "2", "--bootstrap", "50", "--seed", "3"]
+    a = _cli(*args, "-o", str(tmp_path / "a"))
+    assert a.returncode == 0, a.stderr
+    for name in recognize.REPORT_FILES:
+        assert (tmp_path / "a" / name).stat().st_size > 0
+    rep = json.loads((tmp_path / "a" / "recognize.json").read_text())
+    assert rep["sizes"]["train_clouds"] == 12 and rep["sizes"]["test_clouds"] == 10
+    assert rep["types"] == ["777-300ER", "Mavic 3"] and rep["chance"] == 0.5
+    assert sum(map(sum, rep["trained_on_exact"]["confusion"])) == 10
+    # exact against exact: the same clouds, labels and seed make the same classifier
+    assert rep["tstr"]["overall"]["ratio"] in (None, 1.0)
+    assert rep["trained_on_source"] == rep["trained_on_exact"]
+    assert set(rep["tstr"]["bands"]) == set(rep["test"]["per_band"])
+    assert "| **all** |" in (tmp_path / "a" / "report.md").read_text()
+    b = _cli(*args, "-o", str(tmp_path / "b"))
+    assert b.returncode == 0, b.stderr
+    assert _without_cost(json.loads((tmp_path / "b" / "recognize.json").read_text())) == \
+        _without_cost(rep)
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--source", "nowhere"], "--source 'nowhere' is neither a model directory nor one of"),
+    (["--types", "A320neo"], "at least two types"),
+    (["--types", "A320neo,Concorde"], "Concorde"),
+    (["--source", "points", "--sensor", "nonsense-preset"], "nonsense-preset"),
+])
+def test_bad_input_is_one_clear_line(tmp_path, args, needle):
+    out = _cli(*args, "--train-per-type", "2", "--test-per-type", "2", "--epochs", "1",
+               "-o", str(tmp_path / "r"))
+    assert out.returncode == 2, out.stderr
+    assert needle in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "r" / "recognize.json").exists()
+
+
+def test_shuffled_labels_score_chance_while_true_labels_learn():
+    rep = recognize.run("exact", shuffle_labels=True, seed=1, **SMALL)
+    chance = rep["chance"]
+    assert rep["trained_on_exact"]["top1"] > 0.7
+    assert rep["trained_on_source"]["top1"] < chance + 0.2
+    assert rep["tstr"]["overall"]["ratio"] < 0.7
+
+
+def test_a_source_of_pure_noise_scores_chance():
+    rep = recognize.run("noise", seed=2, **SMALL)
+    assert rep["source"]["kind"] == "noise"
+    assert rep["trained_on_exact"]["top1"] > 0.7
+    assert rep["trained_on_source"]["top1"] < rep["chance"] + 0.2
+
+
+def test_a_classifier_trained_on_one_type_never_exceeds_one_in_k():
+    rep = recognize.run("exact", train_types=["F-16C Fighting Falcon"], seed=4, **SMALL)
+    assert rep["sizes"]["source_train_clouds"] == 30
+    assert rep["sizes"]["train_clouds"] == 90  # the exact reference keeps every type
+    assert rep["trained_on_source"]["top1"] <= rep["chance"] + 1e-9
+    assert rep["trained_on_exact"]["top1"] > rep["chance"]
+
+
+def test_tstr_bootstrap_interval_brackets_the_ratio():
+    rng = np.random.default_rng(0)
+    hit_e = rng.random(400) < 0.9
+    hit_s = hit_e & (rng.random(400) < 0.8)
+    bands = ["aircraft 3-6 km"] * 200 + ["drone 100-225 m"] * 200
+    t = recognize.tstr(hit_s, hit_e, bands, seed=0, n_boot=500)
+    lo, hi = t["overall"]["ci"]
+    assert lo < t["overall"]["ratio"] < hi and 0.7 < lo and hi < 0.9
+    assert list(t["bands"]) == ["aircraft 3-6 km", "drone 100-225 m"]
