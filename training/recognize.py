@@ -1,4 +1,4 @@
-"""``apcg benchmark recognize``: does the data do its job? Train on one source, test on exact.
+"""``apcg benchmark recognize``: does the data do its job? Train on a source, test on exact.
 
 A recognizer (a PointNet-style classifier, :class:`PointNet`) is trained on clouds of a chosen
 set of types from one **source** and tested on **exact** simulated clouds (embree, one ray per
@@ -406,19 +406,24 @@ def tstr(hit_s: np.ndarray, hit_e: np.ndarray, bands: list[str], seed: int,
 
 
 # --- the benchmark ---------------------------------------------------------------------------
-def run(source: str = "exact", types=DEFAULT_TYPES, train_per_type: int = TRAIN_PER_TYPE,
+def run(sources=("exact",), types=DEFAULT_TYPES, train_per_type: int = TRAIN_PER_TYPE,
         test_per_type: int = TEST_PER_TYPE, epochs: int = EPOCHS, seed: int = 0, sensor=None,
         lidar=None, shuffle_labels: bool = False, train_types=None, n_boot: int = BOOTSTRAP,
         width: int = WIDTH, n_points: int = N_POINTS, log=None) -> dict:
-    """The benchmark (module docstring): the report as a dict. ``shuffle_labels`` trains the
-    source's classifier on permuted labels and ``train_types`` on those types only (controls:
-    both must score chance or below)."""
+    """The benchmark (module docstring) for one or several sources against one exact
+    reference (trained once): the report as a dict. ``shuffle_labels`` trains the sources'
+    classifiers on permuted labels and ``train_types`` on those types only (controls: both
+    must score chance or below)."""
     log = log or (lambda msg: None)
+    sources = [sources] if isinstance(sources, str) else list(sources)
     types = check_types(types)
     for name, v, lo in (("train-per-type", train_per_type, 1), ("test-per-type", test_per_type, 1),
                         ("epochs", epochs, 1), ("bootstrap", n_boot, 0), ("seed", seed, 0)):
         check_int(name, v, lo)
-    src = Source(source, sensor, lidar)
+    if not sources or len(set(sources)) < len(sources):
+        raise InputError(f"--source: give each source once, got {sources}")
+    srcs = [Source(name, sensor, lidar) for name in sources]
+    lidar = srcs[0].lidar
     k = len(types)
     train_tab = conditions(types, train_per_type, _seed(seed, TRAIN_CONDITIONS))
     test_tab = conditions(types, test_per_type, _seed(seed, TEST_CONDITIONS))
@@ -435,45 +440,47 @@ def run(source: str = "exact", types=DEFAULT_TYPES, train_per_type: int = TRAIN_
     y_test = test_tab[:, 0].astype(np.int64)
     bands = bands_of(types, test_tab)
     t_all = time.perf_counter()
+    draw = _seed(seed, POINTS_DRAW)
 
     log(f"exact test clouds: {len(test_tab)}")
-    test_clouds, _ = simulated("embree", 1, types, test_tab, sensor, src.lidar,
+    test_clouds, _ = simulated("embree", 1, types, test_tab, sensor, lidar,
                                _seed(seed, TEST_PHOTONS))
-    log(f"exact training clouds: {len(train_tab)}")
-    exact_clouds, exact_s = simulated("embree", 1, types, train_tab, sensor, src.lidar,
-                                      _seed(seed, TRAIN_PHOTONS))
-    if source == "exact":
-        src_clouds, src_s = [exact_clouds[i] for i in src_rows], exact_s
-    else:
-        log(f"{source} training clouds: {len(src_rows)}")
-        src_clouds, src_s = src.clouds(types, train_tab[src_rows], _seed(seed, TRAIN_PHOTONS))
-
-    draw = _seed(seed, POINTS_DRAW)
     xt, gt = features(test_clouds, n_points, draw + 1)
-    y_src = y_train[src_rows]
-    if shuffle_labels:
-        y_src = np.random.default_rng(_seed(seed, POINTS_DRAW + 100)).permutation(y_src)
-    results = {}
-    fitted = {}
-    for name, clouds, labels in (("exact", exact_clouds, y_train), ("source", src_clouds, y_src)):
-        if name == "source" and source == "exact" and not shuffle_labels and \
-                train_types is None:
-            fitted["source"] = fitted["exact"]  # the same clouds, labels and seed: the same net
-            results["source"] = results["exact"]
-            continue
-        log(f"training on {name} clouds ({len(clouds)}, {epochs} epochs)")
+    log(f"exact training clouds: {len(train_tab)}")
+    exact_clouds, exact_s = simulated("embree", 1, types, train_tab, sensor, lidar,
+                                      _seed(seed, TRAIN_PHOTONS))
+
+    def fit(clouds, labels, what):
+        log(f"training on {what} clouds ({len(clouds)}, {epochs} epochs)")
         t0 = time.perf_counter()
         xs, gs = features(clouds, n_points, draw)
         net = train_classifier(xs, gs, labels, k, seed, epochs, width)
-        pred = predict(net, xt, gt)
-        fitted[name] = time.perf_counter() - t0
-        results[name] = pred
-    hit_s = results["source"] == y_test
-    hit_e = results["exact"] == y_test
-    points = {n: float(np.mean([len(c) for c in cl])) for n, cl in
-              (("test", test_clouds), ("exact", exact_clouds), ("source", src_clouds))}
+        return predict(net, xt, gt), time.perf_counter() - t0
+
+    pred_e, train_e = fit(exact_clouds, y_train, "exact")
+    exact = scores(pred_e, y_test, bands, types)
+    y_src = y_train[src_rows]
+    if shuffle_labels:
+        y_src = np.random.default_rng(_seed(seed, POINTS_DRAW + 100)).permutation(y_src)
+    out = []
+    for src in srcs:
+        if src.name == "exact":
+            clouds, sec = [exact_clouds[i] for i in src_rows], exact_s
+        else:
+            log(f"{src.name} training clouds: {len(src_rows)}")
+            clouds, sec = src.clouds(types, train_tab[src_rows], _seed(seed, TRAIN_PHOTONS))
+        if src.name == "exact" and not shuffle_labels and train_types is None:
+            pred, fitted = pred_e, 0.0  # the same clouds, labels and seed: the same network
+        else:
+            pred, fitted = fit(clouds, y_src, src.name)
+        out.append({"source": src.record(),
+                    "mean_points": round(float(np.mean([len(c) for c in clouds])), 3),
+                    "trained_on_source": scores(pred, y_test, bands, types),
+                    "tstr": tstr(pred == y_test, pred_e == y_test, bands, seed, n_boot),
+                    # wall-clock: the only values two runs of one command do not share
+                    "cost": {"s_per_cloud": round(sec, 6), "train_s": round(fitted, 1)}})
     return {
-        "benchmark": "recognize", "source": src.record(), "types": types,
+        "benchmark": "recognize", "types": types,
         "look_alike": [list(p) for p in LOOK_ALIKE if set(p) <= set(types)],
         "seed": seed, "shuffle_labels": bool(shuffle_labels),
         "train_types": None if train_types is None else list(train_types),
@@ -485,16 +492,13 @@ def run(source: str = "exact", types=DEFAULT_TYPES, train_per_type: int = TRAIN_
         "test": {"source": "exact", "backend": "embree",
                  "supersample": SENSOR_SUPERSAMPLE if sensor is not None else 1,
                  "sensor": None if sensor is None else sensor.to_dict(),
-                 "lidar": src.lidar.to_dict(), "per_band": _count(bands)},
-        "mean_points": {n: round(v, 3) for n, v in points.items()},
-        "trained_on_source": scores(results["source"], y_test, bands, types),
-        "trained_on_exact": scores(results["exact"], y_test, bands, types),
+                 "lidar": lidar.to_dict(), "per_band": _count(bands),
+                 "mean_points": round(float(np.mean([len(c) for c in test_clouds])), 3)},
         "chance": round(1.0 / k, 6),
-        "tstr": tstr(hit_s, hit_e, bands, seed, n_boot),
-        # wall-clock measurements: the only values two runs of one command do not share
-        "cost": {"source_s_per_cloud": round(src_s, 6), "exact_s_per_cloud": round(exact_s, 6),
-                 "train_s": {n: round(v, 1) for n, v in fitted.items()
-                             if isinstance(v, float)},
+        "trained_on_exact": exact,
+        "exact_mean_points": round(float(np.mean([len(c) for c in exact_clouds])), 3),
+        "sources": out,
+        "cost": {"exact_s_per_cloud": round(exact_s, 6), "exact_train_s": round(train_e, 1),
                  "total_s": round(time.perf_counter() - t_all, 1)},
     }
 
@@ -516,40 +520,54 @@ def _ci(t) -> str:
     return f"{t['ratio']:.3f}" + (f" [{t['ci'][0]:.3f}, {t['ci'][1]:.3f}]" if t["ci"] else "")
 
 
+def _label(src: dict) -> str:
+    return Path(src["source"]).name if src["kind"] == "model" else src["source"]
+
+
 def markdown(rep: dict) -> str:
-    s, e, t = rep["trained_on_source"], rep["trained_on_exact"], rep["tstr"]
-    src = rep["source"]
-    sensor = "ideal (no photon stage)" if src["sensor"] is None else src["sensor"].get("name")
-    z = rep["sizes"]
-    lines = [f"# Recognition benchmark: trained on `{src['source']}`, tested on exact clouds",
-             "",
+    e, z = rep["trained_on_exact"], rep["sizes"]
+    srcs = rep["sources"]
+    sensor = ("ideal (no photon stage)" if rep["test"]["sensor"] is None
+              else f"`{rep['test']['sensor'].get('name')}` on both sides")
+    names = [_label(s["source"]) for s in srcs]
+    lines = [f"# Recognition benchmark: trained on {', '.join(f'`{n}`' for n in names)}, "
+             "tested on exact clouds", "",
              f"{len(rep['types'])} types ({', '.join(rep['types'])}); look-alike pairs: "
              + ("; ".join(" / ".join(p) for p in rep["look_alike"]) or "none") + ". "
              f"{z['train_clouds']} training clouds ({z['train_per_type']} per type), "
              f"{z['test_clouds']} exact test clouds ({z['test_per_type']} per type) at "
              f"conditions drawn with another seed; sensor: {sensor}; seed {rep['seed']}; "
              f"PointNet width {z['width']}, {z['points']} points, {z['epochs']} epochs. "
-             f"Chance: {_pct(rep['chance'])}."
-             + (" **Control: the source's labels were shuffled.**" if rep["shuffle_labels"]
-                else ""),
-             "",
-             f"| band | test clouds | trained on exact | trained on {src['source']} | "
-             f"TSTR ratio [{int(100 * z['ci'])}% bootstrap] |",
-             "|---|---|---|---|---|"]
+             f"Chance: {_pct(rep['chance'])}. TSTR ratio: top-1 trained on the source / top-1 "
+             f"trained on exact clouds, [{int(100 * z['ci'])}% paired bootstrap interval, "
+             f"{z['bootstrap']} resamples]."
+             + (" **Control: the sources' labels were shuffled.**" if rep["shuffle_labels"]
+                else ""), "",
+             "| band | test clouds | trained on exact | "
+             + " | ".join(f"trained on `{n}` | TSTR ratio" for n in names) + " |",
+             "|---|---|---|" + "---|---|" * len(srcs)]
     for b, v in e["bands"].items():
-        lines.append(f"| {b} | {v['n']} | {_pct(v['top1'])} | {_pct(s['bands'][b]['top1'])} | "
-                     f"{_ci(t['bands'][b])} |")
-    lines.append(f"| **all** | {e['n']} | **{_pct(e['top1'])}** | **{_pct(s['top1'])}** | "
-                 f"**{_ci(t['overall'])}** |")
-    lines += ["", "| type | trained on exact | trained on source |", "|---|---|---|"]
+        lines.append(f"| {b} | {v['n']} | {_pct(v['top1'])} | " + " | ".join(
+            f"{_pct(s['trained_on_source']['bands'][b]['top1'])} | {_ci(s['tstr']['bands'][b])}"
+            for s in srcs) + " |")
+    lines.append(f"| **all** | {e['n']} | **{_pct(e['top1'])}** | " + " | ".join(
+        f"**{_pct(s['trained_on_source']['top1'])}** | **{_ci(s['tstr']['overall'])}**"
+        for s in srcs) + " |")
+    lines += ["", "| type | trained on exact | " + " | ".join(f"trained on `{n}`" for n in names)
+              + " |", "|---|---|" + "---|" * len(srcs)]
     for name in rep["types"]:
-        lines.append(f"| {name} | {_pct(e['types'][name])} | {_pct(s['types'][name])} |")
+        lines.append(f"| {name} | {_pct(e['types'][name])} | " + " | ".join(
+            _pct(s["trained_on_source"]["types"][name]) for s in srcs) + " |")
     c = rep["cost"]
-    lines += ["", f"Cost of the training set: {1e3 * c['source_s_per_cloud']:.2f} ms per cloud "
-              f"from `{src['source']}`, {1e3 * c['exact_s_per_cloud']:.2f} ms per cloud exact "
-              f"(warm, this machine). Mean points per cloud: "
-              + ", ".join(f"{k} {v:.0f}" for k, v in rep["mean_points"].items())
-              + f". Whole run {c['total_s']:.0f} s.", "",
+    lines += ["", "| training set from | ms per cloud (warm, this machine) | mean points per "
+              "cloud | classifier training, s |", "|---|---|---|---|",
+              f"| exact (embree) | {1e3 * c['exact_s_per_cloud']:.3f} | "
+              f"{rep['exact_mean_points']:.0f} | {c['exact_train_s']:.0f} |"]
+    for n, s in zip(names, srcs, strict=True):
+        lines.append(f"| `{n}` | {1e3 * s['cost']['s_per_cloud']:.3f} | "
+                     f"{s['mean_points']:.0f} | {s['cost']['train_s']:.0f} |")
+    lines += ["", f"Exact test clouds: {rep['test']['mean_points']:.0f} points on average. "
+              f"Whole run {c['total_s']:.0f} s.", "",
               "![confusion matrices](confusion.png)", "", f"`{rep.get('command', '')}`", ""]
     return "\n".join(lines)
 
@@ -562,12 +580,13 @@ def plot(rep: dict, path) -> None:
     from apcg_core.io.atomic import atomic_path
     types = rep["types"]
     k = len(types)
-    fig, axes = plt.subplots(1, 2, figsize=(4 + 1.0 * k, 1.5 + 0.5 * k),
-                             constrained_layout=True)
-    for ax, key, title in ((axes[0], "trained_on_exact", "trained on exact"),
-                           (axes[1], "trained_on_source",
-                            f"trained on {Path(rep['source']['source']).name}")):
-        conf = np.array(rep[key]["confusion"], np.float64)
+    panels = [("trained on exact", rep["trained_on_exact"])] + [
+        (f"trained on {_label(s['source'])}", s["trained_on_source"]) for s in rep["sources"]]
+    fig, axes = plt.subplots(1, len(panels), figsize=(1 + (3 + 0.5 * k) * len(panels),
+                                                      1.5 + 0.5 * k),
+                             constrained_layout=True, squeeze=False)
+    for ax, (title, sc) in zip(axes[0], panels, strict=True):
+        conf = np.array(sc["confusion"], np.float64)
         share = conf / np.maximum(conf.sum(1, keepdims=True), 1)
         ax.imshow(share, vmin=0, vmax=1, cmap="Blues")
         for i in range(k):
@@ -579,7 +598,7 @@ def plot(rep: dict, path) -> None:
         ax.set_yticks(range(k), types, fontsize=7)
         ax.set_xlabel("predicted")
         ax.set_ylabel("true type")
-        ax.set_title(f"{title}: top-1 {_pct(rep[key]['top1'])}", fontsize=9)
+        ax.set_title(f"{title}: top-1 {_pct(sc['top1'])}", fontsize=9)
     with atomic_path(path, ".part" + Path(path).suffix) as tmp:  # matplotlib reads the format
         fig.savefig(tmp, dpi=100)
     plt.close(fig)
@@ -612,9 +631,10 @@ def register_benchmark(sub) -> None:
                     "recognize.json, report.md and confusion.png: top-1 per range band, the "
                     "TSTR ratio (source / exact) with a bootstrap interval, the confusion "
                     "matrices and the cost of a training cloud (docs/evaluation/recognize/).")
-    r.add_argument("--source", default="exact", metavar="SOURCE|DIR",
+    r.add_argument("--source", action="append", metavar="SOURCE|DIR",
                    help=f"where training clouds come from: {', '.join(SOURCES)}, or a model "
-                        "directory (any family); default exact")
+                        "directory (any family); repeat it to score several sources against "
+                        "one exact reference; default exact")
     r.add_argument("--types", help="comma-separated catalog names (default: "
                                     + ", ".join(DEFAULT_TYPES) + ")")
     r.add_argument("--train-per-type", type=int, default=TRAIN_PER_TYPE,
@@ -645,14 +665,16 @@ def _run_recognize(args) -> int:
     sensor = sensor_of(args)
     types = DEFAULT_TYPES if args.types is None else [t for t in args.types.split(",")
                                                       if t.strip()]
+    sources = args.source or ["exact"]
     types = check_types(types)  # bad input refused before any work
-    Source(args.source, sensor)
+    for name in sources:
+        Source(name, sensor)
     torch = _torch()
     torch.set_num_threads(args.threads)
 
     def log(msg):
         print(f"apcg benchmark recognize: {msg}", file=sys.stderr, flush=True)
-    rep = run(args.source, types, args.train_per_type, args.test_per_type, args.epochs,
+    rep = run(sources, types, args.train_per_type, args.test_per_type, args.epochs,
               args.seed, sensor, shuffle_labels=args.shuffle_labels, n_boot=args.bootstrap,
               log=log)
     rep["command"] = "apcg benchmark recognize " + " ".join(sys.argv[3:])
