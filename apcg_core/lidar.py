@@ -217,3 +217,26 @@ def lidar_sensor_file(ref) -> Path | None:
         return None
     path, doc = read_lidar_file(ref)
     return path if "sensor" in doc else None
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    return '"' + str(v).replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def lidar_file_text(lidar: LidarParams, sensor: dict | None = None, comment: str = "") -> str:
+    """A lidar file: the ``[lidar]`` table of ``lidar`` (degrees, metres, rounded to what a
+    person types) and, when given, a ``[sensor]`` table (``SensorParams.to_dict()``);
+    :func:`load_lidar` reads it back to the same lidar."""
+    d = lidar.to_dict()
+    d = {k: (round(v, 10) if isinstance(v, float) else v) for k, v in d.items()}
+    lines = [f"# {ln}" for ln in comment.splitlines()] + ["[lidar]"]
+    lines += [f"{k} = {_toml_value(d[k])}" for k in LIDAR_KEYS]
+    if sensor:
+        lines += ["", "[sensor]"] + [f"{k} = {_toml_value(v)}" for k, v in sensor.items()]
+    return "\n".join(lines) + "\n"

@@ -55,7 +55,8 @@ from .objects import (
 __all__ = ["add_lidar", "add_aircraft", "make_target", "add_to_catalog", "scan", "scan_target",
            "generate", "import_cloud", "export_cloud", "cloud_from_object", "pose_of",
            "set_pose", "targets_of", "is_lidar", "is_target", "is_cloud", "set_point_radius",
-           "load_model", "world_mesh", "guess_axes", "axes_label", "check_model_knows"]
+           "load_model", "world_mesh", "guess_axes", "axes_label", "check_model_knows",
+           "read_lidar_file", "write_lidar_file"]
 
 # Hits this much nearer than a point's range, on other geometry, hide the point.
 OCCLUSION_MARGIN_M = 0.5
@@ -90,6 +91,43 @@ def sensor_of(lidar):
     from apcg_core.sensor import load_sensor
     ref = getattr(getattr(lidar, "apcg_lidar", None), "sensor", "") or "ideal"
     return load_sensor(ref)
+
+
+def read_lidar_file(lidar, ref):
+    """Set the lidar object's parameters from a lidar preset or file (``--lidar``'s: a
+    ``[lidar]`` table and optionally a ``[sensor]`` table, which then becomes its Sensor)."""
+    from apcg_core.lidar import lidar_from_table
+    from apcg_core.lidar import read_lidar_file as read
+    if not is_lidar(lidar):
+        raise InputError(f"{getattr(lidar, 'name', lidar)!r} is not an APCG lidar")
+    path, doc = read(ref)
+    params = lidar_from_table(doc["lidar"], source=str(path))
+    p = lidar.apcg_lidar
+    p.r_alpha_deg = math.degrees(params.r_alpha)
+    p.r_beta_deg = math.degrees(params.r_beta)
+    p.range_resolution_m = params.r_r
+    p.width, p.height = params.width, params.height
+    if "sensor" in doc:
+        from apcg_core.sensor import load_sensor
+        load_sensor(path)  # refused here, named, rather than at the next Scan
+        p.sensor = str(path)
+    return lidar
+
+
+def write_lidar_file(lidar, path) -> None:
+    """Write the lidar object as a lidar file that every command's ``--lidar`` reads: its
+    ``[lidar]`` table, and its Sensor as a ``[sensor]`` table unless it is ideal. Written
+    whole or not at all."""
+    from pathlib import Path
+
+    from apcg_core.io.dataset import write_atomic
+    from apcg_core.lidar import lidar_file_text
+    if not is_lidar(lidar):
+        raise InputError(f"{getattr(lidar, 'name', lidar)!r} is not an APCG lidar")
+    sensor = sensor_of(lidar)
+    text = lidar_file_text(lidar_params(lidar), sensor.to_dict() if sensor else None,
+                           comment=f"APCG lidar {lidar.name!r}, written by the Blender add-on")
+    write_atomic(Path(path), text.encode())
 
 
 def reflectivity_of_target(target) -> float:
@@ -244,6 +282,9 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
         model = load_model(model, runtime=runtime)
     pose = pose_of(target)
     name_of_type = check_model_knows(model, target)
+    owner = lidar_of(target)
+    if owner is not None and model.ANY_LIDAR:  # at the lidar object's cells (issue 33)
+        model.use_lidar(lidar_params(owner))
     cond = model.condition(name_of_type, pose["range_m"], pose["elevation"], pose["pitch"],
                            pose["yaw"], pose["roll"])
     res = model.generate(cond, count=count, seed=seed)

@@ -490,9 +490,52 @@ class APCG_OT_export_cloud(bpy.types.Operator, ExportHelper):
         return {"FINISHED"}
 
 
+class APCG_OT_read_lidar(bpy.types.Operator, ImportHelper):
+    """Set the active lidar from a lidar file (the [lidar] table every command's --lidar reads,
+    and its [sensor] table when it has one)"""
+    bl_idname = "apcg.read_lidar"
+    bl_label = "Read Lidar File"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filter_glob: StringProperty(default="*.toml", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        return _active_lidar(context) is not None
+
+    def execute(self, context):
+        try:
+            api.read_lidar_file(_active_lidar(context), self.filepath)
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        self.report({"INFO"}, f"read {self.filepath}")
+        return {"FINISHED"}
+
+
+class APCG_OT_write_lidar(bpy.types.Operator, ExportHelper):
+    """Write the active lidar as a lidar file that every command's --lidar reads"""
+    bl_idname = "apcg.write_lidar"
+    bl_label = "Write Lidar File"
+
+    filename_ext = ".toml"
+    filter_glob: StringProperty(default="*.toml", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        return _active_lidar(context) is not None
+
+    def execute(self, context):
+        try:
+            api.write_lidar_file(_active_lidar(context), self.filepath)
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        self.report({"INFO"}, f"wrote {self.filepath}")
+        return {"FINISHED"}
+
+
 CLASSES = (APCG_OT_add_lidar, APCG_OT_add_aircraft, APCG_OT_make_target,
            APCG_OT_add_to_catalog, APCG_OT_scan, APCG_OT_generate, APCG_OT_import_cloud,
-           APCG_OT_export_cloud)
+           APCG_OT_export_cloud, APCG_OT_read_lidar, APCG_OT_write_lidar)
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)
 

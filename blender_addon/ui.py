@@ -38,6 +38,9 @@ class APCG_PT_panel(bpy.types.Panel):
             row = box.row(align=True)
             row.prop(p, "sensor")
             row.prop(p, "seed", text="Seed")
+            row = box.row(align=True)
+            row.operator("apcg.read_lidar", text="Read", icon="FILE_FOLDER")
+            row.operator("apcg.write_lidar", text="Write", icon="FILE_TICK")
         if is_target(obj):
             box = layout.box()
             type_name = str(obj.get(TYPE_KEY, obj.name))

@@ -356,3 +356,45 @@ def test_scan_with_photons_equals_apcg_simulate_with_the_sensor(scene, tmp_path)
     lidar.apcg_lidar.sensor = "no-such-sensor"
     with pytest.raises(Exception, match="unknown sensor 'no-such-sensor'"):
         api.scan(lidar)
+
+
+def test_the_lidar_object_reads_and_writes_the_lidar_file_every_command_takes(scene, tmp_path,
+                                                                              plus_model):
+    """Issue 33: one lidar description. The lidar object reads a preset or a lidar file (its
+    [sensor] table becomes the Sensor), writes the same file back, and Generate draws at its
+    cells: what `apcg generate --lidar FILE` gives."""
+    from apcg_core.lidar import load_lidar
+    from apcg_core.sensor import load_sensor
+    from apcg_core.sensor.params import PRESET_DIR
+    lid = tmp_path / "spc.toml"
+    lid.write_text("[lidar]\nr_alpha_deg = 0.002\nr_beta_deg = 0.0038\nr_r_m = 0.3\n"
+                   "width = 512\nheight = 128\n" + (PRESET_DIR / "1550nm-day.toml").read_text())
+    lidar = api.add_lidar()
+    api.read_lidar_file(lidar, lid)
+    assert api.lidar_params(lidar) == load_lidar(lid)
+    assert api.sensor_of(lidar) == load_sensor(lid)
+    api.write_lidar_file(lidar, tmp_path / "back.toml")
+    assert load_lidar(tmp_path / "back.toml") == load_lidar(lid)
+    assert load_sensor(tmp_path / "back.toml").to_dict() == load_sensor(lid).to_dict()
+    api.read_lidar_file(lidar, "double-cells")  # a preset has no [sensor]: the Sensor stays
+    assert api.lidar_params(lidar) == load_lidar("double-cells")
+    bpy.context.view_layer.objects.active = lidar  # the panel's Read and Write buttons
+    assert bpy.ops.apcg.read_lidar(filepath=str(lid)) == {"FINISHED"}
+    assert api.lidar_params(lidar) == load_lidar(lid)
+    assert bpy.ops.apcg.write_lidar(filepath=str(tmp_path / "op.toml")) == {"FINISHED"}
+    assert load_lidar(tmp_path / "op.toml") == load_lidar(lid)
+    with pytest.raises(Exception, match="unknown lidar key"):
+        (tmp_path / "bad.toml").write_text("[lidar]\nwidht = 4\n")
+        api.read_lidar_file(lidar, tmp_path / "bad.toml")
+    api.read_lidar_file(lidar, lid)
+    lidar.apcg_lidar.sensor = "ideal"
+    jet = api.add_aircraft(lidar, "A320neo", **POSE)
+    got, info = api.cloud_from_object(api.generate(jet, model=plus_model))
+    ref_path = tmp_path / "gen.npz"
+    _cli("generate", "--model", plus_model, "--type", "A320neo", *_pose_args(POSE),
+         "--lidar", lid, "--sensor", "ideal", "-o", ref_path)  # the Sensor, as set above
+    ref, _ = read_cloud(ref_path)
+    assert len(ref) > 0 and len(got) == len(ref)
+    assert np.array_equal(got.cell_w, ref.cell_w) and np.array_equal(got.cell_h, ref.cell_h)
+    assert np.abs(got.range_m - ref.range_m).max() < 1e-4
+    assert info["meta"]["lidar"] == load_lidar(lid).to_dict()
