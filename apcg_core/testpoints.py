@@ -36,6 +36,8 @@ POINTS = {
                              "written yet",
     "build.shard-written": "dataset build, wherever a shard is computed (this process, a pool "
                            "or cluster worker): a shard's file has just been written whole",
+    "scene.frame-computed": "scene sequence, wherever a frame is computed: a frame's cloud "
+                            "is made, its file not yet written",
     "generate.block-written": "generate: a block of clouds has just been written to the "
                               "output's temporary file",
     "output.held": "any command (apcg_core.outputs): its first output file is written whole "

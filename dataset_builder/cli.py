@@ -8,7 +8,7 @@ import sys
 from apcg_core.cli import add_pose_arguments, print_mapping
 from apcg_core.io.clouds import FORMATS as CLOUD_FORMATS
 from apcg_core.io.images import DEPTH_IMAGE_SUFFIXES
-from apcg_core.lidar_options import add_lidar_argument, lidar_or_default
+from apcg_core.lidar_options import add_lidar_argument, lidar_of, lidar_or_default
 from apcg_core.outputs import DIRECTORY, FILE, add_output
 from apcg_core.sensor.options import add_sensor_arguments, sensor_of
 
@@ -194,4 +194,89 @@ def _run_configs(args) -> int:
     from .plan import builtin_configs, load_config
     for name in builtin_configs():
         print(f"{name:14s} {load_config(name).get('description', '')}")
+    return 0
+
+
+# What a scene sequence writes at the top of its directory, and what says a directory is one
+# (its header, written first: scene.py; the frames go under frames/).
+SEQUENCE_FILES = ("sequence.json", "poses.csv", "manifest.json")
+SEQUENCE_RECORD = ("sequence.json",)
+
+
+def register_scene(sub) -> None:
+    p = sub.add_parser("scene", help="scan scenes of several targets, static or moving, into "
+                                     "labelled clouds and sequences",
+                       description="A scene file (TOML, docs/SCENES.md) holds [[target]] "
+                                   "tables (type, range_m, azimuth_deg, elevation_deg, "
+                                   "pitch_deg, yaw_deg, roll_deg, an optional trajectory) and "
+                                   "optional [lidar], [pointing], [scan] and [sequence] "
+                                   "tables. Nearest surface of all targets per cell; every "
+                                   "point labelled with its target's instance and type.")
+    ssub = p.add_subparsers(dest="scene_command", metavar="ACTION", required=True)
+    s = ssub.add_parser("scan", help="one frame of a scene to an NPZ cloud",
+                        description="The scene at its first frame (its [sequence] start_s, 0 "
+                                    "by default). One target alone at azimuth 0 gives `apcg "
+                                    "simulate`'s cloud, byte for byte.")
+    q = ssub.add_parser("sequence", help="every frame of a scene to a sequence directory",
+                        description="One cloud per frame with instance and type labels, every "
+                                    "target's pose per frame and track ids (docs/SCENES.md; "
+                                    "read back with apcg_core.scene.load_sequence). Killed and "
+                                    "run again it finishes the same bytes; any engine, the "
+                                    "same bytes.")
+    for c in (s, q):
+        c.add_argument("scene", help="the scene file (TOML)")
+        c.add_argument("--backend", choices=[b for b in BACKENDS if b != "points"],
+                       default="embree", help="ray casting: embree (default), blender, "
+                                              "blender-bvh")
+        c.add_argument("--supersample", type=int, default=None, metavar="K",
+                       help="K x K rays per cell, nearest hit kept (default 1; 4 with a "
+                            "sensor, whose stage takes every sub-ray)")
+        c.add_argument("--no-quantize", action="store_true",
+                       help="keep exact ranges instead of the time-bin centres")
+        add_sensor_arguments(c)
+        add_lidar_argument(c, "the scene file's [lidar] table, else the paper's")
+    add_output(s, "-o", "--output", kind=FILE, suffixes=(".npz",), required=True,
+               help="the cloud: .npz (xyz, range_m, cell_w, cell_h, instance, type, poses)")
+    s.set_defaults(func=_run_scene_scan)
+    add_output(q, "-o", "--output", kind=DIRECTORY, required=True, files=SEQUENCE_FILES,
+               record=SEQUENCE_RECORD, help="the sequence directory")
+    q.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    q.add_argument("--engine", default="local", metavar="NAME",
+                   help="where the frames are computed: " + "; ".join(
+                       f"{name}: {engine.summary}" for name, engine in ENGINES.items()))
+    q.add_argument("--address", metavar="ADDR",
+                   help="a running Dask cluster's scheduler for --engine dask")
+    q.add_argument("--connect-timeout-s", type=float, default=None, metavar="S",
+                   help="with --address: give up when no scheduler answers within S seconds")
+    q.add_argument("--no-progress", action="store_true", help="no progress bar")
+    q.set_defaults(func=_run_scene_sequence)
+
+
+def _scene_warnings(args) -> None:
+    from .scene import sequence_warnings
+    for w in sequence_warnings(args.scene, lidar_of(args)):
+        print(f"apcg scene: warning: {w}", file=sys.stderr)
+
+
+def _run_scene_scan(args) -> int:
+    from .scene import scan_scene
+    summary = scan_scene(args.scene, args.output, args.backend, args.supersample,
+                         not args.no_quantize, sensor_of(args), args.seed, lidar_of(args))
+    print(json.dumps(summary))
+    _scene_warnings(args)
+    if any(summary["clipped"]):
+        print("apcg scene: warning: a target reaches beyond the lidar's window; its cloud is "
+              "cut at the window's edge", file=sys.stderr)
+    return 0
+
+
+def _run_scene_sequence(args) -> int:
+    from .scene import build_sequence
+    summary = build_sequence(args.scene, args.output, args.backend, args.supersample,
+                             not args.no_quantize, sensor_of(args), args.seed, lidar_of(args),
+                             workers=args.workers, engine=args.engine, address=args.address,
+                             connect_timeout_s=args.connect_timeout_s,
+                             progress=not args.no_progress)
+    print(json.dumps(summary))
+    _scene_warnings(args)
     return 0

@@ -74,10 +74,14 @@ class AngularBoxes:
     h_lo: np.ndarray
     h_hi: np.ndarray
     clipped: np.ndarray
+    # the target's box lies wholly outside the window (the clipped box is then one edge
+    # line, whose rays meet nothing); None where not known
+    outside: np.ndarray | None = None
 
     def __getitem__(self, sl) -> AngularBoxes:
         return AngularBoxes(self.w_lo[sl], self.w_hi[sl], self.h_lo[sl], self.h_hi[sl],
-                            self.clipped[sl])
+                            self.clipped[sl],
+                            None if self.outside is None else self.outside[sl])
 
     @property
     def n_cells(self) -> np.ndarray:
@@ -103,8 +107,10 @@ def angular_boxes(vertices: np.ndarray, table: np.ndarray, lidar: LidarParams,
     w_hi, h_hi = w_hi + BOX_PAD_CELLS, h_hi + BOX_PAD_CELLS
     W2, H2 = lidar.width // 2, lidar.height // 2
     clipped = (w_lo < -W2) | (w_hi > W2 - 1) | (h_lo < -H2) | (h_hi > H2 - 1)
+    outside = (w_hi < -W2) | (w_lo > W2 - 1) | (h_hi < -H2) | (h_lo > H2 - 1)
     return AngularBoxes(np.clip(w_lo, -W2, W2 - 1), np.clip(w_hi, -W2, W2 - 1),
-                        np.clip(h_lo, -H2, H2 - 1), np.clip(h_hi, -H2, H2 - 1), clipped)
+                        np.clip(h_lo, -H2, H2 - 1), np.clip(h_hi, -H2, H2 - 1), clipped,
+                        outside)
 
 
 def _exact_angles(m, vertices, c):

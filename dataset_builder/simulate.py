@@ -143,10 +143,11 @@ class Simulator:
         t = catalog.get(type_key)
         return self.simulate_cells(catalog.mesh(t), conditions, key=("type", t.index))
 
-    def sub_ray_hits(self, mesh, conditions, key=None):
+    def sub_ray_hits(self, mesh, conditions, key=None, geometry=None, sub_index=False):
         """Every sub-ray (k x k per cell of each sample's box) that meets the target: sample,
         cell, unquantized float64 range and the cosine of its incidence, for the photon stage
-        (``apcg_core.sensor``). Ray-casting backends only."""
+        (``apcg_core.sensor``). Ray-casting backends only. ``geometry``: see
+        :meth:`posed_cells`; ``sub_index`` also returns each hit's sub-ray (0 .. k*k - 1)."""
         from apcg_core.sensor import SubRayHits
         if self.backend == "points":
             raise InputError("a sensor needs a ray-casting backend (the photon stage takes "
@@ -158,8 +159,11 @@ class Simulator:
         caster = self._caster(mesh, key)
         normals = self._normals(mesh, key)
         lidar = self.lidar
-        m, c = sample_frames(table)
-        boxes = angular_boxes(mesh.vertices, table, lidar, m, c)
+        if geometry is None:
+            m, c = sample_frames(table)
+            boxes = angular_boxes(mesh.vertices, table, lidar, m, c)
+        else:
+            m, c, boxes = geometry
         rays_per_sample = boxes.n_cells * self.supersample**2
         parts = []
         start, n = 0, len(table)
@@ -177,14 +181,17 @@ class Simulator:
             cos = np.ones(len(hit))
             named = tri[hit] >= 0
             cos[named] = np.abs((normals[tri[hit][named]] * rays.direction[hit][named]).sum(1))
-            parts.append((s + start, rays.w[cell], rays.h[cell], rays.t_start[s] + t[hit], cos))
+            parts.append((s + start, rays.w[cell], rays.h[cell], rays.t_start[s] + t[hit], cos,
+                          hit % rays.k))
             start = stop
         cols = [np.concatenate([p[i] for p in parts]) if parts else np.zeros(0)
-                for i in range(5)]
+                for i in range(6)]
         hits = SubRayHits(cols[0].astype(np.int64), cols[1].astype(np.int32),
                           cols[2].astype(np.int32), cols[3].astype(np.float64),
                           np.clip(cols[4], 0.0, 1.0), n, self.supersample**2)
         self.last_boxes = (boxes.clipped, rays_per_sample.astype(np.int64))
+        if sub_index:
+            return hits, cols[5].astype(np.int64)
         return hits
 
     def photon_cells(self, mesh, conditions, sensor, reflectivity: float, seed: int,
@@ -280,12 +287,30 @@ class Simulator:
         cloud = self._cell_cloud(table, s, w, h, r)
         return SimResult(cloud, len(table), clipped, n_rays, self.backend)
 
-    def _ray_cells(self, mesh, table, key, radius):
+    def posed_cells(self, mesh, table, geometry, key=None):
+        """(sample, w, h, range) of every hit cell of samples whose frames and cell boxes the
+        caller gives: ``geometry`` = (m (N, 3, 3), c (N, 3), boxes), the body -> observation
+        maps, centres and :class:`rays.AngularBoxes` (a scene's targets, each turned in azimuth
+        and scanned a group of cells at a time: ``dataset_builder/scene.py``). ``table``'s
+        range column must be |c| and its elevation column the window's; ranges are float64,
+        bins decided in float64 (``refine.py``), not quantized."""
+        radius = bounding_radius(mesh.vertices)
+        key = id(mesh) if key is None else key
+        if self.backend == "points":
+            raise InputError("a scene needs a ray-casting backend; accepted: embree, blender, "
+                             "blender-bvh")
+        s, w, h, r, _, _ = self._ray_cells(mesh, table, key, radius, geometry)
+        return s, w, h, r
+
+    def _ray_cells(self, mesh, table, key, radius, geometry=None):
         """(sample, w, h, unquantized range) of every hit cell, clipped, rays per sample."""
         caster = self._caster(mesh, key)
         lidar = self.lidar
-        m, c = sample_frames(table)
-        boxes = angular_boxes(mesh.vertices, table, lidar, m, c)
+        if geometry is None:
+            m, c = sample_frames(table)
+            boxes = angular_boxes(mesh.vertices, table, lidar, m, c)
+        else:
+            m, c, boxes = geometry
         rays_per_sample = boxes.n_cells * self.supersample**2
         if self.supersample == 1 and hasattr(caster, "cast_hits"):
             # float32 rays made block by block and only the hits carried on, in compiled loops

@@ -40,6 +40,9 @@ NOT_OUTPUTS = {
     ("simulate", "type"): VALUE, ("simulate", "sensor"): INPUT,
     ("dataset build", "sensor"): INPUT, ("generate", "sensor"): INPUT,
     ("teach", "model"): INPUT, ("teach", "type"): VALUE,
+    ("scene scan", "scene"): INPUT, ("scene scan", "sensor"): INPUT,
+    ("scene sequence", "scene"): INPUT, ("scene sequence", "sensor"): INPUT,
+    ("scene sequence", "engine"): VALUE, ("scene sequence", "address"): VALUE,
     # --lidar PRESET|FILE (apcg_core/lidar_options.py), a lidar file read, never written
     ("simulate", "lidar"): INPUT, ("generate", "lidar"): INPUT,
     ("dataset build", "lidar"): INPUT, ("evaluate", "lidar"): INPUT,

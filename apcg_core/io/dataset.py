@@ -52,14 +52,17 @@ def write_atomic(path: Path, data: bytes, part_suffix: str = ".part") -> None:
 
 
 def npz_bytes(arrays: dict) -> bytes:
-    """An uncompressed .npz of ``arrays`` (in the given order) whose bytes depend only on them."""
+    """An uncompressed .npz of ``arrays`` (in the given order) whose bytes depend only on them.
+    A 0-d array (a scene frame's ``meta``) stays 0-d, as ``np.savez`` stores it."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
         for name, arr in arrays.items():
             info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
             info.external_attr = 0o644 << 16
             member = io.BytesIO()
-            np.lib.format.write_array(member, np.ascontiguousarray(arr), allow_pickle=False)
+            a = np.asarray(arr)
+            np.lib.format.write_array(member, a if a.ndim == 0 else np.ascontiguousarray(a),
+                                      allow_pickle=False)
             zf.writestr(info, member.getvalue())
     return buf.getvalue()
 

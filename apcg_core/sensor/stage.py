@@ -191,10 +191,13 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
                  sample_ids: np.ndarray | None = None) -> PhotonCells:
     """The photon stage for N samples: every cell of each sample's W x H window is gated around
     the sample's range r0, with noise everywhere and signal where sub-rays hit. ``reflectivity``
-    per sample; ``sample_ids`` (default 0..N-1) seed each sample's draws."""
+    per sample, or per hit (one value per sub-ray hit: a scene's window holds several targets);
+    ``sample_ids`` (default 0..N-1) seed each sample's draws."""
     n = hits.n_samples
     r0 = np.asarray(r0, np.float64)
-    rho = np.broadcast_to(np.asarray(reflectivity, np.float64), (n,))
+    per_hit = np.ndim(reflectivity) == 1 and len(reflectivity) == len(hits.range_m) != n
+    rho = np.asarray(reflectivity, np.float64) if per_hit else \
+        np.broadcast_to(np.asarray(reflectivity, np.float64), (n,))
     if len(r0) != n:
         raise InputError(f"photon stage: {len(r0)} ranges for {n} samples")
     if not (np.isfinite(rho) & (rho >= 0) & (rho <= 1)).all():
@@ -208,8 +211,8 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
     sigma_bins = range_sigma_m(sensor) / lidar.r_r
     first = gate_first_bin(r0, sensor, lidar)
 
-    pe = signal_photoelectrons(hits.range_m, hits.cos, rho[hits.sample], sensor,
-                               hits.sub_rays)
+    pe = signal_photoelectrons(hits.range_m, hits.cos, rho if per_hit else rho[hits.sample],
+                               sensor, hits.sub_rays)
     cell_all = ((hits.h.astype(np.int64) - lidar.h_min) * lidar.width
                 + (hits.w.astype(np.int64) - lidar.w_min))
     if sensor.output == "points" and dead_bins >= n_bins:

@@ -1,0 +1,262 @@
+"""A scene file (issue 36; docs/SCENES.md): a lidar and several targets, read and checked whole.
+
+```toml
+[lidar]                      # optional: the paper's lidar (SPEC section 1) when left out
+[pointing]                   # optional: the window's centre and the photon gate's centre
+azimuth_deg = 0.0            #   default: the first target's azimuth and elevation at the
+elevation_deg = 3.5          #   first frame; range_m (the gate) the first target's range
+[scan]                       # optional: how a frame is fired (scan.py); default flash
+pattern = "rows"
+line_time_s = 0.001
+[sequence]                   # optional: `apcg scene sequence`'s frames
+frames = 200
+frame_rate_hz = 10.0
+start_s = 0.0                # default 0
+
+[[target]]                   # one table per target; instance ids 1, 2, ... in this order
+type = "A320neo"
+range_m = 3000.0
+azimuth_deg = 0.0            # default 0: the scene frame's +Z
+elevation_deg = 3.5
+pitch_deg = 0.0              # defaults 0: SPEC section 2's zero attitude (nose at the lidar)
+yaw_deg = 0.0
+roll_deg = 0.0
+[target.trajectory]          # optional: the target moves (trajectory.py's kinds)
+kind = "line"
+speed_mps = 250.0
+heading_deg = 90.0
+```
+
+Everything is checked before any work: an unknown key or table, a value of the wrong type or
+out of range, an unknown type, a trajectory file with a gap or a time going backwards, a
+frame time outside a trajectory: each a one-line error naming the file, the target and the
+value. numpy only (types are looked up in the catalog).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..lidar import DEG, LidarParams, lidar_from_table
+from .scan import make_pattern
+from .trajectory import Start, Trajectory, make_trajectory
+
+TABLES = ("lidar", "pointing", "scan", "sequence", "target")
+POINTING_KEYS = ("azimuth_deg", "elevation_deg", "range_m")
+SEQUENCE_KEYS = ("frames", "frame_rate_hz", "start_s")
+TARGET_KEYS = ("type", "range_m", "azimuth_deg", "elevation_deg", "pitch_deg", "yaw_deg",
+               "roll_deg", "trajectory")
+# Most targets a scene may hold: beyond this a scene is a dataset, not a picture.
+MAX_TARGETS = 64
+# Most frames a sequence may hold (a frame file each): an hour at 30 Hz.
+MAX_FRAMES = 108_000
+
+
+@dataclass
+class SceneTarget:
+    instance: int  # 1-based, the position in the file
+    type_name: str
+    type_index: int
+    category: str
+    trajectory: Trajectory
+    source: str  # "FILE, target N (TYPE)" for messages
+
+    def poses(self, t):
+        return self.trajectory.poses(np.atleast_1d(np.asarray(t, np.float64)))
+
+
+@dataclass
+class Scene:
+    lidar: LidarParams
+    targets: list
+    pattern: object
+    pointing_azimuth: float  # rad
+    pointing_elevation: float  # rad
+    gate_range_m: float | None  # None: the first target's range at each frame
+    frames: int
+    frame_rate_hz: float
+    start_s: float
+    record: dict = field(default_factory=dict)  # what the file said (+ trajectory files' hashes)
+    source: str = "scene"
+
+    def frame_times(self, frames=None) -> np.ndarray:
+        k = np.arange(self.frames) if frames is None else np.asarray(frames, np.int64)
+        return self.start_s + k / self.frame_rate_hz
+
+    def digest(self) -> str:
+        return hashlib.sha256(json.dumps(self.record, sort_keys=True).encode()).hexdigest()
+
+
+def _number(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _get(table: dict, key: str, where: str, lo=-math.inf, hi=math.inf, accepted="",
+         default=None, open_lo=False):
+    if key not in table:
+        if default is None:
+            raise InputError(f"{where}: {key} is missing ({accepted})")
+        return default
+    v = table[key]
+    ok = _number(v) and (v > lo if open_lo else v >= lo) and v <= hi
+    if not ok:
+        raise InputError(f"{where}: {key} = {v!r} is not accepted: {accepted}")
+    return float(v)
+
+
+def _keys(table, accepted, where: str) -> dict:
+    if not isinstance(table, dict):
+        raise InputError(f"{where} must be a table with keys {', '.join(accepted)}, "
+                         f"got {table!r}")
+    unknown = sorted(set(table) - set(accepted))
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; accepted: "
+                         f"{', '.join(accepted)}")
+    return table
+
+
+def load_scene(path, catalog=None, lidar: LidarParams | None = None) -> Scene:
+    """Read and check the scene file ``path``. ``lidar`` (a command's lidar option) overrides
+    the file's ``[lidar]`` table."""
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
+    except FileNotFoundError:
+        raise InputError(f"scene file {path} does not exist") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not a readable TOML file ({exc})") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror})") from None
+    return scene_from_dict(doc, str(path), path.parent, catalog, lidar)
+
+
+def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = None,
+                    catalog=None, lidar: LidarParams | None = None) -> Scene:
+    if catalog is None:
+        from ..catalog.catalog import default_catalog
+        catalog = default_catalog()
+    unknown = sorted(set(doc) - set(TABLES))
+    if unknown:
+        raise InputError(f"{source}: unknown table(s) or key(s) {', '.join(unknown)}; a scene "
+                         f"holds {', '.join(f'[{t}]' for t in TABLES[:-1])} and [[target]]")
+    if lidar is None:  # the [lidar] table of the dataset configs and lidar files
+        lidar = lidar_from_table(doc.get("lidar", {}), source=source)
+    targets_doc = doc.get("target")
+    if not isinstance(targets_doc, list) or not targets_doc:
+        raise InputError(f"{source}: no [[target]] table; a scene needs at least one target "
+                         "(type, range_m, elevation_deg, ...)")
+    if len(targets_doc) > MAX_TARGETS:
+        raise InputError(f"{source}: {len(targets_doc)} targets; accepted: at most "
+                         f"{MAX_TARGETS}")
+    seq = _keys(doc.get("sequence", {}), SEQUENCE_KEYS, f"{source} [sequence]")
+    frames = seq.get("frames", 1)
+    if isinstance(frames, bool) or not isinstance(frames, int) or not 1 <= frames <= MAX_FRAMES:
+        raise InputError(f"{source} [sequence]: frames = {frames!r} is not accepted: an "
+                         f"integer from 1 to {MAX_FRAMES}")
+    # 10 Hz when left out: a one-frame scan never uses it; the rate of the scanning
+    # lidars of driving datasets (KITTI's HDL-64E, nuScenes' HDL-32E at 20 Hz: 10 is the lower).
+    rate = _get(seq, "frame_rate_hz", f"{source} [sequence]", 0, 1e6,
+                "a frame rate in Hz > 0 and <= 1e6", default=10.0, open_lo=True)
+    start_s = _get(seq, "start_s", f"{source} [sequence]", accepted="a time in seconds",
+                   default=0.0)
+    pattern = make_pattern(doc.get("scan"), source)
+    duration = pattern.groups(lidar).duration_s
+    if frames > 1 and duration >= 1.0 / rate:
+        raise InputError(f"{source} [scan]: one frame's scan takes {duration:.6g} s, longer "
+                         f"than a frame at {rate:g} Hz ({1.0 / rate:.6g} s); lower "
+                         "frame_rate_hz or line_time_s")
+    record = {"lidar": lidar.to_dict(), "scan": pattern.to_dict(),
+              "sequence": {"frames": frames, "frame_rate_hz": rate, "start_s": start_s},
+              "targets": []}
+    times = start_s + np.arange(frames) / rate
+    scan_t = (times[:, None] + pattern.groups(lidar).time_s[None, :]).ravel()
+    targets = []
+    for i, t in enumerate(targets_doc, start=1):
+        targets.append(_target(t, i, source, base_dir, catalog, scan_t, record))
+    first = targets[0]
+    p0, _ = first.poses(times[0])
+    from ..frames import cartesian_to_spherical
+    az0, el0, r0 = (float(v[0]) for v in cartesian_to_spherical(p0))
+    t0 = targets_doc[0]
+    if "trajectory" not in t0:  # the numbers as written: `apcg simulate`'s, bit for bit
+        az0 = t0.get("azimuth_deg", 0.0) * DEG
+        el0 = t0["elevation_deg"] * DEG
+    pt = _keys(doc.get("pointing", {}), POINTING_KEYS, f"{source} [pointing]")
+    az = _get(pt, "azimuth_deg", f"{source} [pointing]", -360, 360,
+              "an azimuth in degrees from -360 to 360", default=az0 / DEG) * DEG \
+        if "azimuth_deg" in pt else az0
+    el = _get(pt, "elevation_deg", f"{source} [pointing]", -90, 90,
+              "an elevation in degrees between -90 and 90", open_lo=True,
+              default=el0 / DEG) * DEG if "elevation_deg" in pt else el0
+    if abs(el) >= math.pi / 2 - (lidar.height / 2) * lidar.r_beta:
+        raise InputError(f"{source} [pointing]: elevation {el / DEG:.6g} deg puts the window "
+                         "over the zenith; accepted: a window wholly below +-90 deg")
+    gate = _get(pt, "range_m", f"{source} [pointing]", 0, 1e6, "a range in m > 0",
+                default=-1.0, open_lo=True) if "range_m" in pt else None
+    record["pointing"] = {"azimuth_deg": az / DEG, "elevation_deg": el / DEG,
+                          "range_m": gate}
+    return Scene(lidar, targets, pattern, az, el, gate, frames, rate, start_s, record, source)
+
+
+def _target(t, i: int, source: str, base_dir, catalog, scan_t, record) -> SceneTarget:
+    where = f"{source}, target {i}"
+    _keys(t, TARGET_KEYS, where)
+    if "type" not in t or not isinstance(t["type"], str):
+        raise InputError(f"{where}: type is missing or not a name (a catalog type: "
+                         "`apcg catalog list`)")
+    try:
+        ty = catalog.get(t["type"])
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
+    where = f"{source}, target {i} ({ty.name})"
+    traj = t.get("trajectory")
+    csv = isinstance(traj, dict) and traj.get("kind") == "csv"
+    if csv:
+        given = [k for k in TARGET_KEYS[1:-1] if k in t]
+        if given:
+            raise InputError(f"{where}: {', '.join(given)} come from its trajectory CSV file; "
+                             "leave them out of the [[target]] table")
+        start = None
+    else:
+        ang = "an angle in degrees from -360 to 360"
+        r = _get(t, "range_m", where, 0, 1e6, "a range in m > 0 and <= 1e6", open_lo=True)
+        az = _get(t, "azimuth_deg", where, -360, 360, ang, default=0.0)
+        el = _get(t, "elevation_deg", where, -90, 90, "an elevation in degrees between -90 "
+                  "and 90, both excluded", open_lo=True)
+        if abs(el) >= 90:
+            raise InputError(f"{where}: elevation_deg = {el!r} is not accepted: the target "
+                             "straight overhead has no horizontal direction (SPEC section 2)")
+        att = [_get(t, k, where, -360, 360, ang, default=0.0)
+               for k in ("pitch_deg", "yaw_deg", "roll_deg")]
+        if traj is not None and any(k in t for k in ("pitch_deg", "yaw_deg", "roll_deg")):
+            raise InputError(f"{where}: pitch_deg, yaw_deg and roll_deg come from its "
+                             f"{traj.get('kind') if isinstance(traj, dict) else ''} "
+                             "trajectory (nose along the motion); leave them out")
+        start = Start(r, az * DEG, el * DEG, tuple(a * DEG for a in att))
+    trajectory = make_trajectory(traj, start, where, base_dir)
+    trajectory.check_times(scan_t, where)
+    entry = {k: v for k, v in t.items() if k != "trajectory"}
+    entry["type"] = ty.name
+    if traj is not None:
+        entry["trajectory"] = dict(traj)
+        if csv:
+            entry["trajectory"]["sha256"] = hashlib.sha256(
+                trajectory.path.read_bytes()).hexdigest()
+    record["targets"].append(entry)
+    return SceneTarget(i, ty.name, ty.index, ty.category, trajectory, where)
+
+
+def scene_warnings(scene: Scene) -> list[str]:
+    """Trajectories beyond what their type flies (speed, turn): warnings, not errors."""
+    out = []
+    for t in scene.targets:
+        out += t.trajectory.warnings(t.category, f"{t.source}: ")
+    return out

@@ -1,0 +1,457 @@
+"""Scanning scenes (issue 36; docs/SCENES.md): a lidar and several targets, static or moving,
+on the simulator's own ray casters.
+
+One frame: the scan pattern (``apcg_core.scene.scan``) divides the window into groups of cells
+fired together; each target is placed where its trajectory has it at each group's time, turned
+into the window's frame (the pointing azimuth), and cast through the simulator's ray machinery
+(``Simulator.posed_cells``: the same rays, float32 casters, float64 bin decisions as
+``apcg simulate``), its cell box cut to the group's cells. Per cell the nearest surface of all
+targets wins (occlusion between aircraft); each point is labelled with its target's instance
+(1-based, the [[target]] order) and type. With a sensor, every sub-ray's nearest hit of all
+targets goes to the photon stage (``apcg_core.sensor``) as one window, gated around the
+pointing range, seeded by (seed, frame).
+
+A sequence (:func:`build_sequence`) is one frame file per frame, written whole, by tasks that
+any of the dataset builder's engines runs (``engine.py``); killed and run again it finishes the
+same bytes. Its format and loader: ``apcg_core.scene.sequence``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from apcg_core.cloud import PointCloud
+from apcg_core.errors import InputError
+from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian
+from apcg_core.lidar import DEG
+from apcg_core.scene.poses import angles_of_poses, turn
+from apcg_core.scene.sequence import (
+    FORMAT,
+    FORMAT_VERSION,
+    frame_arrays,
+    frame_file,
+    poses_csv_bytes,
+    read_frame,
+)
+from apcg_core.scene.spec import Scene, load_scene
+
+from .rays import AngularBoxes, angular_boxes, bounding_radius, start_margin_m
+from .simulate import Simulator
+
+
+@dataclass
+class FrameScan:
+    """One scanned frame: the cloud in the scene frame with per-point ``instance`` (0: a noise
+    point of the photon stage) and the targets' poses at the frame's start time."""
+
+    frame: int
+    t_s: float
+    cloud: PointCloud
+    instance: np.ndarray  # (P,) int32
+    type_names: list  # per instance (index instance - 1)
+    position: np.ndarray  # (T, 3) scene frame
+    rotation: np.ndarray  # (T, 3, 3) body -> scene
+    in_window: np.ndarray  # (T,) bool: some of its cells lie in the window
+    clipped: np.ndarray  # (T,) bool: its box reaches beyond the window
+
+    def points_of(self) -> np.ndarray:
+        return np.bincount(self.instance, minlength=len(self.type_names) + 1)[1:].astype(
+            np.int32)
+
+
+class SceneScanner:
+    """Scans the frames of a scene with one simulator (``backend``, ``supersample``,
+    ``quantize``) and optionally a sensor (SensorParams) seeded by ``seed``."""
+
+    def __init__(self, scene: Scene, backend: str = "embree", supersample: int = 1,
+                 quantize: bool = True, sensor=None, seed: int = 0, catalog=None) -> None:
+        from apcg_core.catalog.catalog import default_catalog
+        self.scene = scene
+        self.catalog = catalog or default_catalog()
+        self.sim = Simulator(backend, scene.lidar, quantize=quantize, supersample=supersample)
+        if self.sim.backend == "points":
+            raise InputError("a scene needs a ray-casting backend (several targets share one "
+                             "window, nearest surface first); accepted: embree, blender, "
+                             "blender-bvh")
+        self.sensor = sensor
+        self.seed = int(seed)
+        self.groups = scene.pattern.groups(scene.lidar)
+        self.meshes = [self.catalog.mesh(t.type_index) for t in scene.targets]
+        self.radii = [bounding_radius(m.vertices) for m in self.meshes]
+        if sensor is not None:
+            from apcg_core.sensor import reflectivity_of
+            self.reflectivity = np.array([reflectivity_of(self.catalog.get(t.type_index))
+                                          for t in scene.targets])
+
+    def close(self) -> None:
+        self.sim.close()
+
+    # --- geometry ------------------------------------------------------------------------------
+    def _geometry(self, i: int, t0: float):
+        """Target i at each group's time: table rows, window-frame maps and centres, boxes cut
+        to the groups' cells (groups the target does not reach dropped), clipped flag."""
+        scene, lidar, g = self.scene, self.scene.lidar, self.groups
+        target = scene.targets[i]
+        times = t0 + g.time_s
+        p, b = target.poses(times)
+        c = turn(-scene.pointing_azimuth, p)
+        m = turn(-scene.pointing_azimuth, b)
+        rng = target.trajectory.ranges(p)
+        radius = self.radii[i]
+        need = radius + 2.0 * start_margin_m(radius)
+        if (rng <= need).any():
+            j = int(np.argmax(rng <= need))
+            raise InputError(f"{target.source}: at t = {times[j]:.6g} s its range "
+                             f"{rng[j]:.6g} m puts the lidar inside it (bounding radius "
+                             f"{radius:.3f} m); accepted: a range > {need:.3f} m")
+        table = np.zeros((len(times), 6))
+        table[:, 0] = target.type_index
+        table[:, 1] = rng
+        table[:, 2] = scene.pointing_elevation
+        boxes = angular_boxes(self.meshes[i].vertices, table, lidar, m, c)
+        cut = AngularBoxes(np.maximum(boxes.w_lo, g.w_lo), np.minimum(boxes.w_hi, g.w_hi),
+                           np.maximum(boxes.h_lo, g.h_lo), np.minimum(boxes.h_hi, g.h_hi),
+                           boxes.clipped, boxes.outside)
+        keep = (cut.w_hi >= cut.w_lo) & (cut.h_hi >= cut.h_lo) & ~boxes.outside
+        return (table[keep], m[keep], c[keep], cut[keep], bool(keep.any()),
+                bool(boxes.clipped[keep].any()) if keep.any() else False)
+
+    # --- one frame -----------------------------------------------------------------------------
+    def scan(self, frame: int) -> FrameScan:
+        scene = self.scene
+        t0 = float(scene.frame_times([frame])[0])
+        n = len(scene.targets)
+        in_window, clipped = np.zeros(n, bool), np.zeros(n, bool)
+        parts = []
+        for i, target in enumerate(scene.targets):
+            table, m, c, boxes, inside, cl = self._geometry(i, t0)
+            in_window[i], clipped[i] = inside, cl
+            if not len(table):
+                continue
+            key = ("type", target.type_index)
+            if self.sensor is None:
+                s, w, h, r = self.sim.posed_cells(self.meshes[i], table, (m, c, boxes), key)
+                parts.append((np.full(len(w), i + 1, np.int32), w, h, r))
+            else:
+                hits, sub = self.sim.sub_ray_hits(self.meshes[i], table, key, (m, c, boxes),
+                                                  sub_index=True)
+                parts.append((np.full(len(hits.w), i + 1, np.int32), hits.w, hits.h,
+                              hits.range_m, hits.cos, sub))
+        if self.sensor is None:
+            cloud, inst = self._ideal(parts)
+        else:
+            cloud, inst = self._photons(parts, frame, t0)
+        if scene.pointing_azimuth != 0.0:
+            cloud.xyz = turn(scene.pointing_azimuth, cloud.xyz)
+        p, b = zip(*(t.poses(t0) for t in scene.targets), strict=True)
+        return FrameScan(frame, t0, cloud, inst, [t.type_name for t in scene.targets],
+                         np.concatenate(p), np.concatenate(b), in_window, clipped)
+
+    def _ideal(self, parts):
+        lidar, el = self.scene.lidar, self.scene.pointing_elevation
+        inst, w, h, r = _concat(parts, 4, (np.int32, np.int32, np.int32, np.float64))
+        # per cell the nearest surface of every target; a tie goes to the first target
+        order = np.lexsort((inst, r, w, h))
+        inst, w, h, r = inst[order], w[order], h[order], r[order]
+        first = np.ones(len(w), bool)
+        first[1:] = (w[1:] != w[:-1]) | (h[1:] != h[:-1])
+        inst, w, h, r = inst[first], w[first], h[first], r[first]
+        if self.sim.quantize:
+            r = lidar.quantize_range(r)
+        alpha, beta = lidar.cell_centre_angles(w, h, el)
+        return PointCloud(spherical_to_cartesian(alpha, beta, r), r, w, h,
+                          np.zeros(len(w), np.int64)), inst
+
+    def _photons(self, parts, frame: int, t0: float):
+        from apcg_core.sensor import SubRayHits, photon_cloud, to_cloud
+        scene, lidar = self.scene, self.scene.lidar
+        inst, w, h, r, cos, sub = _concat(parts, 6, (np.int32, np.int32, np.int32, np.float64,
+                                                     np.float64, np.int64))
+        # per sub-ray the nearest surface of every target, in the simulator's hit order
+        order = np.lexsort((inst, r, sub, w, h))
+        inst, w, h, r, cos, sub = (a[order] for a in (inst, w, h, r, cos, sub))
+        first = np.ones(len(w), bool)
+        first[1:] = (w[1:] != w[:-1]) | (h[1:] != h[:-1]) | (sub[1:] != sub[:-1])
+        inst, w, h, r, cos = (a[first] for a in (inst, w, h, r, cos))
+        hits = SubRayHits(np.zeros(len(w), np.int64), w, h, r, cos, 1,
+                          self.sim.supersample**2)
+        gate = scene.gate_range_m
+        if gate is None:
+            gate = float(scene.targets[0].trajectory.ranges(scene.targets[0].poses(t0)[0])[0])
+        rho = self.reflectivity[inst - 1] if len(inst) else np.zeros(0)
+        cells = photon_cloud(hits, np.array([gate]), rho, self.sensor, lidar, self.seed,
+                             np.array([frame], np.int64))
+        cloud = to_cloud(cells, np.array([scene.pointing_elevation]), lidar)
+        # a signal point belongs to the target whose hit in its cell is nearest its range
+        label = np.zeros(len(cloud), np.int32)
+        sig = np.flatnonzero(cloud.label == 1)
+        if len(sig) and len(w):
+            ck = (h.astype(np.int64) - lidar.h_min) * lidar.width + (w - lidar.w_min)
+            pk = ((cloud.cell_h[sig].astype(np.int64) - lidar.h_min) * lidar.width
+                  + (cloud.cell_w[sig] - lidar.w_min))
+            o = np.lexsort((inst, ck))
+            ck_s, r_s, inst_s = ck[o], r[o], inst[o]
+            lo = np.searchsorted(ck_s, pk, side="left")
+            hi = np.searchsorted(ck_s, pk, side="right")
+            for j, (a, z) in enumerate(zip(lo, hi, strict=True)):
+                if z > a:
+                    d = np.abs(r_s[a:z] - cloud.range_m[sig[j]])
+                    label[sig[j]] = inst_s[a + int(np.argmin(d))]
+        return cloud, label
+
+
+def _concat(parts, k, dtypes):
+    if not parts:
+        return tuple(np.zeros(0, d) for d in dtypes)
+    return tuple(np.concatenate([p[j] for p in parts]).astype(dtypes[j], copy=False)
+                 for j in range(k))
+
+
+# --- files -------------------------------------------------------------------------------------
+def scan_meta(scene: Scene, scanner: SceneScanner, frame: int) -> dict:
+    """What a frame file's ``meta`` says (the same for a scan and a sequence's frame)."""
+    meta = {"format": FORMAT, "version": FORMAT_VERSION, "frame": int(frame),
+            "scene_sha256": scene.digest(), "backend": scanner.sim.backend,
+            "supersample": scanner.sim.supersample, "quantized": scanner.sim.quantize,
+            "lidar": scene.lidar.to_dict(),
+            "types": [t.type_name for t in scene.targets]}
+    if scanner.sensor is not None:
+        meta.update(sensor=scanner.sensor.to_dict(), seed=scanner.seed)
+    return meta
+
+
+def frame_npz(scanner: SceneScanner, frame: int) -> tuple[bytes, FrameScan]:
+    """One frame file's bytes (``apcg_core.scene.sequence``) and the scan it holds."""
+    from apcg_core.io.dataset import npz_bytes
+    scan = scanner.scan(frame)
+    angles = angles_of_poses(scan.position, scan.rotation)
+    return npz_bytes(frame_arrays(scan, angles, scan_meta(scanner.scene, scanner, frame))), \
+        scan
+
+
+def window_presence(scanner: SceneScanner, frames) -> np.ndarray:
+    """(F, T) bool: whether each target has cells in the window in each frame (boxes only,
+    no ray is cast)."""
+    out = np.zeros((len(frames), len(scanner.scene.targets)), bool)
+    for k, f in enumerate(frames):
+        t0 = float(scanner.scene.frame_times([f])[0])
+        for i in range(len(scanner.scene.targets)):
+            out[k, i] = scanner._geometry(i, t0)[4]
+    return out
+
+
+def _outside_message(scanner: SceneScanner, i: int, t0: float, when: str) -> str:
+    scene, lidar = scanner.scene, scanner.scene.lidar
+    target = scene.targets[i]
+    p, _ = target.poses(t0)
+    az, el, _ = cartesian_to_spherical(p[0])
+    half_w = lidar.width / 2 * lidar.r_alpha / DEG
+    half_h = lidar.height / 2 * lidar.r_beta / DEG
+    return (f"{target.source} lies outside the lidar's window {when}: it is at azimuth "
+            f"{az / DEG:.6g} deg, elevation {el / DEG:.6g} deg; the window spans "
+            f"azimuth {scene.pointing_azimuth / DEG:.6g} +- {half_w:.4g} deg and elevation "
+            f"{scene.pointing_elevation / DEG:.6g} +- {half_h:.4g} deg ([pointing], [lidar])")
+
+
+def check_targets_seen(scanner: SceneScanner, frames, every_frame: bool) -> np.ndarray:
+    """Refuse a target outside the window: in the frame (a scan, ``every_frame``) or in every
+    frame of a sequence. Returns the presence table."""
+    seen = window_presence(scanner, frames)
+    for i in range(seen.shape[1]):
+        bad = ~seen[:, i] if every_frame else (None if seen[:, i].any() else ~seen[:, i])
+        if bad is not None and bad.any():
+            k = int(np.argmax(bad))
+            t0 = float(scanner.scene.frame_times([frames[k]])[0])
+            when = (f"at t = {t0:.6g} s" if every_frame
+                    else f"in every frame ({len(frames)} frames)")
+            raise InputError(_outside_message(scanner, i, t0, when))
+    return seen
+
+
+def scan_scene(scene_path, output, backend: str = "embree", supersample: int | None = None,
+               quantize: bool = True, sensor=None, seed: int = 0, lidar=None) -> dict:
+    """`apcg scene scan`: the scene's first frame (its [sequence] start_s) to one NPZ file."""
+    from apcg_core.io.dataset import write_atomic
+    scene = load_scene(scene_path, lidar=lidar)
+    k = supersample or (4 if sensor else 1)  # as `apcg simulate`: 4 rays a side feed a sensor
+    scanner = SceneScanner(scene, backend, k, quantize, sensor, seed)
+    try:
+        check_targets_seen(scanner, [0], every_frame=True)
+        data, scan = frame_npz(scanner, 0)
+    finally:
+        scanner.close()
+    write_atomic(Path(output), data)
+    summary = {"output": str(output), "points": len(scan.cloud),
+               "points_per_target": scan.points_of().tolist(),
+               "clipped": scan.clipped.tolist()}
+    if sensor is not None:
+        summary.update(signal=int((scan.cloud.label == 1).sum()),
+                       noise=int((scan.cloud.label == 0).sum()))
+    return summary
+
+
+# --- sequences ---------------------------------------------------------------------------------
+# Frames per task handed to an engine: small enough that a pool keeps its workers busy and a
+# kill loses little, large enough that a task's overhead (a scene file read) vanishes.
+FRAMES_PER_TASK = 8
+
+
+@dataclass
+class SequenceTask:
+    """Frames of one sequence for one worker (small and picklable)."""
+
+    index: int  # the task's number (an engine names its work by it)
+    scene_path: str
+    scene_sha256: str
+    lidar: dict | None  # a command-line lidar overriding the file's; None: the file's
+    frames: tuple
+    directory: str
+    backend: str
+    supersample: int
+    quantize: bool
+    sensor: dict | None
+    seed: int
+
+
+_SCANNERS: dict = {}
+
+
+def _scanner(task: SequenceTask) -> SceneScanner:
+    from apcg_core.lidar import LidarParams
+    key = (task.scene_path, task.scene_sha256, str(task.lidar), task.backend, task.supersample,
+           task.quantize, str(task.sensor), task.seed)
+    if key not in _SCANNERS:
+        for old in _SCANNERS.values():
+            old.close()
+        _SCANNERS.clear()
+        lidar = LidarParams.from_dict(task.lidar) if task.lidar else None
+        scene = load_scene(task.scene_path, lidar=lidar)
+        if scene.digest() != task.scene_sha256:
+            raise InputError(f"{task.scene_path} (or a trajectory file it names) changed while "
+                             "its sequence was being built; run the command again")
+        sensor = None
+        if task.sensor is not None:
+            from apcg_core.sensor import sensor_from_table
+            sensor = sensor_from_table(task.sensor, source="sequence header [sensor]")
+        _SCANNERS[key] = SceneScanner(scene, task.backend, task.supersample, task.quantize,
+                                      sensor, task.seed)
+    return _SCANNERS[key]
+
+
+def run_sequence_task(task: SequenceTask) -> tuple[int, int]:
+    """Compute and write the frames of ``task`` not yet written (each file whole); returns
+    (frames written, frames in the task)."""
+    from apcg_core.io.dataset import write_atomic
+    from apcg_core.testpoints import wait_point
+
+    from .shards import part_suffix
+    scanner = _scanner(task)
+    done = 0
+    for f in task.frames:
+        path = Path(task.directory) / frame_file(f)
+        if path.exists():
+            continue
+        data, _ = frame_npz(scanner, f)
+        wait_point("scene.frame-computed")
+        write_atomic(path, data, part_suffix=part_suffix())
+        done += 1
+    return done, len(task.frames)
+
+
+def sequence_header(scene: Scene, scanner: SceneScanner) -> dict:
+    head = {"format": FORMAT, "version": FORMAT_VERSION, "scene": scene.record,
+            "scene_sha256": scene.digest(), "frames": scene.frames,
+            "frame_rate_hz": scene.frame_rate_hz, "start_s": scene.start_s,
+            "frame_files": "frames/{frame:06d}.npz", "backend": scanner.sim.backend,
+            "supersample": scanner.sim.supersample, "quantized": scanner.sim.quantize,
+            "tracks": [{"track_id": t.instance, "type": t.type_name,
+                        "catalog_index": t.type_index} for t in scene.targets],
+            "sensor": None, "seed": scanner.seed}
+    if scanner.sensor is not None:
+        head["sensor"] = scanner.sensor.to_dict()
+    return head
+
+
+def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: int | None = None,
+                   quantize: bool = True, sensor=None, seed: int = 0, lidar=None,
+                   workers: int = 1, engine: str = "local", address: str | None = None,
+                   connect_timeout_s: float | None = None, progress: bool = True) -> dict:
+    """`apcg scene sequence`: every frame of the scene's [sequence] into ``out_dir``
+    (``apcg_core.scene.sequence``'s format); resumes where a killed run stopped, the same
+    bytes whatever the engine and the number of workers."""
+    from apcg_core.io.dataset import json_bytes, sha256_file, write_atomic
+    from apcg_core.lock import ProcessLock
+    from apcg_core.progress import Progress
+    from apcg_core.scene.sequence import HEADER, MANIFEST, POSES
+
+    from .build import _remove_dead_parts
+    from .engine import RunSettings, get_engine
+    from .shards import part_suffix
+    scene = load_scene(scene_path, lidar=lidar)
+    k = supersample or (4 if sensor else 1)
+    scanner = SceneScanner(scene, backend, k, quantize, sensor, seed)
+    out = Path(out_dir)
+    runner = get_engine(engine)
+    settings = RunSettings(workers=workers, address=address, output=str(out.resolve()),
+                           connect_timeout_s=connect_timeout_s)
+    runner.check(settings)
+    frames = list(range(scene.frames))
+    try:
+        check_targets_seen(scanner, frames, every_frame=False)
+        header = json_bytes(sequence_header(scene, scanner))
+    finally:
+        scanner.close()
+    (out / "frames").mkdir(parents=True, exist_ok=True)
+    lock = ProcessLock(out / ".sequence.lock", f"scene sequence into {out}")
+    lock.acquire()
+    try:
+        head = out / HEADER
+        if head.exists():
+            if head.read_bytes() != header:
+                raise InputError(f"{out} already holds a different sequence (its {HEADER} "
+                                 "differs from this scene and these options); write into a "
+                                 "new directory or delete it")
+        else:
+            write_atomic(head, header, part_suffix=part_suffix())
+        todo = [f for f in frames if not (out / frame_file(f)).exists()]
+        tasks = [SequenceTask(i // FRAMES_PER_TASK, str(Path(scene_path).resolve()),
+                              scene.digest(),
+                              lidar.to_dict() if lidar is not None else None,
+                              tuple(todo[i:i + FRAMES_PER_TASK]), str(out.resolve()), backend,
+                              k, quantize, sensor.to_dict() if sensor is not None else None,
+                              int(seed)) for i in range(0, len(todo), FRAMES_PER_TASK)]
+        bar = Progress(len(frames), "frame", progress, done=len(frames) - len(todo))
+        t0 = time.perf_counter()
+        try:
+            if tasks:
+                with runner.start(settings) as run:
+                    for n, _ in run(run_sequence_task, tasks):
+                        bar.update(n)
+        finally:
+            for s in _SCANNERS.values():
+                s.close()
+            _SCANNERS.clear()
+            bar.close()
+        elapsed = time.perf_counter() - t0
+        _remove_dead_parts(out / "frames")
+        _remove_dead_parts(out)
+        write_atomic(out / POSES, poses_csv_bytes(read_frame(out / frame_file(f))
+                                                  for f in frames), part_suffix=part_suffix())
+        manifest = {"complete": True, "frames": [
+            {"file": frame_file(f), "sha256": sha256_file(out / frame_file(f))}
+            for f in frames]}
+        write_atomic(out / MANIFEST, json_bytes(manifest), part_suffix=part_suffix())
+    finally:
+        lock.release()
+    return {"directory": str(out), "frames": len(frames), "built_frames": len(todo),
+            "skipped_frames": len(frames) - len(todo), "seconds": round(elapsed, 3),
+            "complete": True}
+
+
+def sequence_warnings(scene_path, lidar=None) -> list[str]:
+    from apcg_core.scene.spec import scene_warnings
+    return scene_warnings(load_scene(scene_path, lidar=lidar))
