@@ -41,10 +41,12 @@ def uniforms(seed: int, sample_id: np.ndarray, stream: int, index: np.ndarray) -
 _lgamma = np.frompyfunc(math.lgamma, 1, 1)
 
 
-def binomial_inverse(n: np.ndarray, p: np.ndarray, u: np.ndarray) -> np.ndarray:
+def binomial_inverse(n: np.ndarray, p: np.ndarray, u: np.ndarray,
+                     compiled: bool = False) -> np.ndarray:
     """Binomial(n, p) by inverting its CDF at the uniforms ``u`` (one each), elementwise and
     exact to double precision. Counted from 0, or for a large mean from 12 standard
-    deviations below it (the mass below, < 1e-32, is not drawn)."""
+    deviations below it (the mass below, < 1e-32, is not drawn). ``compiled``: the walk up
+    the CDF in the compiled loop (``kernels.binomial_walk``, the same bytes)."""
     n = np.asarray(n, np.int64)
     p = np.clip(np.asarray(p, np.float64), 0.0, 1.0)
     u = np.asarray(u, np.float64)
@@ -67,6 +69,12 @@ def binomial_inverse(n: np.ndarray, p: np.ndarray, u: np.ndarray) -> np.ndarray:
     cdf = pk.copy()
     k = start.copy()
     ratio = qq / (1.0 - qq)
+    if compiled:
+        from .kernels import require
+
+        require().binomial_walk(nn, ratio, uu, pk, cdf, k)
+        x[live] = k
+        return np.where(flip, n - x, x)
     act = np.flatnonzero((uu > cdf) & (k < nn))
     while len(act):
         k[act] += 1

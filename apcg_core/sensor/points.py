@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import draws
+from . import draws, kernels
 from .detector import SignalBins, _binomial_pmf, _bisect, _quiet_cost
 
 
@@ -50,24 +50,30 @@ def _first_of_groups(key: np.ndarray) -> np.ndarray:
     return first
 
 
-def _top(cell, b, count, sig) -> Peaks:
-    """Per cell, the bin with the most counts (the nearest of equal ones)."""
-    order = np.lexsort((b, -count, cell))
-    c = cell[order]
-    top = _first_of_groups(c)
-    return Peaks(c[top], b[order][top], count[order][top], sig[order][top])
+def _top(cell, b, count, sig, n_bins: int) -> Peaks:
+    """Per cell, the bin with the most counts (the nearest of equal ones); ``cell`` sorted, a
+    (cell, bin) at most once. No sort: each cell's best of count * (n_bins + 1) + n_bins - bin
+    (the count first, then the nearer bin), by ``maximum.reduceat`` over its run."""
+    if len(cell) == 0:
+        z = np.zeros(0, np.int64)
+        return Peaks(z, z, z, z)
+    score = count.astype(np.int64) * (n_bins + 1) + (n_bins - b)
+    heads = np.flatnonzero(_first_of_groups(cell))
+    best = np.maximum.reduceat(score, heads)
+    at = np.flatnonzero(score == np.repeat(best, np.diff(np.append(heads, len(cell)))))
+    return Peaks(cell[at], b[at], count[at], sig[at])
 
 
-def _histogram(cell, b) -> Peaks:
+def _histogram(cell, b, n_bins: int) -> Peaks:
     """Counts per (cell, bin) of noise events, reduced to each cell's peak."""
     if len(cell) == 0:
         z = np.zeros(0, np.int64)
         return Peaks(z, z, z, z)
-    order = np.lexsort((b, cell))
-    cell, b = cell[order], b[order]
-    first = np.flatnonzero(_first_of_groups(cell * (1 << 20) + b))
-    counts = np.diff(np.append(first, len(cell)))
-    return _top(cell[first], b[first], counts, np.zeros(len(first), np.int64))
+    key = np.sort(cell * n_bins + b)
+    first = np.flatnonzero(_first_of_groups(key))
+    counts = np.diff(np.append(first, len(key)))
+    k = key[first]
+    return _top(k // n_bins, k % n_bins, counts, np.zeros(len(first), np.int64), n_bins)
 
 
 def _sum_before(values: np.ndarray, steps: list) -> np.ndarray:
@@ -79,13 +85,17 @@ def _sum_before(values: np.ndarray, steps: list) -> np.ndarray:
     return out
 
 
-def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, seed: int,
-                ids: np.ndarray, n_cells: int) -> Peaks:
+def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, threshold: int,
+                seed: int, ids: np.ndarray, n_cells: int, compiled: bool = False) -> Peaks:
+    """The peaks of the cells the signal reaches (their peak bins, not yet held to the
+    threshold except where that saves work without changing them). ``compiled``: the loops
+    in ``kernels`` (the same bytes)."""
     cell, b, mean = signal.cell, signal.bin, signal.mean
     n_sig = len(cell)
     if n_sig == 0:
         z = np.zeros(0, np.int64)
         return Peaks(z, z, z, z)
+    k_ = kernels.require() if compiled else None
     new_cell = _first_of_groups(cell)
     last = np.empty(n_sig, bool)
     last[-1] = True
@@ -111,24 +121,36 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, seed
     p_mean = noise * p_len
     p_mean[sig_slot] += mean
     sample = p_cell // n_cells
-    p_index = draws.index_within(sample)  # a piece's number within its sample
     # pieces by their position in their cell: the sums and the chain below run position by
     # position, so a cell's numbers never depend on the other cells of the batch
     heads = np.flatnonzero(_first_of_groups(p_cell))
     counts = np.diff(np.append(heads, n_pieces))
-    pos = draws.index_within(p_cell)
-    pos = pos.astype(np.int16 if pos.max() < 32767 else np.int64)
-    by_pos = np.argsort(pos, kind="stable")  # a radix sort on small integers
-    bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))
-    steps = [by_pos[bounds[j]:bounds[j + 1]] for j in range(len(bounds) - 1)]
-    before = _sum_before(p_mean, steps)  # C before each piece, within its cell
+    steps = []
+
+    def by_position() -> list:  # steps[j]: the pieces at position j of their cell
+        if not steps:
+            pos = draws.index_within(p_cell)
+            pos = pos.astype(np.int16 if pos.max() < 32767 else np.int64)
+            by_pos = np.argsort(pos, kind="stable")  # a radix sort on small integers
+            bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))
+            steps.extend(by_pos[bounds[j]:bounds[j + 1]] for j in range(len(bounds) - 1))
+        return steps
+
+    def sum_before(values):
+        if k_ is not None:
+            return k_.sum_before(values, heads, counts)
+        return _sum_before(values, by_position())
+
+    before = sum_before(p_mean)  # C before each piece, within its cell
     last = heads + counts - 1
     total = before[last] + p_mean[last]  # C of the whole gate, per cell
     p_first = np.exp(-before) * -np.expm1(-p_mean)  # P(a pulse's first event is in the piece)
     c_sample = sample[heads]
+    p_fire = -np.expm1(-total)
     fired_cell = draws.binomial_inverse(
-        np.full(len(heads), pulses), -np.expm1(-total),
-        draws.uniforms(seed, ids[c_sample], draws.FIRED, draws.index_within(c_sample)))
+        np.full(len(heads), pulses), p_fire,
+        draws.uniforms(seed, ids[c_sample], draws.FIRED, draws.index_within(c_sample)),
+        compiled)
     # Given F fired pulses, the pieces they fire in are F independent draws of that law: cheap
     # when F is below the cell's number of pieces. Otherwise the chain of binomials, piece by
     # piece; both are the multinomial histogram of first events.
@@ -138,14 +160,17 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, seed
     # -- by draws: inverse CDF over each cell's pieces, by bisection within the cell's run
     cells_d = np.flatnonzero(by_draws & (fired_cell > 0))
     if len(cells_d):
-        upto = _sum_before(p_first, steps) + p_first  # within the cell, up to each piece
+        upto = sum_before(p_first) + p_first  # within the cell, up to each piece
         ev_cell = np.repeat(cells_d, fired_cell[cells_d])
         ev_sample = c_sample[ev_cell]
         ev_u = draws.uniforms(seed, ids[ev_sample], draws.FIRST_PIECE,
                               draws.index_within(ev_sample))
-        target = ev_u * -np.expm1(-total[ev_cell])
+        target = ev_u * p_fire[ev_cell]
         lo, hi = heads[ev_cell], heads[ev_cell] + counts[ev_cell]
-        at = np.minimum(_bisect(upto, lo, hi, target, right=True), hi - 1)
+        if k_ is not None:
+            at = np.minimum(k_.bisect_right(upto, lo, hi, target), hi - 1)
+        else:
+            at = np.minimum(_bisect(upto, lo, hi, target, right=True), hi - 1)
         fired += np.bincount(at, minlength=n_pieces)
     # -- the chain, for the cells where most pulses fire: of the pulses that fire at all and
     # have not yet, a piece takes each with chance (1 - exp(-mu)) / (1 - exp(-C_rest)), C_rest
@@ -157,7 +182,7 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, seed
                                   draws.index_within(sample[chain]))
         remaining = np.where(by_draws, 0, fired_cell)
         rest = total[cell_of_piece] - before
-        for idx in steps:
+        for idx in by_position():
             left = remaining[cell_of_piece[idx]]
             live = left > 0
             if not live.all():
@@ -165,32 +190,54 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, seed
                 if len(idx) == 0:
                     continue
             p = -np.expm1(-p_mean[idx]) / -np.expm1(-rest[idx])
-            x = draws.binomial_inverse(left, np.minimum(p, 1.0), u[idx])
+            x = draws.binomial_inverse(left, np.minimum(p, 1.0), u[idx], compiled)
             fired[idx] = x
             remaining[cell_of_piece[idx]] -= x
     # signal bins: counts kept, their signal part drawn
     in_sig = np.flatnonzero((p_sig >= 0) & (fired > 0))
     k = p_sig[in_sig]
     share = mean[k] / (mean[k] + noise)
+    p_index = draws.index_within(sample)  # a piece's number within its sample
     sig_count = draws.binomial_inverse(
         fired[in_sig], share, draws.uniforms(seed, ids[sample[in_sig]], draws.LABELS,
-                                             p_index[in_sig]))
-    # stretches of noise: each event placed by the first-arrival law truncated to its stretch
+                                             p_index[in_sig]), compiled)
+    # the signal bins' peak per cell
+    sig_top = _top(cell_of_piece[in_sig], p_start[in_sig], fired[in_sig], sig_count, n_bins)
+    # stretches of noise: each event placed by the first-arrival law truncated to its stretch.
+    # A stretch whose events number less than both the threshold and its cell's highest
+    # signal bin cannot hold the cell's point (no bin of it can beat that bin, nor make a
+    # point where the cell has none): its events are not placed. Each event keeps its number
+    # among all the stretches' events of its sample, so the others draw as if it were.
     in_gap = np.flatnonzero((p_sig < 0) & (fired > 0))
     reps = fired[in_gap]
+    best_sig = np.zeros(len(heads), np.int64)
+    best_sig[sig_top.cell] = sig_top.count
+    need = np.maximum(threshold, best_sig[cell_of_piece[in_gap]])
+    g_sample = sample[in_gap]
+    ends = np.cumsum(reps)
+    g_first = np.flatnonzero(_first_of_groups(g_sample))
+    g_base = ends - reps - np.repeat((ends - reps)[g_first], np.diff(np.append(g_first,
+                                                                              len(in_gap))))
+    kept = reps >= need
+    in_gap, reps, g_base = in_gap[kept], reps[kept], g_base[kept]
     e_piece = np.repeat(in_gap, reps)
-    e_index = draws.index_within(sample[e_piece])
+    e_index = np.repeat(g_base, reps) + draws.index_within(np.repeat(np.arange(len(in_gap)),
+                                                                      reps))
     uu = draws.uniforms(seed, ids[sample[e_piece]], draws.STRETCH, e_index)
     e_len = p_len[e_piece]
     if noise > 0:
         off = np.floor(-np.log1p(-uu * -np.expm1(-noise * e_len)) / noise).astype(np.int64)
     else:
         off = np.zeros(len(uu), np.int64)
-    gaps = _histogram(p_cell[e_piece], p_start[e_piece] + np.minimum(off, e_len - 1))
-    return _top(np.concatenate([p_cell[in_sig], gaps.cell]),
-                np.concatenate([p_start[in_sig], gaps.bin]),
-                np.concatenate([fired[in_sig], gaps.count]),
-                np.concatenate([sig_count, gaps.signal_count]))
+    gaps = _histogram(cell_of_piece[e_piece], p_start[e_piece] + np.minimum(off, e_len - 1),
+                      n_bins)
+    # each cell's peak: its signal bins' or its stretches' (sorted by cell, one of each)
+    both = np.concatenate([sig_top.cell, gaps.cell])
+    order = np.argsort(both, kind="stable")
+    top = _top(both[order], np.concatenate([sig_top.bin, gaps.bin])[order],
+               np.concatenate([sig_top.count, gaps.count])[order],
+               np.concatenate([sig_top.signal_count, gaps.signal_count])[order], n_bins)
+    return Peaks(cell[new_cell][top.cell], top.bin, top.count, top.signal_count)
 
 
 def _distinct(seed, ids, stream, sample, group, limit) -> np.ndarray:
@@ -277,7 +324,7 @@ def _quiet_peaks(n_quiet: np.ndarray, loud_global: np.ndarray, n_cells: int, n_b
     order = np.lexsort((a_bin, pulse, a_key))
     a_key, a_bin, pulse = a_key[order], a_bin[order], pulse[order]
     first = _first_of_groups(a_key * (pulses + 1) + pulse)
-    hist = _histogram(a_key[first], a_bin[first])
+    hist = _histogram(a_key[first], a_bin[first], n_bins)
     keep = hist.count >= threshold
     return Peaks(_window_cells(hist.cell[keep], loud_global, n_cells), hist.bin[keep],
                  hist.count[keep], np.zeros(int(keep.sum()), np.int64))
@@ -307,18 +354,20 @@ def _quiet_peaks_every_pulse(n_quiet: np.ndarray, loud_global: np.ndarray, n_cel
     ev_sample = key // n_cells
     u = draws.uniforms(seed, ids[ev_sample], draws.QUIET_SLOT, draws.index_within(ev_sample))
     b = np.minimum(np.floor(-np.log1p(-u * p_fire) / noise).astype(np.int64), n_bins - 1)
-    hist = _histogram(key, b)
+    hist = _histogram(key, b, n_bins)
     keep = hist.count >= threshold
     return Peaks(_window_cells(hist.cell[keep], loud_global, n_cells), hist.bin[keep],
                  hist.count[keep], np.zeros(int(keep.sum()), np.int64))
 
 
 def batch_points(signal: SignalBins, n_samples: int, n_cells: int, n_bins: int, noise: float,
-                 pulses: int, threshold: int, seed: int, ids: np.ndarray) -> Peaks:
+                 pulses: int, threshold: int, seed: int, ids: np.ndarray,
+                 compiled: bool = False) -> Peaks:
     """Every point (peak bin reaching ``threshold``) of a batch: ``signal`` in batch cell
-    numbering, sorted by cell and bin."""
-    loud = _loud_peaks(signal, n_bins, noise, pulses, seed, ids, n_cells)
-    loud_global = np.unique(signal.cell)
+    numbering, sorted by cell and bin. ``compiled``: the loud cells' loops compiled
+    (``kernels``; the same bytes)."""
+    loud = _loud_peaks(signal, n_bins, noise, pulses, threshold, seed, ids, n_cells, compiled)
+    loud_global = signal.cell[_first_of_groups(signal.cell)]
     n_quiet = n_cells - np.bincount(loud_global // n_cells, minlength=n_samples)
     # the heavy-bin route unless the noise makes heavy bins common (a choice made from the
     # sensor alone, so the same for every batch)
