@@ -17,6 +17,7 @@ from ..cloud import PointCloud
 from ..errors import InputError
 from ..frames import spherical_to_cartesian
 from ..lidar import LidarParams
+from . import kernels
 from .detector import SignalBins, detect, detect_points
 from .link import (
     LIGHT_M_S,
@@ -121,11 +122,26 @@ def gate_first_bin(r0: np.ndarray, sensor: SensorParams, lidar: LidarParams) -> 
 
 
 def signal_bins(cell: np.ndarray, range_m: np.ndarray, mean: np.ndarray, first_bin,
-                n_bins: int, sigma_bins: float, r_r: float) -> SignalBins:
+                n_bins: int, sigma_bins: float, r_r: float,
+                compiled: bool = False) -> SignalBins:
     """Spread each return's mean counts over the bins its Gaussian reaches (its range in bins,
     sigma in bins) and add them up per (cell, bin); bins outside the gate are lost.
-    ``first_bin``: the gate's first bin, one for all or one per return."""
+    ``first_bin``: the gate's first bin, one for all or one per return. ``compiled``: the
+    spread and the sums in one compiled loop (``kernels.spread_sum``, the same bytes)."""
     u = range_m / r_r - first_bin  # position in the gate, in bins
+    if sigma_bins > 0 and compiled:
+        half, weights = spread_table(sigma_bins)
+        start = u - half
+        lo = np.floor(start)
+        row = np.rint((start - lo) * (len(weights) - 1)).astype(np.int64)
+        lo = lo.astype(np.int64)
+        cell = np.asarray(cell, np.int64)
+        if len(cell) and (np.diff(cell) < 0).any():  # as below: a stable order by cell
+            order = np.argsort(cell, kind="stable")
+            cell, lo, row, mean = cell[order], lo[order], row[order], mean[order]
+        c, b, total = kernels.require().spread_sum(
+            cell, lo, row, np.ascontiguousarray(mean, np.float64), weights, int(n_bins))
+        return SignalBins(c, b, total)
     if sigma_bins > 0:
         half, weights = spread_table(sigma_bins)
         # Bins lo .. lo + nb - 1 with lo = floor(u - half): their weights depend only on the
@@ -216,12 +232,14 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
     cell_all = ((hits.h.astype(np.int64) - lidar.h_min) * lidar.width
                 + (hits.w.astype(np.int64) - lidar.w_min))
     if sensor.output == "points" and dead_bins >= n_bins:
-        # the whole batch at once, with counter-based draws (points.py)
+        # the whole batch at once, with counter-based draws (points.py); the loops compiled
+        # once the process has enough hits for them (kernels.py: the same bytes)
+        compiled = kernels.use_for(len(hits.range_m))
         gcell = hits.sample.astype(np.int64) * n_cells + cell_all
         sig = signal_bins(gcell, hits.range_m, pe, first[hits.sample], n_bins, sigma_bins,
-                          lidar.r_r)
+                          lidar.r_r, compiled)
         pk = batch_points(sig, n, n_cells, n_bins, noise, sensor.pulses, sensor.threshold,
-                          seed, ids)
+                          seed, ids, compiled)
         m = len(pk.cell)
         parts = [(pk.cell // n_cells, pk.cell % n_cells, pk.bin,
                   (2 * pk.signal_count >= pk.count).astype(np.uint8),
