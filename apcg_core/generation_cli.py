@@ -90,7 +90,7 @@ def _run_generate(args) -> int:
             if sensor is not None:
                 from .sensor.generated import photon_generated
                 cloud = photon_generated(cloud, res.table, res.conditions.names, model.lidar,
-                                         sensor, args.seed, offset)
+                                         sensor, args.seed, offset, model=model)
             cloud.sample = np.asarray(cloud.sample, np.int64) + offset
             if out.ext == ".npz" and block == 0 and total > BLOCK_CLOUDS:
                 _check_npz_memory(len(cloud) / max(1, len(res.table)), total)

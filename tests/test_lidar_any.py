@@ -33,8 +33,6 @@ NO_LIDAR = {
     "choose-tau": "chooses tau on the model's own dataset, at the lidar that made it",
     "fd-depth score": "the encoder reads depth images of the dataset's own lidar",
     "export": "writes the run's model; model.json records its training lidar",
-    "benchmark recognize": "issue 35's command (another helper's work in progress); its "
-                           "sources carry their own lidar",
 }
 
 
@@ -274,3 +272,43 @@ def test_build_simulate_generate_evaluate_on_a_non_default_lidar(tmp_path, capsy
 def test_lidar_keys_are_the_dataset_configs():
     from dataset_builder.schema import SCHEMA
     assert tuple(SCHEMA["lidar"].keys) == LIDAR_KEYS
+
+
+# --- photons from the generator: the same stage as simulate, fed the model's sub-rays ----------
+
+def test_the_sub_ray_lidar_centres_are_the_sub_ray_grid():
+    from apcg_core.sensor.generated import SUB_READS, sub_ray_lidar
+    lid = load_lidar("anisotropic")
+    fine = sub_ray_lidar(lid)
+    k = SUB_READS
+    assert k % 2 == 1
+    w = np.arange(-lid.width // 2, lid.width // 2)
+    for i in range(k):  # sub-ray i of cell w: (w + (i + 0.5) / k - 0.5) R_alpha
+        want = (w + (i + 0.5) / k - 0.5) * lid.r_alpha
+        got, _ = fine.cell_centre_angles(k * w + i - (k - 1) // 2, 0, 0.0)
+        assert np.allclose(got, want, rtol=0, atol=1e-15)
+        assert fine.inside(k * w + i - (k - 1) // 2, 0).all()
+
+
+@pytest.mark.parametrize("name,range_m", [("Mavic 3", 300.0), ("A320neo", 4000.0)])
+def test_generated_photons_see_the_partial_cells_the_simulator_sees(name, range_m):
+    """The shipped model's 3 x 3 sub-reads reach the cells a target covers in part, as the
+    simulator's sub-rays do (one read per cell misses them: 25-40% fewer cells measured)."""
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.sensor import load_sensor, photon_cloud, reflectivity_of
+    from apcg_core.sensor.generated import hits_of_cloud, sub_ray_hits
+    from dataset_builder.simulate import Simulator
+    model, cat, sensor = load_model(), default_catalog(), load_sensor("1550nm-night")
+    table = np.array([[0, range_m, 3.5 * np.pi / 180, 0.05, 0.35, 0.02]])
+    with Simulator("embree", model.lidar, supersample=4) as sim:
+        simulated, _, _ = sim.photon_cells_type(cat, name, table, sensor, 1)
+    res = model.generate(model.conditions([name], table[:, 1:]))
+    rho = np.array([reflectivity_of(cat.get(name))])
+    cells = {}
+    for how, hits in (("sub", sub_ray_hits(model, res.table, [name], model.lidar)),
+                      ("cell", hits_of_cloud(res.cloud, table[:, 2], model.lidar, 1))):
+        pc = photon_cloud(hits, table[:, 1], rho, sensor, model.lidar, 1, np.array([0]))
+        cells[how] = len(pc.target_w)
+    want = len(simulated.target_w)
+    assert abs(cells["sub"] - want) < 0.2 * want, (cells, want)
+    assert abs(cells["cell"] - want) > 2 * abs(cells["sub"] - want), (cells, want)
