@@ -83,22 +83,27 @@ def _run_generate(args) -> int:
     points = empty = 0
     fields = () if sensor is None else ("label", "count") + (
         ("pulse",) if sensor.output == "events" else ())
+
+    def block_clouds(item):
+        block, (part, count, offset) = item
+        res = model.generate(part, count=count, seed=block_seed(args.seed, block))
+        cloud = res.cloud
+        if sensor is not None:
+            from .sensor.generated import photon_generated
+            cloud = photon_generated(cloud, res.table, res.conditions.names, model.lidar,
+                                     sensor, args.seed, offset, model=model)
+        cloud.sample = np.asarray(cloud.sample, np.int64) + offset
+        return cloud, len(res.table)
+
+    size = min(BLOCK_CLOUDS, getattr(model, "block_clouds", BLOCK_CLOUDS))
+    work = enumerate(blocks(table, args.count, size))
     with CloudWriter(args.output, meta, photon_fields=fields) as out:
-        for block, (part, count, offset) in enumerate(blocks(table, args.count, BLOCK_CLOUDS)):
-            res = model.generate(part, count=count, seed=block_seed(args.seed, block))
-            cloud = res.cloud
-            if sensor is not None:
-                from .sensor.generated import photon_generated
-                cloud = photon_generated(cloud, res.table, res.conditions.names, model.lidar,
-                                         sensor, args.seed, offset, model=model)
-            cloud.sample = np.asarray(cloud.sample, np.int64) + offset
-            if out.ext == ".npz" and block == 0 and total > BLOCK_CLOUDS:
-                _check_npz_memory(len(cloud) / max(1, len(res.table)), total)
+        for cloud, n in in_order(block_clouds, work, getattr(model, "lanes", 1)):
             out.write(cloud)
             wait_point("generate.block-written")
             points += len(cloud)
-            empty += len(res.table) - len(np.unique(cloud.sample))
-            progress.update(len(res.table))
+            empty += n - len(np.unique(cloud.sample))
+            progress.update(n)
     progress.close()
     from .plausibility import empty_clouds_warning
     if (warning := empty_clouds_warning(empty, total)) is not None:
@@ -129,9 +134,30 @@ def _warn_window(model, table) -> None:
 
 # Clouds generated per block: large requests are made and written block by block, so memory
 # stays bounded whatever --count is. A request of one block is generated exactly as before.
+# (A model whose clouds depend on neither the seed nor the blocks may ask for smaller ones:
+# its ``block_clouds``.)
 BLOCK_CLOUDS = 8192
 MAX_LISTED_CONDITIONS = 10000
-_BYTES_PER_POINT = 48  # xyz, range (float64), two cell indices (int32), sample (int64)
+
+
+def in_order(fn, items, lanes: int = 1):
+    """``fn(item)`` for each of ``items``, in order, computed in ``lanes`` threads (the
+    model's own: its ``lanes``) while the caller writes what came before; at most
+    ``2 * lanes + 1`` results wait, so memory stays bounded. On an exception or Ctrl-C in the
+    caller, blocks not started are dropped and those running finish (a block is short)."""
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+    pool = ThreadPoolExecutor(max(1, lanes), thread_name_prefix="apcg-generate")
+    pending: deque = deque()
+    try:
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) > 2 * lanes:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def blocks(table, count: int, size: int):
@@ -157,25 +183,3 @@ def block_seed(seed: int, block: int) -> int:
     if block == 0:
         return seed
     return int(np.random.SeedSequence([seed, block]).generate_state(1)[0])
-
-
-def _check_npz_memory(points_per_cloud: float, clouds: int) -> None:
-    from .errors import InputError
-    need = points_per_cloud * clouds * _BYTES_PER_POINT
-    avail = _available_memory()
-    if avail is not None and need > 0.5 * avail:
-        raise InputError(f"{clouds:,} clouds of about {points_per_cloud:.0f} points need "
-                         f"about {need / 2**30:.1f} GiB held in memory for an .npz file "
-                         f"(available: {avail / 2**30:.1f} GiB); write .ply, .las or .laz, "
-                         "which are written block by block, or ask for fewer clouds")
-
-
-def _available_memory() -> float | None:
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024
-    except OSError:
-        return None
-    return None

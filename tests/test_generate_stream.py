@@ -46,10 +46,44 @@ def test_streamed_output_equals_one_block(tmp_path, monkeypatch, ext):
     assert not list(tmp_path.glob("*.part"))
 
 
-def test_npz_too_large_for_memory_is_refused_up_front(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(gen, "BLOCK_CLOUDS", 2)
-    monkeypatch.setattr(gen, "_available_memory", lambda: 1e5)  # 100 kB free
-    assert main(["generate", *POSE, "--count", "50", "-o", str(tmp_path / "x.npz")]) == 2
-    err = capsys.readouterr().err
-    assert "GiB held in memory" in err and ".ply, .las or .laz" in err
-    assert list(tmp_path.iterdir()) == []  # nothing written, no .part left
+def test_npz_streams_to_the_bytes_savez_writes(tmp_path):
+    """The NPZ writer holds no clouds: each array streams to a spill file and is copied into
+    the zip at the end; the members are those np.savez writes for the whole cloud at once."""
+    import zipfile
+
+    from apcg_core.cloud import PointCloud
+    from apcg_core.io.clouds import CloudWriter, write_cloud
+    rng = np.random.default_rng(3)
+    parts = []
+    for k in range(4):
+        n = int(rng.integers(0, 50))
+        parts.append(PointCloud(rng.normal(size=(n, 3)), rng.uniform(1, 9, n),
+                                rng.integers(-9, 9, n), rng.integers(-9, 9, n),
+                                np.full(n, k), label=rng.integers(0, 2, n),
+                                count=rng.integers(1, 5, n)))
+    meta = {"clouds": 4}
+    with CloudWriter(tmp_path / "streamed.npz", meta, photon_fields=("label", "count")) as w:
+        for p in parts:
+            w.write(p)
+        spilled = {x.name for x in tmp_path.iterdir()}
+    assert spilled == {f"streamed.npz.{k}.part" for k in
+                       ("xyz", "range_m", "cell_w", "cell_h", "sample", "label", "count")}
+    whole = PointCloud(*(np.concatenate([getattr(p, k) for p in parts])
+                         for k in ("xyz", "range_m", "cell_w", "cell_h", "sample")),
+                       label=np.concatenate([p.label for p in parts]),
+                       count=np.concatenate([p.count for p in parts]))
+    write_cloud(tmp_path / "whole.npz", whole, meta)
+    a, b = zipfile.ZipFile(tmp_path / "streamed.npz"), zipfile.ZipFile(tmp_path / "whole.npz")
+    assert [i.filename for i in a.infolist()] == [i.filename for i in b.infolist()]
+    for name in a.namelist():
+        assert a.read(name) == b.read(name), name
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["streamed.npz", "whole.npz"]
+
+
+def test_npz_writer_interrupted_leaves_nothing(tmp_path):
+    from apcg_core.cloud import PointCloud
+    from apcg_core.io.clouds import CloudWriter
+    with pytest.raises(KeyboardInterrupt), CloudWriter(tmp_path / "x.npz") as w:
+        w.write(PointCloud(np.zeros((3, 3)), np.ones(3), [0, 1, 2], [0, 0, 0], [0, 0, 0]))
+        raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []

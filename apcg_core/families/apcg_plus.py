@@ -26,6 +26,7 @@ runtime; its training is ``training/families/apcg_plus.py``.
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +39,9 @@ from ..lidar import LidarParams
 from .base import RUNTIMES, ModelTypes, onnx_session, onnx_weights
 
 FAMILY = "apcg-plus"
-CHUNK = 1024  # conditions per network call (bounds memory: a sheet is 2 x S x S floats)
+CHUNK = 256  # conditions per network call: bounds memory (a sheet is 2 x S x S floats, the
+# activations ~0.1 MB a condition); 256 measured at least as fast as 1024 and 4096 on one
+# thread here (bench/generate_profile.py --chunks), and the sheets are the same bytes
 
 
 # --- sheet geometry (shared by training and generation: one definition) -------------------------
@@ -146,10 +149,23 @@ class PlusModel(ModelTypes):
             "APCG_THREADS", os.cpu_count() or 1)), 1)
         self.runtime = "onnx" if runtime == "auto" else runtime
         self._rt: _Runtime | None = None
+        self._opening = threading.Lock()
+
+    # How `apcg generate` feeds this model (apcg_core/generation_cli.py): its clouds depend on
+    # neither the seed nor how the conditions are cut into blocks, so a block is one network
+    # call, and `workers` blocks are generated side by side while the previous ones are
+    # written (bench/generate_profile.py measures the split).
+    block_clouds = CHUNK
+
+    @property
+    def lanes(self) -> int:
+        return self.workers
 
     def _run(self, codes: np.ndarray, pose: np.ndarray) -> np.ndarray:
         if self._rt is None:
-            self._rt = self._open(self.runtime)
+            with self._opening:  # blocks run in threads: one session, opened once
+                if self._rt is None:
+                    self._rt = self._open(self.runtime)
         if self._rt.name == "onnx":
             return self._rt.session.run(None, {"type_code": codes, "pose": pose})[0]
         import torch

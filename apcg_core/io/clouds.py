@@ -112,10 +112,13 @@ def _fill_las(las, cloud: PointCloud):
 
 
 class CloudWriter:
-    """Write a stacked cloud block by block, in bounded memory: PLY and LAS/LAZ stream to disk
-    (the PLY vertex count is patched in at the end; laspy counts LAS points itself); NPZ cannot
-    be appended to, so its blocks are held and written at the end. As with
-    :func:`write_cloud`, the file appears under its final name only when complete.
+    """Write a stacked cloud block by block, in bounded memory, into any format: PLY and
+    LAS/LAZ stream to disk (the PLY vertex count is patched in at the end; laspy counts LAS
+    points itself); an NPZ's arrays each stream to a spill file beside the output
+    (``NAME.FIELD.part``), copied into the zip's members at the end in blocks (the same
+    members, headers and bytes as ``np.savez`` writes for the whole cloud; memory flat in the
+    number of clouds, the data written twice). As with :func:`write_cloud`, the file appears
+    under its final name only when complete, and no spill file is left.
 
         with CloudWriter("clouds.ply", meta) as w:
             for cloud in blocks:
@@ -135,9 +138,11 @@ class CloudWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = self.path.with_name(self.path.name + ".part")
         self.n = 0
-        self._held: list[PointCloud] = []
         self._file = None
         self._las = None
+        self._spill: dict = {}  # NPZ: field -> (open spill file, path, dtype, row shape)
+        if self.ext == ".npz":
+            self._open_spill()
         if self.ext == ".ply":
             self._file = open(self.tmp, "wb")  # noqa: SIM115 - closed in close()
             head = _own_ply_header(self.meta, "0" * self._COUNT_DIGITS, self.photon_fields)
@@ -149,7 +154,9 @@ class CloudWriter:
             raise ValueError(f"this writer takes clouds with {self.photon_fields or 'no'} "
                              f"photon attributes, got {cloud.photon_fields or 'none'}")
         if self.ext == ".npz":
-            self._held.append(cloud)
+            for k, (f, _, dtype, _) in self._spill.items():
+                a = _sample_of(cloud) if k == "sample" else getattr(cloud, k)
+                f.write(np.ascontiguousarray(a, dtype=dtype).data)
         elif self.ext == ".ply":
             self._file.write(_ply_records(cloud))
         else:
@@ -166,16 +173,9 @@ class CloudWriter:
 
     def close(self) -> Path:
         if self.ext == ".npz":
-            cat = (PointCloud(*(np.concatenate([getattr(c, k) for c in self._held])
-                                for k in ("xyz", "range_m", "cell_w", "cell_h")),
-                              np.concatenate([_sample_of(c) for c in self._held]),
-                              **{k: np.concatenate([getattr(c, k) for c in self._held])
-                                 for k in self.photon_fields})
-                   if self._held else PointCloud(np.zeros((0, 3)), [], [], [],
-                                                 np.zeros(0, np.int64),
-                                                 **{k: [] for k in self.photon_fields}))
-            self._held = []
-            return write_cloud(self.path, cat, self.meta)
+            self._write_npz()
+            _replace(self.tmp, self.path, self._held_output)
+            return self.path
         if self.ext == ".ply":
             self._file.seek(self._count_at)
             self._file.write(f"{self.n:0{self._COUNT_DIGITS}d}".encode())
@@ -191,14 +191,56 @@ class CloudWriter:
 
     def abort(self) -> None:
         """Drop what was written: nothing is left under either name."""
-        for handle in (self._file, self._las):
+        for handle in (self._file, self._las, *(v[0] for v in self._spill.values())):
             try:
                 if handle is not None:
                     handle.close()
             except Exception:  # noqa: BLE001 - already failing; the .part goes anyway
                 pass
         self.tmp.unlink(missing_ok=True)
-        self._held = []
+        self._drop_spill()
+
+    # --- NPZ: one spill file per array, then the zip ------------------------------------------
+    _NPZ_FIELDS = {"xyz": (np.float64, (3,)), "range_m": (np.float64, ()),
+                   "cell_w": (np.int32, ()), "cell_h": (np.int32, ()),
+                   "sample": (np.int64, ())}  # PointCloud's stored types; np.savez's order
+    _COPY_BYTES = 1 << 24  # spill bytes copied into the zip per read
+
+    def _open_spill(self) -> None:
+        from ..cloud import PHOTON_FIELDS
+        fields = dict(self._NPZ_FIELDS)
+        fields.update({k: (PHOTON_FIELDS[k], ()) for k in self.photon_fields})
+        for k, (dtype, row) in fields.items():
+            spill = self.path.with_name(f"{self.path.name}.{k}.part")
+            self._spill[k] = (open(spill, "wb"), spill, np.dtype(dtype), row)  # noqa: SIM115
+
+    def _write_npz(self) -> None:
+        """The zip np.savez writes (stored members, zip64, a version 1.0 .npy header each),
+        its arrays copied from the spill files block by block."""
+        import zipfile
+        fmt = np.lib.format
+        names = [*self._NPZ_FIELDS, "meta", *self.photon_fields]
+        with zipfile.ZipFile(self.tmp, mode="w", compression=zipfile.ZIP_STORED,
+                             allowZip64=True) as zf:
+            for k in names:
+                with zf.open(k + ".npy", "w", force_zip64=True) as member:
+                    if k == "meta":
+                        fmt.write_array(member, np.array(json.dumps(self.meta)))
+                        continue
+                    f, spill, dtype, row = self._spill[k]
+                    f.close()
+                    fmt.write_array_header_1_0(member, {
+                        "descr": fmt.dtype_to_descr(dtype), "fortran_order": False,
+                        "shape": (int(self.n), *row)})
+                    with open(spill, "rb") as src:
+                        while block := src.read(self._COPY_BYTES):
+                            member.write(block)
+        self._drop_spill()
+
+    def _drop_spill(self) -> None:
+        for _, spill, _, _ in self._spill.values():
+            spill.unlink(missing_ok=True)
+        self._spill = {}
 
     def __enter__(self):
         return self
