@@ -49,7 +49,7 @@ NOT_OUTPUTS = {
     ("compare", "lidar"): INPUT, ("teach", "lidar"): INPUT, ("figure", "lidar"): INPUT,
     ("train", "data"): INPUT,
     ("benchmark recognize", "source"): INPUT, ("benchmark recognize", "types"): VALUE,
-    ("benchmark recognize", "sensor"): INPUT,
+    ("benchmark recognize", "sensor"): INPUT, ("benchmark recognize", "lidar"): INPUT,
 }
 
 

@@ -38,8 +38,12 @@ def _without_cost(rep):
 
 
 def test_the_command_runs_end_to_end_and_is_deterministic(tmp_path):
-    args = ["--types", "777-300ER,Mavic 3", "--train-per-type", "6", "--test-per-type", "5",
-            "--epochs", "2", "--bootstrap", "50", "--seed", "3"]
+    from apcg_core.families import default_model_dir
+    from apcg_core.lidar import load_lidar
+    model = str(default_model_dir())
+    args = ["--source", "exact", "--source", model, "--types", "777-300ER,Mavic 3",
+            "--train-per-type", "6", "--test-per-type", "5", "--epochs", "2", "--bootstrap",
+            "50", "--seed", "3", "--lidar", "double-cells"]
     a = _cli(*args, "-o", str(tmp_path / "a"))
     assert a.returncode == 0, a.stderr
     for name in recognize.REPORT_FILES:
@@ -48,16 +52,30 @@ def test_the_command_runs_end_to_end_and_is_deterministic(tmp_path):
     assert rep["sizes"]["train_clouds"] == 12 and rep["sizes"]["test_clouds"] == 10
     assert rep["types"] == ["777-300ER", "Mavic 3"] and rep["chance"] == 0.5
     assert sum(map(sum, rep["trained_on_exact"]["confusion"])) == 10
+    exact, generated = rep["sources"]
     # exact against exact: the same clouds, labels and seed make the same classifier
-    (src,) = rep["sources"]
-    assert src["tstr"]["overall"]["ratio"] in (None, 1.0)
-    assert src["trained_on_source"] == rep["trained_on_exact"]
-    assert set(src["tstr"]["bands"]) == set(rep["test"]["per_band"])
+    assert exact["tstr"]["overall"]["ratio"] in (None, 1.0)
+    assert exact["trained_on_source"] == rep["trained_on_exact"]
+    assert generated["source"]["kind"] == "model" and generated["source"]["family"]
+    assert generated["mean_points"] > 0
+    assert set(generated["tstr"]["bands"]) == set(rep["test"]["per_band"])
     assert "| **all** |" in (tmp_path / "a" / "report.md").read_text()
-    b = _cli(*args, "-o", str(tmp_path / "b"))
-    assert b.returncode == 0, b.stderr
-    assert _without_cost(json.loads((tmp_path / "b" / "recognize.json").read_text())) == \
-        _without_cost(rep)
+    # the same command in another process: the same scores to the last digit
+    assert rep["test"]["lidar"] == load_lidar("double-cells").to_dict()
+    again = recognize.run(["exact", model], ["777-300ER", "Mavic 3"], 6, 5, 2, seed=3,
+                          n_boot=50, lidar=load_lidar("double-cells"))
+    assert _without_cost(json.loads(json.dumps(again))) == _without_cost(rep)
+
+
+def test_photon_clouds_of_every_kind_of_source():
+    from apcg_core.families import default_model_dir
+    from apcg_core.sensor import load_sensor
+    rep = recognize.run(["points", "embree-2x2", str(default_model_dir())],
+                        ["A320neo", "Mavic 3"], 3, 2, 1, seed=5,
+                        sensor=load_sensor("1550nm-day"), n_boot=0, width=8, n_points=32)
+    assert rep["test"]["sensor"]["name"] == "1550nm-day" and rep["test"]["supersample"] == 4
+    for src in rep["sources"]:
+        assert src["mean_points"] > 0 and src["source"]["sensor"]["name"] == "1550nm-day"
 
 
 @pytest.mark.parametrize("args,needle", [

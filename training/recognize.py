@@ -19,7 +19,10 @@ Sources (:data:`SIMULATORS` and a model directory):
 * ``noise``: a control: clouds of uniform random points that carry nothing of the type (a
   classifier trained on them scores chance);
 * any model directory (``apcg generate --model DIR``; with a sensor, ``apcg generate --sensor``'s
-  photon stage).
+  photon stage: from the model's own sub-rays where its family draws at any lidar).
+
+Every source and the test clouds use one lidar (``--lidar``, ``apcg_core.lidar_options``; the
+paper's by default); a model is pointed at it as ``apcg generate --lidar`` does.
 
 Conditions: the dataset builder's random plan (``dataset_builder.plan.make_plan``, sampling
 ``random``: every parameter uniform over the paper's Table 1 ranges), ``train_per_type`` per
@@ -126,7 +129,7 @@ def bands_of(types: list[str], table: np.ndarray) -> list[str]:
 class Source:
     """Where training clouds come from: a simulator, a model directory or noise."""
 
-    def __init__(self, name: str, sensor=None, lidar=None):
+    def __init__(self, name: str, sensor=None, lidar=None, warn=None):
         from apcg_core.depth import DEFAULT_LIDAR
         self.name = str(name)
         self.sensor = sensor
@@ -139,10 +142,13 @@ class Source:
                              f"{', '.join(SOURCES)}")
         from apcg_core.families import load_model
         self.model = load_model(self.name)
-        if self.model.lidar != self.lidar:
-            raise InputError(f"model {self.name} was trained for another lidar "
-                             f"({self.model.lidar.to_dict()}) than the benchmark's "
-                             f"({self.lidar.to_dict()}); its clouds cannot be tested here")
+        # as `apcg generate --lidar` (apcg_core.lidar_options.model_at_lidar): a family that
+        # draws at its training lidar only is refused in one line; outside the lidars the
+        # model was measured on, one warning
+        self.model.use_lidar(self.lidar)
+        warning = self.model.lidar_warning(self.lidar)
+        if warning and warn is not None:
+            warn(f"warning: {warning}")
 
     def record(self) -> dict:
         out: dict = {"source": self.name, "sensor": None if self.sensor is None
@@ -185,7 +191,7 @@ class Source:
             if self.sensor is not None:
                 from apcg_core.sensor.generated import photon_generated
                 cloud = photon_generated(cloud, res.table, res.conditions.names, model.lidar,
-                                         self.sensor, seed, s)
+                                         self.sensor, seed, s, model=model)
             out += [c.xyz for c in cloud.split(len(part))]
         return out, (time.perf_counter() - t0) / max(1, len(table))
 
@@ -422,7 +428,7 @@ def run(sources=("exact",), types=DEFAULT_TYPES, train_per_type: int = TRAIN_PER
         check_int(name, v, lo)
     if not sources or len(set(sources)) < len(sources):
         raise InputError(f"--source: give each source once, got {sources}")
-    srcs = [Source(name, sensor, lidar) for name in sources]
+    srcs = [Source(name, sensor, lidar, log) for name in sources]
     lidar = srcs[0].lidar
     k = len(types)
     train_tab = conditions(types, train_per_type, _seed(seed, TRAIN_CONDITIONS))
@@ -492,7 +498,8 @@ def run(sources=("exact",), types=DEFAULT_TYPES, train_per_type: int = TRAIN_PER
         "test": {"source": "exact", "backend": "embree",
                  "supersample": SENSOR_SUPERSAMPLE if sensor is not None else 1,
                  "sensor": None if sensor is None else sensor.to_dict(),
-                 "lidar": lidar.to_dict(), "per_band": _count(bands),
+                 "lidar": lidar.to_dict(), "lidar_name": lidar.describe(),
+                 "per_band": _count(bands),
                  "mean_points": round(float(np.mean([len(c) for c in test_clouds])), 3)},
         "chance": round(1.0 / k, 6),
         "trained_on_exact": exact,
@@ -536,7 +543,8 @@ def markdown(rep: dict) -> str:
              + ("; ".join(" / ".join(p) for p in rep["look_alike"]) or "none") + ". "
              f"{z['train_clouds']} training clouds ({z['train_per_type']} per type), "
              f"{z['test_clouds']} exact test clouds ({z['test_per_type']} per type) at "
-             f"conditions drawn with another seed; sensor: {sensor}; seed {rep['seed']}; "
+             f"conditions drawn with another seed; lidar: {rep['test']['lidar_name']}; "
+             f"sensor: {sensor}; seed {rep['seed']}; "
              f"PointNet width {z['width']}, {z['points']} points, {z['epochs']} epochs. "
              f"Chance: {_pct(rep['chance'])}. TSTR ratio: top-1 trained on the source / top-1 "
              f"trained on exact clouds, [{int(100 * z['ci'])}% paired bootstrap interval, "
@@ -618,6 +626,7 @@ def write_report(rep: dict, out_dir) -> Path:
 
 # --- the command line ------------------------------------------------------------------------
 def register_benchmark(sub) -> None:
+    from apcg_core.lidar_options import add_lidar_argument
     from apcg_core.outputs import DIRECTORY, add_output
     from apcg_core.sensor.options import add_sensor_arguments
     p = sub.add_parser("benchmark", help="benchmarks of what the data are for",
@@ -655,27 +664,30 @@ def register_benchmark(sub) -> None:
                    help="seeds the conditions, the photons, the points drawn and the networks "
                         "(default 0); the same seed, the same scores")
     add_sensor_arguments(r, seed=False)
+    add_lidar_argument(r, default_help="the paper's; training and test clouds alike")
     add_output(r, "-o", "--output", kind=DIRECTORY, required=True, help="report directory",
                files=REPORT_FILES)
     r.set_defaults(func=_run_recognize)
 
 
 def _run_recognize(args) -> int:
+    from apcg_core.lidar_options import lidar_or_default
     from apcg_core.sensor.options import sensor_of
     sensor = sensor_of(args)
+    lidar = lidar_or_default(args)
     types = DEFAULT_TYPES if args.types is None else [t for t in args.types.split(",")
                                                       if t.strip()]
     sources = args.source or ["exact"]
     types = check_types(types)  # bad input refused before any work
     for name in sources:
-        Source(name, sensor)
+        Source(name, sensor, lidar)
     torch = _torch()
     torch.set_num_threads(args.threads)
 
     def log(msg):
         print(f"apcg benchmark recognize: {msg}", file=sys.stderr, flush=True)
     rep = run(sources, types, args.train_per_type, args.test_per_type, args.epochs,
-              args.seed, sensor, shuffle_labels=args.shuffle_labels, n_boot=args.bootstrap,
+              args.seed, sensor, lidar, shuffle_labels=args.shuffle_labels, n_boot=args.bootstrap,
               log=log)
     rep["command"] = "apcg benchmark recognize " + " ".join(sys.argv[3:])
     out = write_report(rep, args.output)
