@@ -56,7 +56,7 @@ __all__ = ["add_lidar", "add_aircraft", "make_target", "add_to_catalog", "scan",
            "generate", "import_cloud", "export_cloud", "cloud_from_object", "pose_of",
            "set_pose", "targets_of", "is_lidar", "is_target", "is_cloud", "set_point_radius",
            "load_model", "world_mesh", "guess_axes", "axes_label", "check_model_knows",
-           "read_lidar_file", "write_lidar_file"]
+           "read_lidar_file", "write_lidar_file", "scan_animation", "import_sequence"]
 
 # Hits this much nearer than a point's range, on other geometry, hide the point.
 OCCLUSION_MARGIN_M = 0.5
@@ -345,3 +345,132 @@ def add_to_catalog(target, kind: str = "aircraft", category: str = "other",
     target[TYPE_KEY] = t.name
     target[LENGTH_KEY] = float(catalog.depth_length_m(t))
     return t
+
+
+# --- animations: several targets, frame by frame (issue 36; docs/SCENES.md) ---------------------
+def _pose_in_lidar(lidar, target) -> dict:
+    """The target's pose at the current frame as the lidar sees it, from the evaluated world
+    matrices (keyframes, parents, constraints such as Follow Path all included)."""
+    from apcg_core.frames import pose_from_lidar_local
+    lw = np.array([list(r) for r in lidar.matrix_world], dtype=np.float64)
+    tw = np.array([list(r) for r in target.matrix_world], dtype=np.float64)
+    return pose_from_lidar_local(np.linalg.inv(lw) @ tw)
+
+
+def scan_animation(lidar, directory, targets=None, frame_start: int | None = None,
+                   frame_end: int | None = None, backend: str = "blender", scan=None,
+                   quantize: bool = True, supersample: int | None = None, sensor="lidar",
+                   seed: int = 0, progress=None):
+    """Scan Animation: every frame of the scene's timeline (``frame_start`` .. ``frame_end``,
+    default the scene's) as one scene of all of ``lidar``'s targets (or ``targets``), nearest
+    surface first, written to ``directory`` as `apcg scene sequence` writes it (frame files
+    with instance and type labels, poses, track ids: docs/SCENES.md). Each target moves as
+    Blender animates it (keyframes, parents, constraints: Follow Path...), its pose read at
+    every frame and interpolated between frames for a scan that takes time (``scan``: a
+    ``[scan]`` table as a dict, default flash). The window looks where the first target is at
+    the first frame. Returns the directory."""
+    from pathlib import Path
+
+    import bpy
+
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.scene.poses import poses_from_angles
+    from apcg_core.scene.scan import make_pattern
+    from apcg_core.scene.spec import Scene, SceneTarget, default_pointing
+    from apcg_core.scene.trajectory import Sampled
+    from apcg_core.sensor import SensorParams, load_sensor
+    from dataset_builder.scene import SceneScanner, write_sequence
+    targets = _lidar_and_targets(lidar, targets)
+    scene = bpy.context.scene
+    start = scene.frame_start if frame_start is None else int(frame_start)
+    end = scene.frame_end if frame_end is None else int(frame_end)
+    if end < start:
+        raise InputError(f"frame_end {end} is before frame_start {start}")
+    fps = scene.render.fps / scene.render.fps_base
+    pattern = make_pattern(scan, "Scan Animation")
+    params = lidar_params(lidar)
+    # one Blender frame past the end when a frame's scan takes time: its last rows fire then
+    last = end + (1 if pattern.groups(params).duration_s > 0 else 0)
+    blender_frames = list(range(start, last + 1))
+    now = scene.frame_current
+    poses = {t.name: [] for t in targets}
+    try:
+        for f in blender_frames:
+            scene.frame_set(f)
+            for t in targets:
+                poses[t.name].append(_pose_in_lidar(lidar, t))
+    finally:
+        scene.frame_set(now)
+    times = (np.array(blender_frames) - start) / fps
+    cat = default_catalog()
+    scene_targets = []
+    for i, t in enumerate(targets, start=1):
+        ps = poses[t.name]
+        pos, _ = poses_from_angles([p["range_m"] for p in ps], [p["azimuth"] for p in ps],
+                                   [p["elevation"] for p in ps], 0.0, 0.0, 0.0)
+        att = [[p["pitch"], p["yaw"], p["roll"]] for p in ps]
+        type_name = str(t.get(TYPE_KEY, "") or t.name)
+        try:
+            ty = cat.get(type_name)
+            index, category = ty.index, ty.category
+        except InputError:  # a made target of no catalog type
+            index, category = -1, ""
+        scene_targets.append(SceneTarget(
+            i, type_name, index, category, Sampled(times, pos, att),
+            f"Blender target {i} ({t.name})", mesh=body_mesh(t),
+            reflectivity=reflectivity_of_target(t), key=("blender-object", t.name)))
+    az, el = default_pointing(scene_targets, 0.0)
+    record = {"blender": {"lidar": lidar.name, "targets": [t.name for t in targets],
+                          "frame_start": start, "frame_end": end, "fps": fps},
+              "lidar": params.to_dict(), "scan": pattern.to_dict()}
+    sc = Scene(params, scene_targets, pattern, az, el, None, end - start + 1, fps, 0.0,
+               record, "Blender scene")
+    if isinstance(sensor, str) and sensor == "lidar":
+        sensor = sensor_of(lidar)
+    elif not isinstance(sensor, SensorParams):
+        sensor = load_sensor(sensor)
+    k = supersample or (4 if sensor else 1)
+    scanner = SceneScanner(sc, backend, k, quantize, sensor, seed, catalog=cat)
+    try:
+        return write_sequence(scanner, Path(directory), {"blender": record["blender"]},
+                              progress)
+    finally:
+        scanner.close()
+
+
+VISIBILITY = ("hide_viewport", "hide_render")
+
+
+def import_sequence(directory, lidar=None, name: str | None = None):
+    """A sequence directory (`apcg scene sequence`'s or Scan Animation's) as an animated point
+    cloud: one cloud object per frame, in a collection of its own, each shown on its own
+    timeline frame only (keyframed visibility), with ``instance`` and, for a photon cloud,
+    ``label`` point attributes. A Scan Animation's frames land on the frames they were scanned
+    at; another sequence's from the scene's frame_start. Returns the collection."""
+    from pathlib import Path
+
+    import bpy
+
+    from apcg_core.cloud import PointCloud
+    from apcg_core.scene.sequence import load_sequence
+
+    from .clouds import _add_attr
+    seq = load_sequence(directory)
+    first = seq.header.get("blender", {}).get("frame_start", bpy.context.scene.frame_start)
+    coll = bpy.data.collections.new(name or f"APCG sequence {Path(directory).name}")
+    bpy.context.scene.collection.children.link(coll)
+    for f in seq:
+        cloud = PointCloud(f.xyz, f.range_m, f.cell_w, f.cell_h, None, f.label, f.count,
+                           f.pulse)
+        obj = cloud_object(cloud, f"{coll.name} {f.frame:04d}", lidar=lidar, source="scan",
+                           azimuth=0.0, meta={"frame": f.frame, "t_s": f.t_s,
+                                              "types": [str(t) for t in f.track_type]},
+                           collection=coll)
+        _add_attr(obj.data, "instance", "INT", f.instance.astype(np.int32))
+        at = int(first) + f.frame
+        for attr in VISIBILITY:
+            for frame, hidden in ((at - 1, True), (at, False), (at + 1, True)):
+                setattr(obj, attr, hidden)
+                obj.keyframe_insert(attr, frame=frame)
+    bpy.context.scene.frame_set(bpy.context.scene.frame_current)
+    return coll

@@ -533,9 +533,84 @@ class APCG_OT_write_lidar(bpy.types.Operator, ExportHelper):
         return {"FINISHED"}
 
 
+class APCG_OT_scan_animation(bpy.types.Operator):
+    """Scan every frame of the timeline as one scene of all the lidar's targets (nearest
+    surface first, points labelled by target), write the sequence (docs/SCENES.md) into a
+    directory and play it back as a point cloud on the timeline"""
+    bl_idname = "apcg.scan_animation"
+    bl_label = "Scan Animation"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: StringProperty(name="Sequence directory", subtype="DIR_PATH")
+    pattern: EnumProperty(name="Scan", items=[
+        ("flash", "Flash", "Every cell of a frame at once"),
+        ("rows", "Row by row", "Rows fired from the top, Line time apart: a fast target is "
+                               "drawn where it was when its rows fired"),
+        ("columns", "Column by column", "Columns fired from the left, Line time apart")])
+    line_time_s: FloatProperty(name="Line time (s)", default=1e-3, min=1e-7, max=1.0,
+                               precision=6)
+    backend: EnumProperty(name="Ray casting", items=[
+        ("blender", "Geometry Nodes", "One Geometry Nodes Raycast evaluation per group of "
+                                      "cells"),
+        ("blender-bvh", "BVH tree", "mathutils BVHTree.ray_cast, one ray at a time")])
+    import_after: BoolProperty(name="Play it on the timeline", default=True)
+
+    @classmethod
+    def poll(cls, context):
+        return _active_lidar(context) is not None
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        lidar = _active_lidar(context)
+        scan = None if self.pattern == "flash" else {"pattern": self.pattern,
+                                                     "line_time_s": self.line_time_s}
+        wm = context.window_manager
+        try:
+            wm.progress_begin(0, 1)
+            out = api.scan_animation(lidar, bpy.path.abspath(self.directory),
+                                     backend=self.backend, scan=scan,
+                                     seed=lidar.apcg_lidar.seed,
+                                     progress=lambda i, n: wm.progress_update(i / n))
+            if self.import_after:
+                api.import_sequence(out, lidar=lidar)
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        finally:
+            wm.progress_end()
+        self.report({"INFO"}, f"wrote the sequence to {out}")
+        return {"FINISHED"}
+
+
+class APCG_OT_import_sequence(bpy.types.Operator):
+    """Import a scene sequence directory (apcg scene sequence, Scan Animation) as a point cloud
+    that plays on the timeline: one cloud object per frame"""
+    bl_idname = "apcg.import_sequence"
+    bl_label = "Import APCG Sequence"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: StringProperty(name="Sequence directory", subtype="DIR_PATH")
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        try:
+            coll = api.import_sequence(bpy.path.abspath(self.directory),
+                                       lidar=_active_lidar(context))
+        except Exception as exc:  # noqa: BLE001
+            return _report_error(self, exc)
+        self.report({"INFO"}, f"imported {len(coll.objects)} frames into {coll.name}")
+        return {"FINISHED"}
+
+
 CLASSES = (APCG_OT_add_lidar, APCG_OT_add_aircraft, APCG_OT_make_target,
            APCG_OT_add_to_catalog, APCG_OT_scan, APCG_OT_generate, APCG_OT_import_cloud,
-           APCG_OT_export_cloud, APCG_OT_read_lidar, APCG_OT_write_lidar)
+           APCG_OT_export_cloud, APCG_OT_read_lidar, APCG_OT_write_lidar,
+           APCG_OT_scan_animation, APCG_OT_import_sequence)
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)
 

@@ -70,10 +70,12 @@ class APCG_PT_panel(bpy.types.Panel):
         col = layout.column(align=True)
         col.enabled = lidar is not None or is_lidar(obj)
         col.operator("apcg.scan", icon="LIGHT_SUN")
+        col.operator("apcg.scan_animation", icon="RENDER_ANIMATION")
         col.operator("apcg.generate", icon="MOD_PARTICLES")
         row = layout.row(align=True)
         row.operator("apcg.import_cloud", icon="IMPORT", text="Import")
         row.operator("apcg.export_cloud", icon="EXPORT", text="Export")
+        layout.operator("apcg.import_sequence", icon="SEQUENCE", text="Import Sequence")
 
 
 def _in_catalog(name: str) -> bool:

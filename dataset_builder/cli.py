@@ -271,12 +271,17 @@ def _run_scene_scan(args) -> int:
 
 
 def _run_scene_sequence(args) -> int:
+    from .build import BuildInterrupted
     from .scene import build_sequence
-    summary = build_sequence(args.scene, args.output, args.backend, args.supersample,
-                             not args.no_quantize, sensor_of(args), args.seed, lidar_of(args),
-                             workers=args.workers, engine=args.engine, address=args.address,
-                             connect_timeout_s=args.connect_timeout_s,
-                             progress=not args.no_progress)
+    try:
+        summary = build_sequence(args.scene, args.output, args.backend, args.supersample,
+                                 not args.no_quantize, sensor_of(args), args.seed,
+                                 lidar_of(args), workers=args.workers, engine=args.engine,
+                                 address=args.address, connect_timeout_s=args.connect_timeout_s,
+                                 progress=not args.no_progress)
+    except BuildInterrupted as stop:  # Ctrl-C among the frames: how far it got
+        print(f"apcg scene: {stop}", file=sys.stderr)
+        return 130
     print(json.dumps(summary))
     _scene_warnings(args)
     return 0

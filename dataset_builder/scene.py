@@ -80,12 +80,16 @@ class SceneScanner:
         self.sensor = sensor
         self.seed = int(seed)
         self.groups = scene.pattern.groups(scene.lidar)
-        self.meshes = [self.catalog.mesh(t.type_index) for t in scene.targets]
+        self.meshes = [t.mesh if t.mesh is not None else self.catalog.mesh(t.type_index)
+                       for t in scene.targets]
+        self.keys = [t.key if t.key is not None else ("type", t.type_index)
+                     for t in scene.targets]
         self.radii = [bounding_radius(m.vertices) for m in self.meshes]
         if sensor is not None:
             from apcg_core.sensor import reflectivity_of
-            self.reflectivity = np.array([reflectivity_of(self.catalog.get(t.type_index))
-                                          for t in scene.targets])
+            self.reflectivity = np.array([
+                t.reflectivity if t.reflectivity is not None
+                else reflectivity_of(self.catalog.get(t.type_index)) for t in scene.targets])
 
     def close(self) -> None:
         self.sim.close()
@@ -127,12 +131,12 @@ class SceneScanner:
         n = len(scene.targets)
         in_window, clipped = np.zeros(n, bool), np.zeros(n, bool)
         parts = []
-        for i, target in enumerate(scene.targets):
+        for i in range(len(scene.targets)):
             table, m, c, boxes, inside, cl = self._geometry(i, t0)
             in_window[i], clipped[i] = inside, cl
             if not len(table):
                 continue
-            key = ("type", target.type_index)
+            key = self.keys[i]
             if self.sensor is None:
                 s, w, h, r = self.sim.posed_cells(self.meshes[i], table, (m, c, boxes), key)
                 parts.append((np.full(len(w), i + 1, np.int32), w, h, r))
@@ -383,12 +387,12 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
     """`apcg scene sequence`: every frame of the scene's [sequence] into ``out_dir``
     (``apcg_core.scene.sequence``'s format); resumes where a killed run stopped, the same
     bytes whatever the engine and the number of workers."""
-    from apcg_core.io.dataset import json_bytes, sha256_file, write_atomic
+    from apcg_core.io.dataset import json_bytes, write_atomic
     from apcg_core.lock import ProcessLock
     from apcg_core.progress import Progress
-    from apcg_core.scene.sequence import HEADER, MANIFEST, POSES
+    from apcg_core.scene.sequence import HEADER
 
-    from .build import _remove_dead_parts
+    from .build import BuildInterrupted, _remove_dead_parts
     from .engine import RunSettings, get_engine
     from .shards import part_suffix
     scene = load_scene(scene_path, lidar=lidar)
@@ -431,6 +435,14 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
                 with runner.start(settings) as run:
                     for n, _ in run(run_sequence_task, tasks):
                         bar.update(n)
+        except KeyboardInterrupt:  # as a dataset build: say how far it got, nothing half-made
+            if settings.writers_are_local:
+                _remove_dead_parts(out / "frames")
+                _remove_dead_parts(out)
+            done = sum((out / frame_file(f)).exists() for f in frames)
+            raise BuildInterrupted(f"interrupted: {done} of {len(frames)} frames are done in "
+                                   f"{out}; run the same command again to resume (finished "
+                                   "frames are kept)") from None
         finally:
             for s in _SCANNERS.values():
                 s.close()
@@ -439,17 +451,49 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
         elapsed = time.perf_counter() - t0
         _remove_dead_parts(out / "frames")
         _remove_dead_parts(out)
-        write_atomic(out / POSES, poses_csv_bytes(read_frame(out / frame_file(f))
-                                                  for f in frames), part_suffix=part_suffix())
-        manifest = {"complete": True, "frames": [
-            {"file": frame_file(f), "sha256": sha256_file(out / frame_file(f))}
-            for f in frames]}
-        write_atomic(out / MANIFEST, json_bytes(manifest), part_suffix=part_suffix())
+        finish_sequence(out, frames)
     finally:
         lock.release()
     return {"directory": str(out), "frames": len(frames), "built_frames": len(todo),
             "skipped_frames": len(frames) - len(todo), "seconds": round(elapsed, 3),
             "complete": True}
+
+
+def finish_sequence(out: Path, frames) -> None:
+    """poses.csv from every frame file, then the manifest (last: the sequence is complete)."""
+    from apcg_core.io.dataset import json_bytes, sha256_file, write_atomic
+    from apcg_core.scene.sequence import MANIFEST, POSES
+
+    from .shards import part_suffix
+    write_atomic(out / POSES, poses_csv_bytes(read_frame(out / frame_file(f)) for f in frames),
+                 part_suffix=part_suffix())
+    manifest = {"complete": True, "frames": [
+        {"file": frame_file(f), "sha256": sha256_file(out / frame_file(f))} for f in frames]}
+    write_atomic(out / MANIFEST, json_bytes(manifest), part_suffix=part_suffix())
+
+
+def write_sequence(scanner: SceneScanner, out_dir, header_extra: dict | None = None,
+                   progress=None) -> Path:
+    """Every frame of ``scanner``'s scene into ``out_dir`` in this process (the add-on's Scan
+    Animation: a scene made of Blender objects, not of a file), the same format as
+    `apcg scene sequence`. ``progress(i, n)`` after each frame; returning False stops (the
+    frames written are kept, no manifest)."""
+    from apcg_core.io.dataset import json_bytes, write_atomic
+    from apcg_core.scene.sequence import HEADER
+    scene = scanner.scene
+    out = Path(out_dir)
+    frames = list(range(scene.frames))
+    check_targets_seen(scanner, frames, every_frame=False)
+    header = {**sequence_header(scene, scanner), **(header_extra or {})}
+    (out / "frames").mkdir(parents=True, exist_ok=True)
+    write_atomic(out / HEADER, json_bytes(header))
+    for f in frames:
+        data, _ = frame_npz(scanner, f)
+        write_atomic(out / frame_file(f), data)
+        if progress is not None and progress(f + 1, len(frames)) is False:
+            return out
+    finish_sequence(out, frames)
+    return out
 
 
 def sequence_warnings(scene_path, lidar=None) -> list[str]:

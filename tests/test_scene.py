@@ -389,8 +389,9 @@ def test_a_sequence_reads_back_with_labels_poses_and_tracks(sequence_reference):
     assert csv[0].startswith("frame,t_s,track_id,type,x_m,y_m,z_m,r00") and len(csv) == 37
 
 
-def test_a_sequence_killed_mid_frame_resumes_to_the_same_bytes(sequence_reference, tmp_path,
-                                                                hold):
+@pytest.mark.parametrize("how", ["SIGKILL", "Ctrl-C"])
+def test_a_sequence_stopped_mid_frame_resumes_to_the_same_bytes(sequence_reference, tmp_path,
+                                                                hold, how):
     scene, want, _ = sequence_reference
     out = tmp_path / "seq"
     point = "scene.frame-computed"
@@ -398,12 +399,18 @@ def test_a_sequence_killed_mid_frame_resumes_to_the_same_bytes(sequence_referenc
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         pid = hold.wait(point, proc)
-        os.kill(pid, signal.SIGKILL)
-        proc.wait(timeout=60)
+        os.kill(pid, signal.SIGKILL if how == "SIGKILL" else signal.SIGINT)
+        hold.release(point)
+        _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert not (out / "manifest.json").exists()
+    if how == "Ctrl-C":
+        lines = err.strip().splitlines()
+        assert proc.returncode == 130 and len(lines) == 1, err
+        assert lines[0].startswith("apcg scene: interrupted: 0 of 12 frames are done in")
+        assert not [p for p in out.rglob("*.part*")]  # nothing half-written left
     r = subprocess.run(_sequence_cmd(scene, out), capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert _files(out) == want

@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import InputError
 from ..lidar import DEG, LidarParams, lidar_from_table
 from .scan import make_pattern
-from .trajectory import Start, Trajectory, make_trajectory
+from .trajectory import Start, Static, Trajectory, make_trajectory
 
 TABLES = ("lidar", "pointing", "scan", "sequence", "target")
 POINTING_KEYS = ("azimuth_deg", "elevation_deg", "range_m")
@@ -68,6 +68,11 @@ class SceneTarget:
     category: str
     trajectory: Trajectory
     source: str  # "FILE, target N (TYPE)" for messages
+    # a target that is no catalog type (a Blender object made a target): its body-frame mesh,
+    # reflectivity and a name for the ray casters' cache; None: the catalog type's
+    mesh: object = None
+    reflectivity: float | None = None
+    key: object = None
 
     def poses(self, t):
         return self.trajectory.poses(np.atleast_1d(np.asarray(t, np.float64)))
@@ -181,14 +186,7 @@ def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = No
     targets = []
     for i, t in enumerate(targets_doc, start=1):
         targets.append(_target(t, i, source, base_dir, catalog, scan_t, record))
-    first = targets[0]
-    p0, _ = first.poses(times[0])
-    from ..frames import cartesian_to_spherical
-    az0, el0, r0 = (float(v[0]) for v in cartesian_to_spherical(p0))
-    t0 = targets_doc[0]
-    if "trajectory" not in t0:  # the numbers as written: `apcg simulate`'s, bit for bit
-        az0 = t0.get("azimuth_deg", 0.0) * DEG
-        el0 = t0["elevation_deg"] * DEG
+    az0, el0 = default_pointing(targets, float(times[0]))
     pt = _keys(doc.get("pointing", {}), POINTING_KEYS, f"{source} [pointing]")
     az = _get(pt, "azimuth_deg", f"{source} [pointing]", -360, 360,
               "an azimuth in degrees from -360 to 360", default=az0 / DEG) * DEG \
@@ -204,6 +202,18 @@ def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = No
     record["pointing"] = {"azimuth_deg": az / DEG, "elevation_deg": el / DEG,
                           "range_m": gate}
     return Scene(lidar, targets, pattern, az, el, gate, frames, rate, start_s, record, source)
+
+
+def default_pointing(targets, t0: float) -> tuple[float, float]:
+    """The window's centre when [pointing] does not say: the first target's azimuth and
+    elevation at ``t0`` (a static target's as given, bit for bit: `apcg simulate`'s)."""
+    first = targets[0]
+    if isinstance(first.trajectory, Static):
+        return first.trajectory.start.azimuth, first.trajectory.start.elevation
+    from ..frames import cartesian_to_spherical
+    p0, _ = first.poses(t0)
+    az, el, _ = cartesian_to_spherical(p0[0])
+    return float(az), float(el)
 
 
 def _target(t, i: int, source: str, base_dir, catalog, scan_t, record) -> SceneTarget:

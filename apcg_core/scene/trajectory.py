@@ -255,6 +255,39 @@ class Hover(Trajectory):
         return envelope_warnings(category, self.v, 0.0, what)
 
 
+class Sampled(Trajectory):
+    """Poses known at times ``t`` (strictly increasing): positions (N, 3, scene frame) and
+    attitudes (N, 3: pitch, yaw, roll in rad, relative to the line of sight), interpolated
+    linearly between them (angles unwrapped), never extrapolated. A CSV file's rows, or a
+    Blender animation evaluated frame by frame (the add-on's Scan Animation)."""
+
+    def __init__(self, t, positions, attitudes) -> None:
+        self.t = np.asarray(t, np.float64)
+        self.pos = np.asarray(positions, np.float64).reshape(-1, 3)
+        self.att = np.asarray(attitudes, np.float64).reshape(-1, 3)
+        if len(self.t) < 1 or len(self.pos) != len(self.t) or len(self.att) != len(self.t):
+            raise InputError(f"a sampled trajectory needs as many positions and attitudes as "
+                             f"times, at least 1; got {len(self.t)}, {len(self.pos)}, "
+                             f"{len(self.att)}")
+        if len(self.t) > 1 and (np.diff(self.t) <= 0).any():
+            raise InputError("a sampled trajectory's times must increase strictly")
+        self.span = (float(self.t[0]), float(self.t[-1]))
+
+    def poses(self, t):
+        t = np.atleast_1d(np.asarray(t, np.float64))
+        p = np.stack([np.interp(t, self.t, self.pos[:, j]) for j in range(3)], -1)
+        att = interpolate_angles(self.t, self.att, t)
+        az, el, rng = cartesian_to_spherical(p)
+        _, b = poses_from_angles(rng, az, el, att[:, 0], att[:, 1], att[:, 2])
+        return p, b
+
+    def warnings(self, category, what):
+        if len(self.t) < 2:
+            return []
+        v = np.sqrt((np.diff(self.pos, axis=0) ** 2).sum(1)) / np.diff(self.t)
+        return envelope_warnings(category, float(v.max()), 0.0, what)
+
+
 _POSITION_COLUMNS = (("range_m", "azimuth_deg", "elevation_deg"), ("x_m", "y_m", "z_m"))
 _ATTITUDE_COLUMNS = ("pitch_deg", "yaw_deg", "roll_deg")
 
@@ -262,7 +295,7 @@ _ATTITUDE_COLUMNS = ("pitch_deg", "yaw_deg", "roll_deg")
 @register("csv", {"file": "a CSV file (relative to the scene file): t_s, range_m, azimuth_deg, "
                           "elevation_deg or x_m, y_m, z_m, and pitch_deg, yaw_deg, roll_deg"},
           {"max_step_s": f"the largest step between rows in seconds (default {MAX_CSV_STEP_S})"})
-class CSVTrack(Trajectory):
+class CSVTrack(Sampled):
     """Rows of (t_s, position, attitude): a position as range_m, azimuth_deg, elevation_deg
     (the target's pose angles) or as x_m, y_m, z_m (scene frame), and the attitude relative to
     the line of sight. Interpolated linearly; times strictly increasing, no step over
@@ -306,22 +339,7 @@ class CSVTrack(Trajectory):
         else:
             pos = data[:, 1:4]
         self.path = path
-        self.t = t
-        self.pos = pos
-        self.att = data[:, 4:7] * DEG
-        self.span = (float(t[0]), float(t[-1]))
-
-    def poses(self, t):
-        t = np.atleast_1d(np.asarray(t, np.float64))
-        p = np.stack([np.interp(t, self.t, self.pos[:, j]) for j in range(3)], -1)
-        att = interpolate_angles(self.t, self.att, t)
-        az, el, rng = cartesian_to_spherical(p)
-        _, b = poses_from_angles(rng, az, el, att[:, 0], att[:, 1], att[:, 2])
-        return p, b
-
-    def warnings(self, category, what):
-        v = np.sqrt((np.diff(self.pos, axis=0) ** 2).sum(1)) / np.diff(self.t)
-        return envelope_warnings(category, float(v.max()), 0.0, what)
+        super().__init__(t, pos, data[:, 4:7] * DEG)
 
 
 def make_trajectory(table: dict | None, start: Start, source: str,
@@ -369,5 +387,5 @@ def make_trajectory(table: dict | None, start: Start, source: str,
         raise InputError(msg if str(source) in msg else f"{source}: {msg}") from None
 
 
-__all__ = ["ENVELOPES", "KINDS", "Start", "Static", "Trajectory",
+__all__ = ["ENVELOPES", "KINDS", "Sampled", "Start", "Static", "Trajectory",
            "envelope_warnings", "make_trajectory", "register"]
