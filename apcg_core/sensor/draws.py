@@ -29,10 +29,16 @@ def _mix(x: np.ndarray) -> np.ndarray:
     return x ^ (x >> np.uint64(31))
 
 
+def stream_key(seed: int, stream: int) -> np.uint64:
+    """The mix of the seed and the stream that every uniform of the stream starts from."""
+    with np.errstate(over="ignore"):
+        return _mix(np.uint64(seed & 0xFFFFFFFFFFFFFFFF) * _GOLDEN + np.uint64(stream))
+
+
 def uniforms(seed: int, sample_id: np.ndarray, stream: int, index: np.ndarray) -> np.ndarray:
     """One uniform in (0, 1) per (sample id, index) of ``stream``, float64."""
     with np.errstate(over="ignore"):
-        key = _mix(np.uint64(seed & 0xFFFFFFFFFFFFFFFF) * _GOLDEN + np.uint64(stream))
+        key = stream_key(seed, stream)
         a = _mix(key ^ (np.asarray(sample_id).astype(np.uint64) * _GOLDEN))
         x = _mix(a + (np.asarray(index).astype(np.uint64) + np.uint64(1)) * _GOLDEN)
     return ((x >> np.uint64(11)).astype(np.float64) + 0.5) * _TO_UNIT

@@ -105,67 +105,55 @@ def _compile() -> _Kernels:
     def spread_sum(cell, lo, row, mean, weights, n_bins):
         """stage.signal_bins' spread and sum: hit i's mean times weights[row[i], j] in bin
         lo[i] + j, kept when the bin is in the gate and the product is > 0, then added up
-        per (cell, bin) in the order of the hits and of j (as numpy's bincount adds its
-        entries). ``cell`` sorted. Returns (cell, bin, total) of the slots with total > 0,
-        by cell then bin."""
+        per (cell, bin) in the order of the hits (as numpy's bincount adds its entries).
+        ``cell`` sorted. Returns (cell, bin, total) of the slots with total > 0 (every kept
+        slot: a sum of positive terms), by cell then bin."""
         n = cell.shape[0]
         nb = weights.shape[1]
-        cap = 0
-        # the widest run of bins one cell reaches, for the scratch buffer
-        i = 0
-        while i < n:
-            j = i
-            b_lo = lo[i]
-            b_hi = lo[i]
-            while j < n and cell[j] == cell[i]:
-                if lo[j] < b_lo:
-                    b_lo = lo[j]
-                if lo[j] > b_hi:
-                    b_hi = lo[j]
-                j += 1
-            if b_hi - b_lo + nb > cap:
-                cap = b_hi - b_lo + nb
-            i = j
-        buf = np.zeros(cap)
-        used = np.zeros(cap, np.bool_)
         out_cell = np.empty(n * nb, np.int64)
         out_bin = np.empty(n * nb, np.int64)
         out_total = np.empty(n * nb)
+        buf = np.zeros(64)
         m_out = 0
         i = 0
         while i < n:
             c = cell[i]
+            base = lo[i]
+            top = lo[i]
             j = i
             while j < n and cell[j] == c:
+                if lo[j] < base:
+                    base = lo[j]
+                if lo[j] > top:
+                    top = lo[j]
                 j += 1
-            # the cell's kept entries: their lowest and highest bin
-            first = n_bins
+            width = top - base + nb
+            if width > buf.shape[0]:
+                buf = np.zeros(2 * width)
+            first = width
             last = -1
             for h in range(i, j):
+                off = lo[h] - base
+                mh = mean[h]
+                r = row[h]
                 for t in range(nb):
                     b = lo[h] + t
-                    if b >= 0 and b < n_bins and mean[h] * weights[row[h], t] > 0:
-                        if b < first:
-                            first = b
-                        if b > last:
-                            last = b
-            if last >= 0:
-                for h in range(i, j):
-                    for t in range(nb):
-                        b = lo[h] + t
-                        m = mean[h] * weights[row[h], t]
-                        if b >= 0 and b < n_bins and m > 0:
-                            buf[b - first] += m
-                            used[b - first] = True
-                for s in range(last - first + 1):
-                    if used[s]:
-                        if buf[s] > 0:
-                            out_cell[m_out] = c
-                            out_bin[m_out] = first + s
-                            out_total[m_out] = buf[s]
-                            m_out += 1
-                        buf[s] = 0.0
-                        used[s] = False
+                    if b < 0 or b >= n_bins:
+                        continue
+                    m = mh * weights[r, t]
+                    if m > 0:
+                        buf[off + t] += m
+                        if off + t < first:
+                            first = off + t
+                        if off + t > last:
+                            last = off + t
+            for k in range(first, last + 1):
+                if buf[k] > 0:
+                    out_cell[m_out] = c
+                    out_bin[m_out] = base + k
+                    out_total[m_out] = buf[k]
+                    m_out += 1
+                    buf[k] = 0.0
             i = j
         return out_cell[:m_out], out_bin[:m_out], out_total[:m_out]
 
@@ -216,5 +204,161 @@ def _compile() -> _Kernels:
             out[q] = a
         return out
 
-    return _Kernels(spread_sum=spread_sum, sum_before=sum_before, binomial_walk=binomial_walk,
-                    bisect_right=bisect_right)
+    @jit
+    def chain_prepare(j, active, heads, counts, remaining, q, logq, log1pq):
+        """Position j of points._loud_peaks' chain, up to the exp: for each active cell with
+        pulses left and a piece at position j, the piece, the sampler's start and log P(X =
+        start) as draws.binomial_inverse makes them (n the pulses left, q = min(p, 1 - p);
+        start -1 where q is not > 0: no walk). The lgamma terms of a start > 0 are added by
+        the caller, in numpy."""
+        n = active.shape[0]
+        idx = np.empty(n, np.int64)
+        start = np.empty(n, np.int64)
+        log_pk = np.zeros(n)
+        m = 0
+        for a in range(n):
+            c = active[a]
+            left = remaining[c]
+            if left <= 0 or j >= counts[c]:
+                continue
+            piece = heads[c] + j
+            idx[m] = piece
+            qq = q[piece]
+            if qq > 0:
+                mean = np.float64(left) * qq
+                st = 0
+                if not (mean < 16.0):
+                    v = np.floor(mean - 12.0 * np.sqrt(mean * (1.0 - qq)))
+                    if v > 0:
+                        st = np.int64(v)
+                start[m] = st
+                log_pk[m] = (np.float64(st) * logq[piece]
+                             + np.float64(left - st) * log1pq[piece])
+            else:
+                start[m] = -1
+            m += 1
+        return idx[:m], start[:m], log_pk[:m]
+
+    @jit
+    def chain_finish(idx, start, pk, cell_of_piece, remaining, ratio, flip, u, fired):
+        """The rest of position j: each piece's binomial walk (draws.binomial_inverse's), its
+        count of fired pulses, and its cell's pulses left."""
+        for a in range(idx.shape[0]):
+            piece = idx[a]
+            c = cell_of_piece[piece]
+            left = remaining[c]
+            x = 0
+            if start[a] >= 0:
+                kk = start[a]
+                p = pk[a]
+                cdf = p
+                r = ratio[piece]
+                uu = u[piece]
+                while uu > cdf and kk < left:
+                    kk += 1
+                    p *= np.float64(left - kk + 1) / np.float64(kk) * r
+                    cdf += p
+                x = kk
+            if flip[piece]:
+                x = left - x
+            fired[piece] = x
+            remaining[c] = left - x
+
+    @jit
+    def pieces(cell, b, mean, n_bins, noise, n_cells):
+        """points._loud_peaks' pieces in one pass: per cell (``cell`` sorted, its signal bins
+        ``b`` ascending) a stretch of noise before each signal bin that has one, the bin, and
+        after the cell's last bin the rest of the gate. Per piece: start, length, signal bin
+        index (-1 for noise), mean (noise * length, plus the bin's mean), sample, number
+        within the sample, loud cell index, and the sum of the cell's earlier pieces' means;
+        per loud cell: first piece, pieces, and the whole gate's mean."""
+        n = cell.shape[0]
+        cap = 3 * n
+        p_start = np.empty(cap, np.int64)
+        p_len = np.empty(cap, np.int64)
+        p_sig = np.empty(cap, np.int64)
+        p_mean = np.empty(cap)
+        sample = np.empty(cap, np.int64)
+        p_index = np.empty(cap, np.int64)
+        cell_of_piece = np.empty(cap, np.int64)
+        before = np.empty(cap)
+        heads = np.empty(n, np.int64)
+        counts = np.empty(n, np.int64)
+        total = np.empty(n)
+        m = 0
+        nc = -1
+        prev_sample = -1
+        within = 0
+        for i in range(n):
+            new = i == 0 or cell[i] != cell[i - 1]
+            s = cell[i] // n_cells
+            if new:
+                nc += 1
+                heads[nc] = m
+                prev_end = 0
+                if s != prev_sample:
+                    within = 0
+                    prev_sample = s
+            else:
+                prev_end = b[i - 1] + 1
+            gap = b[i] - prev_end
+            if gap > 0:
+                p_start[m] = prev_end
+                p_len[m] = gap
+                p_sig[m] = -1
+                p_mean[m] = noise * np.float64(gap)
+                m += 1
+            p_start[m] = b[i]
+            p_len[m] = 1
+            p_sig[m] = i
+            p_mean[m] = noise * np.float64(1) + mean[i]
+            m += 1
+            if i == n - 1 or cell[i + 1] != cell[i]:
+                tail = n_bins - 1 - b[i]
+                if tail > 0:
+                    p_start[m] = b[i] + 1
+                    p_len[m] = tail
+                    p_sig[m] = -1
+                    p_mean[m] = noise * np.float64(tail)
+                    m += 1
+                h = heads[nc]
+                counts[nc] = m - h
+                acc = 0.0
+                for j in range(h, m):
+                    sample[j] = s
+                    p_index[j] = within
+                    within += 1
+                    cell_of_piece[j] = nc
+                    if j == h:
+                        before[j] = 0.0
+                    else:
+                        acc = before[j - 1] + p_mean[j - 1]
+                        before[j] = acc
+                total[nc] = before[m - 1] + p_mean[m - 1]
+        nc += 1
+        return (p_start[:m], p_len[:m], p_sig[:m], p_mean[:m], sample[:m], p_index[:m],
+                cell_of_piece[:m], before[:m], heads[:nc], counts[:nc], total[:nc])
+
+    @jit
+    def uniforms(key, ids, sample, index):
+        """draws.uniforms(seed, ids[sample], stream, index) with ``key`` the seed's and the
+        stream's mix: the same SplitMix64 steps on uint64, wrapping as numpy's do."""
+        golden = np.uint64(0x9E3779B97F4A7C15)
+        m1 = np.uint64(0xBF58476D1CE4E5B9)
+        m2 = np.uint64(0x94D049BB133111EB)
+        out = np.empty(sample.shape[0])
+        for i in range(sample.shape[0]):
+            a = key ^ (np.uint64(ids[sample[i]]) * golden)
+            a = (a ^ (a >> np.uint64(30))) * m1
+            a = (a ^ (a >> np.uint64(27))) * m2
+            a = a ^ (a >> np.uint64(31))
+            x = a + (np.uint64(index[i]) + np.uint64(1)) * golden
+            x = (x ^ (x >> np.uint64(30))) * m1
+            x = (x ^ (x >> np.uint64(27))) * m2
+            x = x ^ (x >> np.uint64(31))
+            out[i] = (np.float64(x >> np.uint64(11)) + 0.5) * 1.1102230246251565e-16
+        return out
+
+    return _Kernels(pieces=pieces, uniforms=uniforms, spread_sum=spread_sum, sum_before=sum_before, binomial_walk=binomial_walk,
+                    bisect_right=bisect_right, chain_prepare=chain_prepare,
+                    chain_finish=chain_finish)

@@ -85,6 +85,41 @@ def _sum_before(values: np.ndarray, steps: list) -> np.ndarray:
     return out
 
 
+def _chain_compiled(k_, chain, p_mean, rest, heads, counts, cell_of_piece, remaining, u,
+                    fired) -> None:
+    """The chain of _loud_peaks, position by position as there, with each position's
+    binomials (draws.binomial_inverse) split at their transcendentals: p, q, log q, log(1 - q)
+    of every chain piece in numpy at once, then per position the start and log P(start)
+    compiled, the exp (and any lgamma) in numpy, the walk compiled. The same bytes."""
+    at = np.flatnonzero(chain)
+    n = len(p_mean)
+    p = np.clip(np.minimum(-np.expm1(-p_mean[at]) / -np.expm1(-rest[at]), 1.0), 0.0, 1.0)
+    flip = np.zeros(n, bool)
+    flip[at] = p > 0.5
+    qa = np.where(flip[at], 1.0 - p, p)
+    q, logq, log1pq, ratio = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    q[at] = qa
+    good = qa > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logq[at[good]] = np.log(qa[good])
+        log1pq[at[good]] = np.log1p(-qa[good])
+        ratio[at[good]] = qa[good] / (1.0 - qa[good])
+    active = np.flatnonzero(remaining > 0)
+    j = 0
+    while len(active):
+        idx, start, log_pk = k_.chain_prepare(j, active, heads, counts, remaining, q, logq,
+                                              log1pq)
+        big = start > 0
+        if big.any():
+            s, m = start[big], remaining[cell_of_piece[idx[big]]]
+            log_pk[big] += (draws._lgamma(m + 1) - draws._lgamma(s + 1)
+                            - draws._lgamma(m - s + 1)).astype(float)
+        k_.chain_finish(idx, start, np.exp(log_pk), cell_of_piece, remaining, ratio, flip, u,
+                        fired)
+        j += 1
+        active = active[(remaining[active] > 0) & (counts[active] > j)]
+
+
 def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, threshold: int,
                 seed: int, ids: np.ndarray, n_cells: int, compiled: bool = False) -> Peaks:
     """The peaks of the cells the signal reaches (their peak bins, not yet held to the
@@ -97,34 +132,43 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
         return Peaks(z, z, z, z)
     k_ = kernels.require() if compiled else None
     new_cell = _first_of_groups(cell)
-    last = np.empty(n_sig, bool)
-    last[-1] = True
-    last[:-1] = new_cell[1:]
-    prev_end = np.where(new_cell, 0, np.concatenate([[0], b[:-1] + 1]))
-    gap_len = b - prev_end
-    gap = gap_len > 0
-    tail_len = np.where(last, n_bins - 1 - b, 0)
-    tail = tail_len > 0
-    per = gap.astype(np.int64) + 1 + tail
-    end_slot = np.cumsum(per)
-    sig_slot = end_slot - 1 - tail
-    n_pieces = int(end_slot[-1])
-    p_cell = np.repeat(cell, per)
-    p_start = np.empty(n_pieces, np.int64)
-    p_len = np.empty(n_pieces, np.int64)
-    p_sig = np.full(n_pieces, -1, np.int64)
-    p_start[sig_slot], p_len[sig_slot], p_sig[sig_slot] = b, 1, np.arange(n_sig)
-    g = sig_slot[gap] - 1
-    p_start[g], p_len[g] = prev_end[gap], gap_len[gap]
-    t = sig_slot[tail] + 1
-    p_start[t], p_len[t] = b[tail] + 1, tail_len[tail]
-    p_mean = noise * p_len
-    p_mean[sig_slot] += mean
-    sample = p_cell // n_cells
-    # pieces by their position in their cell: the sums and the chain below run position by
-    # position, so a cell's numbers never depend on the other cells of the batch
-    heads = np.flatnonzero(_first_of_groups(p_cell))
-    counts = np.diff(np.append(heads, n_pieces))
+    if k_ is not None:
+        (p_start, p_len, p_sig, p_mean, sample, p_index, cell_of_piece, before, heads, counts,
+         total) = k_.pieces(cell, b, np.ascontiguousarray(mean, np.float64), int(n_bins),
+                            float(noise), int(n_cells))
+        n_pieces = len(p_start)
+        p_cell = None
+    else:
+        last = np.empty(n_sig, bool)
+        last[-1] = True
+        last[:-1] = new_cell[1:]
+        prev_end = np.where(new_cell, 0, np.concatenate([[0], b[:-1] + 1]))
+        gap_len = b - prev_end
+        gap = gap_len > 0
+        tail_len = np.where(last, n_bins - 1 - b, 0)
+        tail = tail_len > 0
+        per = gap.astype(np.int64) + 1 + tail
+        end_slot = np.cumsum(per)
+        sig_slot = end_slot - 1 - tail
+        n_pieces = int(end_slot[-1])
+        p_cell = np.repeat(cell, per)
+        p_start = np.empty(n_pieces, np.int64)
+        p_len = np.empty(n_pieces, np.int64)
+        p_sig = np.full(n_pieces, -1, np.int64)
+        p_start[sig_slot], p_len[sig_slot], p_sig[sig_slot] = b, 1, np.arange(n_sig)
+        g = sig_slot[gap] - 1
+        p_start[g], p_len[g] = prev_end[gap], gap_len[gap]
+        t = sig_slot[tail] + 1
+        p_start[t], p_len[t] = b[tail] + 1, tail_len[tail]
+        p_mean = noise * p_len
+        p_mean[sig_slot] += mean
+        sample = p_cell // n_cells
+        # pieces by their position in their cell: the sums and the chain below run position by
+        # position, so a cell's numbers never depend on the other cells of the batch
+        heads = np.flatnonzero(_first_of_groups(p_cell))
+        counts = np.diff(np.append(heads, n_pieces))
+        cell_of_piece = np.repeat(np.arange(len(heads)), counts)
+        p_index = draws.index_within(sample)  # a piece's number within its sample
     steps = []
 
     def by_position() -> list:  # steps[j]: the pieces at position j of their cell
@@ -141,30 +185,34 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
             return k_.sum_before(values, heads, counts)
         return _sum_before(values, by_position())
 
-    before = sum_before(p_mean)  # C before each piece, within its cell
-    last = heads + counts - 1
-    total = before[last] + p_mean[last]  # C of the whole gate, per cell
-    p_first = np.exp(-before) * -np.expm1(-p_mean)  # P(a pulse's first event is in the piece)
+    def uniforms(stream, of_sample, index):  # draws.uniforms(seed, ids[of_sample], ...)
+        if k_ is not None:
+            return k_.uniforms(draws.stream_key(seed, stream), ids, of_sample, index)
+        return draws.uniforms(seed, ids[of_sample], stream, index)
+
+    if k_ is None:
+        before = sum_before(p_mean)  # C before each piece, within its cell
+        last = heads + counts - 1
+        total = before[last] + p_mean[last]  # C of the whole gate, per cell
     c_sample = sample[heads]
     p_fire = -np.expm1(-total)
     fired_cell = draws.binomial_inverse(
         np.full(len(heads), pulses), p_fire,
-        draws.uniforms(seed, ids[c_sample], draws.FIRED, draws.index_within(c_sample)),
-        compiled)
+        uniforms(draws.FIRED, c_sample, draws.index_within(c_sample)), compiled)
     # Given F fired pulses, the pieces they fire in are F independent draws of that law: cheap
     # when F is below the cell's number of pieces. Otherwise the chain of binomials, piece by
     # piece; both are the multinomial histogram of first events.
     by_draws = fired_cell < counts
     fired = np.zeros(n_pieces, np.int64)
-    cell_of_piece = np.repeat(np.arange(len(heads)), counts)
     # -- by draws: inverse CDF over each cell's pieces, by bisection within the cell's run
     cells_d = np.flatnonzero(by_draws & (fired_cell > 0))
     if len(cells_d):
-        upto = sum_before(p_first) + p_first  # within the cell, up to each piece
+        # P(a pulse's first event is in the piece), and up to each piece within its cell
+        p_first = np.exp(-before) * -np.expm1(-p_mean)
+        upto = sum_before(p_first) + p_first
         ev_cell = np.repeat(cells_d, fired_cell[cells_d])
         ev_sample = c_sample[ev_cell]
-        ev_u = draws.uniforms(seed, ids[ev_sample], draws.FIRST_PIECE,
-                              draws.index_within(ev_sample))
+        ev_u = uniforms(draws.FIRST_PIECE, ev_sample, draws.index_within(ev_sample))
         target = ev_u * p_fire[ev_cell]
         lo, hi = heads[ev_cell], heads[ev_cell] + counts[ev_cell]
         if k_ is not None:
@@ -178,11 +226,13 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
     if (~by_draws).any():
         chain = ~by_draws[cell_of_piece]
         u = np.zeros(n_pieces)
-        u[chain] = draws.uniforms(seed, ids[sample[chain]], draws.PIECES,
-                                  draws.index_within(sample[chain]))
+        u[chain] = uniforms(draws.PIECES, sample[chain], draws.index_within(sample[chain]))
         remaining = np.where(by_draws, 0, fired_cell)
         rest = total[cell_of_piece] - before
-        for idx in by_position():
+        if k_ is not None:
+            _chain_compiled(k_, chain, p_mean, rest, heads, counts, cell_of_piece, remaining,
+                            u, fired)
+        for idx in by_position() if k_ is None else ():
             left = remaining[cell_of_piece[idx]]
             live = left > 0
             if not live.all():
@@ -197,10 +247,9 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
     in_sig = np.flatnonzero((p_sig >= 0) & (fired > 0))
     k = p_sig[in_sig]
     share = mean[k] / (mean[k] + noise)
-    p_index = draws.index_within(sample)  # a piece's number within its sample
     sig_count = draws.binomial_inverse(
-        fired[in_sig], share, draws.uniforms(seed, ids[sample[in_sig]], draws.LABELS,
-                                             p_index[in_sig]), compiled)
+        fired[in_sig], share, uniforms(draws.LABELS, sample[in_sig], p_index[in_sig]),
+        compiled)
     # the signal bins' peak per cell
     sig_top = _top(cell_of_piece[in_sig], p_start[in_sig], fired[in_sig], sig_count, n_bins)
     # stretches of noise: each event placed by the first-arrival law truncated to its stretch.
@@ -223,7 +272,7 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
     e_piece = np.repeat(in_gap, reps)
     e_index = np.repeat(g_base, reps) + draws.index_within(np.repeat(np.arange(len(in_gap)),
                                                                       reps))
-    uu = draws.uniforms(seed, ids[sample[e_piece]], draws.STRETCH, e_index)
+    uu = uniforms(draws.STRETCH, sample[e_piece], e_index)
     e_len = p_len[e_piece]
     if noise > 0:
         off = np.floor(-np.log1p(-uu * -np.expm1(-noise * e_len)) / noise).astype(np.int64)

@@ -255,7 +255,13 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
     range_m = (first[s] + b + 0.5) * lidar.r_r if len(s) else np.zeros(0)
     # per target cell: the expected signal photo-electrons per pulse
     key = hits.sample.astype(np.int64) * n_cells + cell_all
-    uniq, inv = np.unique(key, return_inverse=True)
+    if len(key) and (np.diff(key) >= 0).all():  # the simulator's order: np.unique's, unsorted
+        new = np.empty(len(key), bool)
+        new[0] = True
+        np.not_equal(key[1:], key[:-1], out=new[1:])
+        uniq, inv = key[new], np.cumsum(new) - 1
+    else:
+        uniq, inv = np.unique(key, return_inverse=True)
     tpe = np.bincount(inv, weights=pe, minlength=len(uniq))
     tcell = uniq % n_cells
     return PhotonCells(s.astype(np.int64), w, h, range_m.astype(np.float64),
