@@ -195,25 +195,34 @@ def test_a_cgan_refuses_another_lidar_in_one_line(tmp_path, capsys):
 def test_generate_warns_once_outside_what_the_model_was_measured_on(tmp_path, capsys):
     argv = ["generate", "--type", "A320neo", "--range-m", "5000", "--elevation-deg", "3.5",
             *POSE]
-    rc, _, err = run([*argv, "--lidar", "paper", "-o", tmp_path / "a.npz"], capsys)
+    mine = tmp_path / "m"  # the shipped model, its record of measured lidars set here
+    shutil.copytree(DEFAULT_MODEL, mine)
+    meta = json.loads((mine / "model.json").read_text())
+
+    def measured(*names):
+        meta["measured_lidars"] = [{"lidar": load_lidar(n).to_dict(), "source": "a test"}
+                                   for n in names]
+        (mine / "model.json").write_text(json.dumps(meta))
+
+    measured()  # its training lidar alone
+    rc, _, err = run([*argv, "--model", mine, "--lidar", "paper", "-o", tmp_path / "a.npz"],
+                     capsys)
     assert rc == 0 and "warning" not in err, err
-    rc, _, err = run([*argv, "--lidar", "half-cells", "-o", tmp_path / "b.npz"], capsys)
+    rc, _, err = run([*argv, "--model", mine, "--lidar", "half-cells", "-o",
+                      tmp_path / "b.npz"], capsys)
     warn = [ln for ln in err.splitlines() if "warning:" in ln]
     assert rc == 0 and len(warn) == 1 and "outside what the model" in warn[0], err
     assert "r_alpha_deg 0.002 (measured: 0.004)" in warn[0]
-    # a model whose model.json records a measurement at that lidar says nothing there
-    mine = tmp_path / "m"
-    shutil.copytree(DEFAULT_MODEL, mine)
-    meta = json.loads((mine / "model.json").read_text())
-    meta["measured_lidars"] = [{"lidar": load_lidar("half-cells").to_dict(),
-                                "source": "a test"}]
-    (mine / "model.json").write_text(json.dumps(meta))
+    measured("half-cells")  # measured there: silent there, and the span grows
     rc, _, err = run([*argv, "--model", mine, "--lidar", "double-cells", "-o",
                       tmp_path / "c.npz"], capsys)
     assert rc == 0 and "r_alpha_deg 0.008 (measured: 0.002..0.004)" in err, err
     rc, _, err = run([*argv, "--model", mine, "--lidar", "half-cells", "-o",
                       tmp_path / "d.npz"], capsys)
     assert rc == 0 and "warning" not in err, err
+    # the shipped model's record names lidars every --lidar can read
+    shipped = load_model()
+    assert shipped.measured_lidars()[0] == shipped.trained_lidar == LidarParams()
 
 
 def test_apcg_plus_reads_its_sheet_at_the_lidars_cells():
