@@ -33,6 +33,9 @@ def register_generate(sub) -> None:
                                              "cGAN's Im2PC tau, APCG+'s hit logit")
     add_lidar_argument(p, default_help="the model's own (its model.json lidar); another is "
                                        "read at its cells where the family can (apcg-plus)")
+    p.add_argument("--resumable", action="store_true",
+                   help="keep finished blocks in OUT.parts/ so that a Ctrl-C'd run continues "
+                        "where it stopped (automatic from 131,072 clouds: docs/SCALE.md)")
     add_sensor_arguments(p, seed=False)  # --seed seeds the photons too
     add_output(p, "-o", "--output", kind=FILE, suffixes=CLOUD_FORMATS, required=True,
                    help=".ply / .npz / .las / .laz; several clouds go in one file, told apart by "
@@ -79,7 +82,9 @@ def _run_generate(args) -> int:
     from .io.clouds import CloudWriter
     from .progress import Progress
     from .testpoints import wait_point
-    progress = Progress(total, "cloud", enabled=total > BLOCK_CLOUDS)
+
+    def progress_from(done: int = 0) -> Progress:
+        return Progress(total, "cloud", enabled=total > BLOCK_CLOUDS, done=done)
     points = empty = 0
     fields = () if sensor is None else ("label", "count") + (
         ("pulse",) if sensor.output == "events" else ())
@@ -97,14 +102,28 @@ def _run_generate(args) -> int:
 
     size = min(BLOCK_CLOUDS, getattr(model, "block_clouds", BLOCK_CLOUDS))
     work = enumerate(blocks(table, args.count, size))
-    with CloudWriter(args.output, meta, photon_fields=fields) as out:
-        for cloud, n in in_order(block_clouds, work, getattr(model, "lanes", 1)):
-            out.write(cloud)
-            wait_point("generate.block-written")
-            points += len(cloud)
-            empty += n - len(np.unique(cloud.sample))
-            progress.update(n)
-    progress.close()
+    lanes = getattr(model, "lanes", 1)
+    from . import generation_job as job
+    if args.resumable or total >= job.RESUMABLE_CLOUDS:
+        record = job.job_record(meta, model.directory, args.conditions)
+        try:
+            points, empty = job.run_job(args.output, meta, record, fields, work,
+                                    max(1, BLOCK_CLOUDS // size), block_clouds, lanes,
+                                    progress_from)
+        except job.GenerateInterrupted as stop:  # Ctrl-C: say how far it got
+            import sys
+            print(f"apcg generate: {stop}", file=sys.stderr)
+            return 130
+    else:
+        progress = progress_from()
+        with CloudWriter(args.output, meta, photon_fields=fields) as out:
+            for cloud, n in job.in_order(block_clouds, work, lanes):
+                out.write(cloud)
+                wait_point("generate.block-written")
+                points += len(cloud)
+                empty += n - len(np.unique(cloud.sample))
+                progress.update(n)
+        progress.close()
     from .plausibility import empty_clouds_warning
     if (warning := empty_clouds_warning(empty, total)) is not None:
         import sys
@@ -138,26 +157,6 @@ def _warn_window(model, table) -> None:
 # its ``block_clouds``.)
 BLOCK_CLOUDS = 8192
 MAX_LISTED_CONDITIONS = 10000
-
-
-def in_order(fn, items, lanes: int = 1):
-    """``fn(item)`` for each of ``items``, in order, computed in ``lanes`` threads (the
-    model's own: its ``lanes``) while the caller writes what came before; at most
-    ``2 * lanes + 1`` results wait, so memory stays bounded. On an exception or Ctrl-C in the
-    caller, blocks not started are dropped and those running finish (a block is short)."""
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
-    pool = ThreadPoolExecutor(max(1, lanes), thread_name_prefix="apcg-generate")
-    pending: deque = deque()
-    try:
-        for item in items:
-            pending.append(pool.submit(fn, item))
-            if len(pending) > 2 * lanes:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def blocks(table, count: int, size: int):

@@ -40,6 +40,8 @@ POINTS = {
                             "is made, its file not yet written",
     "generate.block-written": "generate: a block of clouds has just been written to the "
                               "output's temporary file",
+    "generate.part-written": "generate, a resumable request: a part file of its clouds has "
+                             "just been written whole into OUT.parts/",
     "output.held": "any command (apcg_core.outputs): its first output file is written whole "
                    "under its temporary name and held; nothing is under a final name yet",
     "output.committing": "any command: its held outputs are being renamed to their final "

@@ -44,7 +44,8 @@ def start_up(model, repeats: int = 3) -> dict:
     """A whole `apcg generate` of one condition: the cost every run pays once."""
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "apcg_core.cli", "generate", "--type", "A320neo",
-               "--range-m", "5000", "--elevation-deg", "3.5", "--pitch-deg", "2", "--force", "-o", str(Path(tmp) / "one.npz")]
+               "--range-m", "5000", "--elevation-deg", "3.5", "--pitch-deg", "2", "--force",
+               "-o", str(Path(tmp) / "one.npz")]
         if model:
             cmd += ["--model", str(model)]
         cpu, wall = [], []

@@ -1,0 +1,173 @@
+"""A large `apcg generate` as a resumable job: its clouds computed into part files beside the
+output, then written into the output in order.
+
+The dataset builder's way (dataset_builder/build.py: shards, resume, locks), for one output
+file: a request of at least :data:`RESUMABLE_CLOUDS` clouds keeps its finished work in
+``OUT.parts/``: ``job.json`` (what the request is: the output's header, the digests of the
+model's files and of the conditions file), one ``part-NNNNNN.npz`` per block of 8192 clouds
+(``generation_cli.BLOCK_CLOUDS``) (each written whole through ``NAME.PID.part`` + fsync + rename,
+``apcg_core.io.dataset.write_atomic``), and the lock ``.generate.lock`` (one live process per
+job, ``apcg_core.lock``). Ctrl-C (or SIGTERM) stops it with a line saying how far it got; the
+same command then skips the parts present and continues. When every part is there they are
+copied into the output in order (``CloudWriter``: memory flat in the number of clouds) and the
+directory is removed. Every block is computed as the one-process path computes it (the same
+blocks, seeds and sample offsets), so the output's bytes do not depend on where or in how many
+runs its parts were made.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .cloud import PHOTON_FIELDS, PointCloud
+from .errors import InputError
+
+# Requests of at least this many clouds run as a resumable job (smaller ones stream straight
+# into the output: a Ctrl-C leaves nothing). 2^17 clouds take about 10-40 s here
+# (bench/generate_profile.py), where losing the work to a Ctrl-C starts to cost; the part files
+# cost one more write and read of the points (measured in docs/SCALE.md, "Generation").
+RESUMABLE_CLOUDS = 2**17
+_FIELDS = ("xyz", "range_m", "cell_w", "cell_h", "sample")
+
+
+class GenerateInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped a resumable generate; the message says how far it got."""
+
+
+def parts_dir(output) -> Path:
+    return Path(str(output) + ".parts")
+
+
+def job_record(meta: dict, model_dir, conditions) -> dict:
+    """What makes two requests the same job: the output's header (model, family, runtime,
+    seed, count, tau, lidar, sensor, conditions), the bytes of the model's files and of the
+    conditions file."""
+    from . import __version__
+    from .io.dataset import sha256_file
+    model_dir = Path(model_dir)
+    files = {p.name: sha256_file(p) for p in sorted(model_dir.iterdir())
+             if p.is_file() and p.suffix in (".json", ".onnx", ".pt", ".npz")
+             and p.name not in ("evaluation.json", "tau_sweep.json")}
+    return {"apcg": __version__, "header": meta, "model_files": files,
+            "conditions_sha256": sha256_file(conditions) if conditions else None}
+
+
+def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int, compute,
+            lanes: int, progress_from) -> tuple[int, int]:
+    """Generate the sub-blocks ``subs`` (``compute(item)`` -> (cloud, clouds), in order,
+    ``lanes`` at once) into part files of ``per_part`` sub-blocks each, skipping the parts
+    present, then write the output from them; ``progress_from(clouds done)`` starts the
+    progress bar once the job is known to be this one. Returns (points, empty clouds)."""
+    from .io.dataset import json_bytes, write_atomic
+    from .lock import ProcessLock
+    from .testpoints import wait_point
+    subs = list(subs)
+    n_parts = -(-len(subs) // per_part)
+    parts = parts_dir(output)
+    suffix = f".{os.getpid()}.part"
+    with ProcessLock(parts / ".generate.lock", f"generate into {output}"):
+        job = parts / "job.json"
+        if job.exists():
+            if json.loads(job.read_text()) != json.loads(json_bytes(record)):
+                raise InputError(f"{parts} holds the parts of another request (its job.json "
+                                 "differs: model, conditions, options or apcg version); run "
+                                 "the command that made them, or delete that directory")
+        else:
+            write_atomic(job, json_bytes(record), part_suffix=suffix)
+        done = {i for i in range(n_parts) if (parts / _part_name(i)).exists()}
+        before = 0
+        for i in sorted(done):
+            with np.load(parts / _part_name(i)) as z:
+                before += int(z["clouds"])
+        progress = progress_from(before)
+        todo = ((k, item) for k, item in enumerate(subs) if k // per_part not in done)
+
+        def run(k_item):
+            return (k_item[0], *compute(k_item[1]))
+        try:
+            held: list = []
+            for k, cloud, n in in_order(run, todo, lanes):
+                held.append((cloud, n))
+                progress.update(n)
+                if k % per_part == per_part - 1 or k == len(subs) - 1:
+                    write_atomic(parts / _part_name(k // per_part),
+                                 _part_bytes(held, photon_fields), part_suffix=suffix)
+                    held = []
+                    wait_point("generate.part-written")
+            points, empty = _write_output(output, meta, photon_fields, parts, n_parts)
+        except KeyboardInterrupt:
+            raise GenerateInterrupted(_how_far(parts, n_parts)) from None
+        finally:
+            progress.close()
+        for i in range(n_parts):
+            (parts / _part_name(i)).unlink()
+        job.unlink()
+    _remove_empty(parts)
+    return points, empty
+
+
+def in_order(fn, items, lanes: int = 1):
+    """``fn(item)`` for each of ``items``, in order, computed in ``lanes`` threads (the
+    model's own: its ``lanes``) while the caller writes what came before; at most
+    ``2 * lanes + 1`` results wait, so memory stays bounded. On an exception or Ctrl-C in the
+    caller, blocks not started are dropped and those running finish (a block is short)."""
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+    pool = ThreadPoolExecutor(max(1, lanes), thread_name_prefix="apcg-generate")
+    pending: deque = deque()
+    try:
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) > 2 * lanes:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _part_bytes(held: list, photon_fields) -> bytes:
+    from .io.dataset import npz_bytes
+    clouds = [c for c, _ in held]
+    arrays = {k: np.concatenate([getattr(c, k) for c in clouds]) for k in _FIELDS}
+    arrays.update({k: np.concatenate([getattr(c, k) for c in clouds]) for k in photon_fields})
+    arrays["clouds"] = np.int64(sum(n for _, n in held))
+    arrays["empty"] = np.int64(sum(n - len(np.unique(c.sample)) for c, n in held))
+    return npz_bytes(arrays)
+
+
+def _write_output(output, meta, photon_fields, parts: Path, n_parts: int) -> tuple[int, int]:
+    from .io.clouds import CloudWriter
+    points = empty = 0
+    with CloudWriter(output, meta, photon_fields=photon_fields) as out:
+        for i in range(n_parts):
+            with np.load(parts / _part_name(i)) as z:
+                cloud = PointCloud(*(z[k] for k in _FIELDS),
+                                   **{k: z[k] for k in photon_fields if k in PHOTON_FIELDS})
+                empty += int(z["empty"])
+            out.write(cloud)
+            points += len(cloud)
+    return points, empty
+
+
+def _remove_empty(parts: Path) -> None:
+    try:
+        for p in parts.glob("*.part"):  # a dead writer's temporary file (none normally)
+            p.unlink()
+        parts.rmdir()
+    except OSError:
+        pass  # something else lives there: left as it is
+
+
+def _part_name(i: int) -> str:
+    return f"part-{i:06d}.npz"
+
+
+def _how_far(parts: Path, n_parts: int) -> str:
+    done = sum((parts / _part_name(i)).exists() for i in range(n_parts))
+    return (f"interrupted: {done} of {n_parts} parts are done in {parts}; run the same command "
+            "again to resume (finished parts are kept)")

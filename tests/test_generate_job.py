@@ -1,0 +1,76 @@
+"""A large `apcg generate` is a resumable job (apcg_core/generation_job.py): parts beside the
+output, Ctrl-C keeps them, the same command continues, and the output's bytes are those of
+one uninterrupted run straight into the file."""
+
+import signal
+import subprocess
+import sys
+
+import pytest
+
+import apcg_core.generation_cli as gen
+from apcg_core.cli import main
+
+# `apcg` with parts of 512 clouds (two sub-blocks of 256), so that a small request has several
+APCG = [sys.executable, "-c", "import sys; import apcg_core.generation_cli as g; "
+        "g.BLOCK_CLOUDS = 512; from apcg_core.cli import main; sys.exit(main(sys.argv[1:]))"]
+POSE = ["--type", "A320neo", "--range-m", "3000", "--elevation-deg", "3", "--pitch-deg", "2"]
+
+
+@pytest.mark.parametrize("ext", ["ply", "npz"])
+def test_resumable_output_is_the_direct_output(tmp_path, monkeypatch, ext):
+    monkeypatch.setattr(gen, "BLOCK_CLOUDS", 2)  # parts of 2 clouds: 3 parts
+    assert main(["generate", *POSE, "--count", "5", "-o", str(tmp_path / f"d.{ext}")]) == 0
+    assert main(["generate", *POSE, "--count", "5", "--resumable", "-o",
+                 str(tmp_path / f"r.{ext}")]) == 0
+    if ext == "ply":
+        assert (tmp_path / "r.ply").read_bytes() == (tmp_path / "d.ply").read_bytes()
+    else:
+        import zipfile
+        a, b = zipfile.ZipFile(tmp_path / "r.npz"), zipfile.ZipFile(tmp_path / "d.npz")
+        assert a.namelist() == b.namelist()
+        assert all(a.read(n) == b.read(n) for n in a.namelist())
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"d.{ext}", f"r.{ext}"]
+
+
+def test_parts_of_another_request_are_refused(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(gen, "BLOCK_CLOUDS", 2)
+    parts = tmp_path / "r.ply.parts"
+    parts.mkdir()
+    (parts / "job.json").write_text('{"header": {"seed": 99}}\n')
+    assert main(["generate", *POSE, "--count", "5", "--resumable", "-o",
+                 str(tmp_path / "r.ply")]) == 2
+    err = capsys.readouterr().err
+    assert "r.ply.parts holds the parts of another request" in err and err.count("\n") == 1
+    assert not (tmp_path / "r.ply").exists()
+
+
+def test_ctrl_c_keeps_the_parts_and_the_same_command_resumes(tmp_path, hold):
+    # 1,300 clouds of one condition: sub-blocks of 256, parts of 2 of them: 3 parts
+    cmd = [*APCG, "generate", *POSE, "--count", "1300", "--resumable", "-o",
+           str(tmp_path / "g.ply")]
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                         env=hold.env("generate.part-written"))
+    try:
+        hold.wait("generate.part-written", p)
+        p.send_signal(signal.SIGINT)
+        hold.release("generate.part-written")
+        err = p.communicate(timeout=300)[1]
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 130, err
+    assert "apcg generate: interrupted: 1 of 3 parts are done in" in err, err
+    assert "Traceback" not in err
+    parts = tmp_path / "g.ply.parts"
+    assert sorted(x.name for x in parts.iterdir()) == ["job.json", "part-000000.npz"]
+    assert [x.name for x in tmp_path.iterdir()] == ["g.ply.parts"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    whole = subprocess.run([*APCG, "generate", *POSE, "--count", "1300", "-o",
+                            str(tmp_path / "direct.ply")], capture_output=True, text=True,
+                           timeout=300)
+    assert whole.returncode == 0, whole.stderr
+    assert (tmp_path / "g.ply").read_bytes() == (tmp_path / "direct.ply").read_bytes()
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["direct.ply", "g.ply"]
