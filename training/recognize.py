@@ -590,8 +590,8 @@ def plot(rep: dict, path) -> None:
     k = len(types)
     panels = [("trained on exact", rep["trained_on_exact"])] + [
         (f"trained on {_label(s['source'])}", s["trained_on_source"]) for s in rep["sources"]]
-    fig, axes = plt.subplots(1, len(panels), figsize=(1 + (3 + 0.5 * k) * len(panels),
-                                                      1.5 + 0.5 * k),
+    fig, axes = plt.subplots(1, len(panels), figsize=((2 + 0.45 * k) * len(panels),
+                                                      2 + 0.45 * k),
                              constrained_layout=True, squeeze=False)
     for ax, (title, sc) in zip(axes[0], panels, strict=True):
         conf = np.array(sc["confusion"], np.float64)
