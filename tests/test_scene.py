@@ -461,3 +461,51 @@ def test_the_quick_window_screen_never_misses_a_target_the_boxes_see():
         sc.close()
     assert exact.any() and not exact.all()  # the jets leave: both answers occur
     assert (quick | ~exact).all()
+
+
+def test_photons_over_a_crossing_label_each_signal_point_with_the_target_it_came_from():
+    from apcg_core.sensor import load_sensor, sensor_from_table
+    doc = {**CROSSING, "pointing": {**CROSSING["pointing"], "range_m": 6250.0}}
+    ideal = _scan(doc, supersample=2)  # the same sub-rays, the nearest kept per cell
+    night = load_sensor("1064nm-night")
+    # the preset's 100 m gate holds one of the two (500 m apart); one of 1 km holds both, a
+    # dead time longer than it keeps one event per pulse
+    wide = sensor_from_table({**night.to_dict(), "gate_m": 1000.0, "dead_time_ns": 7000.0})
+    alone = _scan(CROSSING, supersample=2, sensor=night, seed=3)
+    assert set(alone.instance[alone.cloud.label == 1]) == {1}  # gated on the first target
+    photons = _scan(doc, supersample=2, sensor=wide, seed=3)
+    c = photons.cloud
+    sig = c.label == 1
+    assert sig.sum() > 300 and (photons.instance[~sig] == 0).all()
+    owner = {k: i for i in (1, 2) for k in _cells(ideal, i)}
+    got = [owner.get((int(w), int(h))) for w, h in zip(c.cell_w[sig], c.cell_h[sig],
+                                                        strict=True)]
+    agree = np.mean([g == i for g, i in zip(got, photons.instance[sig], strict=True)])
+    assert agree > 0.98  # the rest: cells split between the two at an edge
+    assert set(photons.instance[sig]) == {1, 2}
+    assert (np.abs(c.range_m[sig] - 6250.0) < 500.0).all()
+
+
+def test_a_sequences_first_frame_with_photons_is_the_scan_of_the_scene(tmp_path,
+                                                                                  capsys):
+    doc = {**SEQUENCE, "sequence": {"frames": 2, "frame_rate_hz": 10.0}}
+    scene = _write_scene(tmp_path / "s.toml", doc)
+    opts = ["--sensor", "1064nm-night", "--seed", "5", "--supersample", "1"]
+    assert main(["scene", "scan", str(scene), "-o", str(tmp_path / "a.npz"), *opts]) == 0
+    assert main(["scene", "sequence", str(scene), "-o", str(tmp_path / "seq"), *opts,
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    a = np.load(tmp_path / "a.npz")
+    f0 = np.load(tmp_path / "seq" / "frames" / "000000.npz")
+    for k in ("xyz", "range_m", "cell_w", "cell_h", "label", "count", "instance", "type"):
+        assert a[k].tobytes() == f0[k].tobytes(), k
+
+
+def test_a_trajectory_beyond_its_type_is_warned_about(tmp_path, capsys):
+    doc = {"target": [{"type": "A320neo", "range_m": 5000.0, "elevation_deg": 3.5,
+                       "trajectory": {"kind": "line", "speed_mps": 400.0,
+                                      "heading_deg": 180.0}}]}
+    scene = _write_scene(tmp_path / "fast.toml", doc)
+    assert main(["scene", "scan", str(scene), "-o", str(tmp_path / "a.npz")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: " in err and "speed 400 m/s exceeds what a airliner_narrowbody flies" in err
