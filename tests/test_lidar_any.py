@@ -67,7 +67,7 @@ def lidar_file(tmp: Path, name: str = "mine.toml", **values) -> Path:
 
 def test_every_command_that_meets_a_lidar_takes_lidar():
     found = dict(commands())
-    for cmd in LIDAR_COMMANDS:
+    for cmd in (*LIDAR_COMMANDS, "scene scan", "scene sequence", "benchmark recognize"):
         assert cmd in found, f"apcg {cmd} is gone"
     for cmd, parser in found.items():
         dests = {a.dest for a in parser._actions}
@@ -81,7 +81,10 @@ def test_every_command_that_meets_a_lidar_takes_lidar():
         assert lidar[0].metavar == "PRESET|FILE.toml" and "half-cells" in lidar[0].help, cmd
 
 
-@pytest.mark.parametrize("cmd", LIDAR_COMMANDS)
+TAKES_LIDAR = [cmd for cmd, p in commands() if any(a.dest == "lidar" for a in p._actions)]
+
+
+@pytest.mark.parametrize("cmd", TAKES_LIDAR)
 def test_every_lidar_command_reads_the_same_presets_and_files(cmd, tmp_path):
     parser = dict(commands())[cmd]
     mine = lidar_file(tmp_path)
