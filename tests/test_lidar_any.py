@@ -324,3 +324,31 @@ def test_generated_photons_see_the_partial_cells_the_simulator_sees(name, range_
     want = len(simulated.target_w)
     assert abs(cells["sub"] - want) < 0.2 * want, (cells, want)
     assert abs(cells["cell"] - want) > 2 * abs(cells["sub"] - want), (cells, want)
+
+
+def test_teach_simulates_fits_and_scores_at_the_lidar_asked(tmp_path):
+    """`apcg teach --lidar`: the new type's dataset is made at that lidar, and the report says
+    so (a real process, with a catalog of the user's own holding a type the model lacks)."""
+    import os
+    import subprocess
+    import sys
+
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.catalog.importer import export_mesh
+    apcg = [sys.executable, "-m", "apcg_core.cli"]
+    mesh = tmp_path / "drone.ply"
+    export_mesh(default_catalog().mesh("Mavic 3"), mesh)
+    env = {**os.environ, "APCG_DATA_DIR": str(tmp_path / "cat")}
+    r = subprocess.run([*apcg, "catalog", "add", mesh, "--name", "Lidar Drone", "--kind",
+                        "drone"], capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([*apcg, "teach", "--model", DEFAULT_MODEL, "--type", "Lidar Drone",
+                        "--lidar", "bin-0.6m", "-o", tmp_path / "taught", "--data",
+                        tmp_path / "data", "--samples", "8", "--steps", "2"],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr
+    want = load_lidar("bin-0.6m")
+    head = json.loads((tmp_path / "data" / "dataset.json").read_text())
+    assert LidarParams.from_dict(head["lidar"]) == want
+    rep = json.loads((tmp_path / "taught" / "teach.json").read_text())
+    assert LidarParams.from_dict(rep["lidar"]) == want
