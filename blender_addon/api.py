@@ -298,6 +298,20 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
                         azimuth=pose["azimuth"], meta=meta)
 
 
+def lidar_fit_warning(model, lidar) -> str | None:
+    """One line when ``model`` does not hold at the lidar object ``lidar``: a family that draws
+    at its training lidar only, asked for another, or a lidar outside those the model was
+    measured on (its model.json; SPEC section 1)."""
+    params = lidar_params(lidar)
+    if not model.ANY_LIDAR:
+        if params == model.trained_lidar:
+            return None
+        return (f"the {model.family} model draws at the lidar it was trained on "
+                f"({model.trained_lidar.describe()}), not at {lidar.name}'s "
+                f"({params.describe()}); an apcg-plus model draws at any lidar")
+    return model.lidar_warning(params)
+
+
 def check_model_knows(model, target) -> str:
     """The target's type name when ``model`` knows it; else an InputError that names the type
     and how to teach it to the model."""

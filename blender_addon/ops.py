@@ -444,6 +444,9 @@ class APCG_OT_generate(_ChunkedOperator, bpy.types.Operator):
         model = api.load_model(bpy.path.abspath(self.model_dir) or None, self.runtime)
         for t in ts:  # a type the model does not know is refused before any work
             api.check_model_knows(model, t)
+        warning = api.lidar_fit_warning(model, lidar) if lidar is not None else None
+        if warning:  # generated all the same, as `apcg generate --lidar` does
+            self.report({"WARNING"}, warning)
         return [(lambda t=t: api.generate(t, model, self.count, self.seed)) for t in ts]
 
 

@@ -398,3 +398,23 @@ def test_the_lidar_object_reads_and_writes_the_lidar_file_every_command_takes(sc
     assert np.array_equal(got.cell_w, ref.cell_w) and np.array_equal(got.cell_h, ref.cell_h)
     assert np.abs(got.range_m - ref.range_m).max() < 1e-4
     assert info["meta"]["lidar"] == load_lidar(lid).to_dict()
+
+
+def test_generate_says_when_the_model_does_not_hold_at_the_lidar_object(scene, small_model):
+    """Issue 33: the panel's Generate names a lidar outside what the model was measured on, and
+    a family that draws at its training lidar only, in one line (the clouds are made anyway)."""
+    from apcg_core.lidar import load_lidar
+    lidar = api.add_lidar()
+    plus = api.load_model()
+    assert api.lidar_fit_warning(plus, lidar) is None  # the paper's: its training lidar
+    api.read_lidar_file(lidar, "half-cells")
+    assert api.lidar_fit_warning(plus, lidar) is None  # measured there (docs/evaluation/lidars)
+    lidar.apcg_lidar.r_alpha_deg = 0.001
+    warning = api.lidar_fit_warning(plus, lidar)
+    assert "r_alpha_deg 0.001 (measured: 0.002..0.008)" in warning
+    cgan = api.load_model(small_model)
+    api.read_lidar_file(lidar, "paper")
+    assert api.lidar_fit_warning(cgan, lidar) is None
+    api.read_lidar_file(lidar, "double-cells")
+    assert "draws at the lidar it was trained on" in api.lidar_fit_warning(cgan, lidar)
+    assert api.lidar_params(lidar) == load_lidar("double-cells")
