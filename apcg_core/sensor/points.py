@@ -24,6 +24,7 @@ points do not depend on its batch.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,6 +121,59 @@ def _chain_compiled(k_, chain, p_mean, rest, heads, counts, cell_of_piece, remai
         active = active[(remaining[active] > 0) & (counts[active] > j)]
 
 
+def _pieces(cell, b, mean, n_bins: int, noise: float, n_cells: int,
+            steps: list | None = None) -> tuple:
+    """The loud cells' pieces (numpy; ``kernels.pieces`` compiled, the same bytes): per cell
+    (``cell`` sorted, its signal bins ``b`` ascending) a stretch of noise before each signal
+    bin that has one, the bin, and after the cell's last bin the rest of the gate. Per piece:
+    start, length, signal bin index (-1 for noise), mean (noise * length, plus the bin's
+    mean), sample, number within the sample, loud cell index, and the sum of the cell's
+    earlier pieces' means (C before it); per loud cell: first piece, pieces, and C of the
+    whole gate. ``steps``, when given, receives the pieces by position in their cell."""
+    n_sig = len(cell)
+    new_cell = _first_of_groups(cell)
+    last = np.empty(n_sig, bool)
+    last[-1] = True
+    last[:-1] = new_cell[1:]
+    prev_end = np.where(new_cell, 0, np.concatenate([[0], b[:-1] + 1]))
+    gap_len = b - prev_end
+    gap = gap_len > 0
+    tail_len = np.where(last, n_bins - 1 - b, 0)
+    tail = tail_len > 0
+    per = gap.astype(np.int64) + 1 + tail
+    end_slot = np.cumsum(per)
+    sig_slot = end_slot - 1 - tail
+    n_pieces = int(end_slot[-1])
+    p_cell = np.repeat(cell, per)
+    p_start = np.empty(n_pieces, np.int64)
+    p_len = np.empty(n_pieces, np.int64)
+    p_sig = np.full(n_pieces, -1, np.int64)
+    p_start[sig_slot], p_len[sig_slot], p_sig[sig_slot] = b, 1, np.arange(n_sig)
+    g = sig_slot[gap] - 1
+    p_start[g], p_len[g] = prev_end[gap], gap_len[gap]
+    t = sig_slot[tail] + 1
+    p_start[t], p_len[t] = b[tail] + 1, tail_len[tail]
+    p_mean = noise * p_len
+    p_mean[sig_slot] += mean
+    sample = p_cell // n_cells
+    heads = np.flatnonzero(_first_of_groups(p_cell))
+    counts = np.diff(np.append(heads, n_pieces))
+    cell_of_piece = np.repeat(np.arange(len(heads)), counts)
+    p_index = draws.index_within(sample)  # a piece's number within its sample
+    # the sums run position by position, so a cell's numbers never depend on the other cells
+    pos = np.arange(n_pieces) - heads[cell_of_piece]
+    pos = pos.astype(np.int16 if pos.max() < 32767 else np.int64)
+    by_pos = np.argsort(pos, kind="stable")  # a radix sort on small integers
+    bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))
+    steps = [] if steps is None else steps
+    steps.extend(by_pos[bounds[j]:bounds[j + 1]] for j in range(len(bounds) - 1))
+    before = _sum_before(p_mean, steps)
+    last = heads + counts - 1
+    total = before[last] + p_mean[last]
+    return (p_start, p_len, p_sig, p_mean, sample, p_index, cell_of_piece, before, heads, counts,
+            total)
+
+
 def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, threshold: int,
                 seed: int, ids: np.ndarray, n_cells: int, compiled: bool = False) -> Peaks:
     """The peaks of the cells the signal reaches (their peak bins, not yet held to the
@@ -132,48 +186,16 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
         return Peaks(z, z, z, z)
     k_ = kernels.require() if compiled else None
     new_cell = _first_of_groups(cell)
-    if k_ is not None:
-        (p_start, p_len, p_sig, p_mean, sample, p_index, cell_of_piece, before, heads, counts,
-         total) = k_.pieces(cell, b, np.ascontiguousarray(mean, np.float64), int(n_bins),
-                            float(noise), int(n_cells))
-        n_pieces = len(p_start)
-        p_cell = None
-    else:
-        last = np.empty(n_sig, bool)
-        last[-1] = True
-        last[:-1] = new_cell[1:]
-        prev_end = np.where(new_cell, 0, np.concatenate([[0], b[:-1] + 1]))
-        gap_len = b - prev_end
-        gap = gap_len > 0
-        tail_len = np.where(last, n_bins - 1 - b, 0)
-        tail = tail_len > 0
-        per = gap.astype(np.int64) + 1 + tail
-        end_slot = np.cumsum(per)
-        sig_slot = end_slot - 1 - tail
-        n_pieces = int(end_slot[-1])
-        p_cell = np.repeat(cell, per)
-        p_start = np.empty(n_pieces, np.int64)
-        p_len = np.empty(n_pieces, np.int64)
-        p_sig = np.full(n_pieces, -1, np.int64)
-        p_start[sig_slot], p_len[sig_slot], p_sig[sig_slot] = b, 1, np.arange(n_sig)
-        g = sig_slot[gap] - 1
-        p_start[g], p_len[g] = prev_end[gap], gap_len[gap]
-        t = sig_slot[tail] + 1
-        p_start[t], p_len[t] = b[tail] + 1, tail_len[tail]
-        p_mean = noise * p_len
-        p_mean[sig_slot] += mean
-        sample = p_cell // n_cells
-        # pieces by their position in their cell: the sums and the chain below run position by
-        # position, so a cell's numbers never depend on the other cells of the batch
-        heads = np.flatnonzero(_first_of_groups(p_cell))
-        counts = np.diff(np.append(heads, n_pieces))
-        cell_of_piece = np.repeat(np.arange(len(heads)), counts)
-        p_index = draws.index_within(sample)  # a piece's number within its sample
     steps = []
+    build = k_.pieces if k_ is not None else functools.partial(_pieces, steps=steps)
+    (p_start, p_len, p_sig, p_mean, sample, p_index, cell_of_piece, before, heads, counts,
+     total) = build(cell, b, np.ascontiguousarray(mean, np.float64), int(n_bins), float(noise),
+                    int(n_cells))
+    n_pieces = len(p_start)
 
     def by_position() -> list:  # steps[j]: the pieces at position j of their cell
         if not steps:
-            pos = draws.index_within(p_cell)
+            pos = np.arange(n_pieces) - heads[cell_of_piece]
             pos = pos.astype(np.int16 if pos.max() < 32767 else np.int64)
             by_pos = np.argsort(pos, kind="stable")  # a radix sort on small integers
             bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))
@@ -190,10 +212,6 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
             return k_.uniforms(draws.stream_key(seed, stream), ids, of_sample, index)
         return draws.uniforms(seed, ids[of_sample], stream, index)
 
-    if k_ is None:
-        before = sum_before(p_mean)  # C before each piece, within its cell
-        last = heads + counts - 1
-        total = before[last] + p_mean[last]  # C of the whole gate, per cell
     c_sample = sample[heads]
     p_fire = -np.expm1(-total)
     fired_cell = draws.binomial_inverse(

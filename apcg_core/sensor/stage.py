@@ -177,15 +177,16 @@ def signal_bins(cell: np.ndarray, range_m: np.ndarray, mean: np.ndarray, first_b
 
 
 def _per_sample(hits, cell_all, pe, first, n_bins, sigma_bins, noise, dead_bins, sensor,
-                lidar, seed, ids, n_cells) -> list:
+                lidar, seed, ids, n_cells, compiled=False) -> list:
     """Events (or points with a dead time shorter than the gate), sample by sample, pulse by
-    pulse: each sample's own generator (``sample_rng``)."""
+    pulse: each sample's own generator (``sample_rng``); ``compiled``: the signal's spread
+    compiled (the same bytes)."""
     bounds = np.searchsorted(hits.sample, np.arange(hits.n_samples + 1))
     parts = []
     for i in range(hits.n_samples):
         sl = slice(bounds[i], bounds[i + 1])
         sig = signal_bins(cell_all[sl], hits.range_m[sl], pe[sl], int(first[i]), n_bins,
-                          sigma_bins, lidar.r_r)
+                          sigma_bins, lidar.r_r, compiled)
         rng = sample_rng(seed, ids[i])
         if sensor.output == "events":
             ev = detect(rng, sig, n_cells, n_bins, noise, dead_bins, sensor.pulses, True)
@@ -231,10 +232,10 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
                                sensor, hits.sub_rays)
     cell_all = ((hits.h.astype(np.int64) - lidar.h_min) * lidar.width
                 + (hits.w.astype(np.int64) - lidar.w_min))
+    # the loops compiled once the process has enough hits for them (kernels.py: the same bytes)
+    compiled = kernels.use_for(len(hits.range_m))
     if sensor.output == "points" and dead_bins >= n_bins:
-        # the whole batch at once, with counter-based draws (points.py); the loops compiled
-        # once the process has enough hits for them (kernels.py: the same bytes)
-        compiled = kernels.use_for(len(hits.range_m))
+        # the whole batch at once, with counter-based draws (points.py)
         gcell = hits.sample.astype(np.int64) * n_cells + cell_all
         sig = signal_bins(gcell, hits.range_m, pe, first[hits.sample], n_bins, sigma_bins,
                           lidar.r_r, compiled)
@@ -246,7 +247,7 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
                   pk.count.astype(np.int32), np.full(m, -1, np.int32))]
     else:
         parts = _per_sample(hits, cell_all, pe, first, n_bins, sigma_bins, noise, dead_bins,
-                            sensor, lidar, seed, ids, n_cells)
+                            sensor, lidar, seed, ids, n_cells, compiled)
     cols = [np.concatenate([p[j] for p in parts]) if parts else np.zeros(0, np.int64)
             for j in range(6)]
     s, cell, b, label, count, pulse = cols
