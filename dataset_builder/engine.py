@@ -45,6 +45,9 @@ class RunSettings:
     tasks_per_process: int | None = None  # as given; None: workers live for the whole build
     output: str = ""  # the dataset directory, which a cluster's workers must see too
     connect_timeout_s: float | None = None  # as given; None: CONNECT_TIMEOUT_S
+    # the job's header in ``output``, written before the workers start: each worker must see
+    # it as this machine does (a scene sequence's is sequence.json)
+    record: str = "dataset.json"
 
     @property
     def writers_are_local(self) -> bool:
@@ -309,9 +312,9 @@ def _check_workers(client, settings: RunSettings) -> None:
                          f"{WORKERS_WAIT_S} s; start workers with `dask worker "
                          f"{settings.address}`") from None
     from apcg_core import __version__
-    want = (__version__, _file_digest(Path(settings.output) / "dataset.json"))
+    want = (__version__, _file_digest(Path(settings.output) / settings.record))
     try:
-        seen = client.run(worker_view, settings.output)
+        seen = client.run(worker_view, settings.output, settings.record)
     except ImportError as exc:
         raise InputError(f"the workers at {settings.address} cannot import apcg ({exc}); "
                          "install the same apcg (with its sim extra) on every worker") from None
@@ -326,10 +329,10 @@ def _check_workers(client, settings: RunSettings) -> None:
                          "path on every machine")
 
 
-def worker_view(output: str) -> tuple[str, str | None]:
-    """Run on each worker: its apcg version and the digest of the dataset.json it sees."""
+def worker_view(output: str, record: str = "dataset.json") -> tuple[str, str | None]:
+    """Run on each worker: its apcg version and the digest of the job's header it sees."""
     from apcg_core import __version__
-    return __version__, _file_digest(Path(output) / "dataset.json")
+    return __version__, _file_digest(Path(output) / record)
 
 
 def _file_digest(path: Path) -> str | None:

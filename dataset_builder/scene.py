@@ -433,7 +433,7 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
     out = Path(out_dir)
     runner = get_engine(engine)
     settings = RunSettings(workers=workers, address=address, output=str(out.resolve()),
-                           connect_timeout_s=connect_timeout_s)
+                           connect_timeout_s=connect_timeout_s, record=HEADER)
     runner.check(settings)
     frames = list(range(scene.frames))
     try:
