@@ -7,6 +7,7 @@ import json
 import numpy as np
 
 from .cli import add_pose_arguments
+from .generation_job import block_seed  # noqa: F401 (one home: the job's blocks)
 from .io.clouds import FORMATS as CLOUD_FORMATS
 from .lidar_options import add_lidar_argument, model_at_lidar
 from .outputs import FILE, add_output
@@ -36,6 +37,17 @@ def register_generate(sub) -> None:
     p.add_argument("--resumable", action="store_true",
                    help="keep finished blocks in OUT.parts/ so that a Ctrl-C'd run continues "
                         "where it stopped (automatic from 131,072 clouds: docs/SCALE.md)")
+    p.add_argument("--engine", metavar="NAME",
+                   help="compute the blocks on the dataset builder's engine NAME (dask: a "
+                        "local Dask cluster of --workers processes, or the one at --address; "
+                        "local: a pool of --workers processes); a resumable job, the same "
+                        "bytes as one process. Default: this process, all cores")
+    p.add_argument("--workers", type=int, default=2,
+                   help="with --engine and no --address: worker processes (default 2: "
+                        "this machine's cores)")
+    p.add_argument("--address", metavar="ADDR",
+                   help="with --engine dask: a running cluster's scheduler; OUT must be on "
+                        "storage every worker mounts at the same path")
     add_sensor_arguments(p, seed=False)  # --seed seeds the photons too
     add_output(p, "-o", "--output", kind=FILE, suffixes=CLOUD_FORMATS, required=True,
                    help=".ply / .npz / .las / .laz; several clouds go in one file, told apart by "
@@ -89,27 +101,34 @@ def _run_generate(args) -> int:
     fields = () if sensor is None else ("label", "count") + (
         ("pulse",) if sensor.output == "events" else ())
 
+    from . import generation_job as job
+
     def block_clouds(item):
         block, (part, count, offset) = item
-        res = model.generate(part, count=count, seed=block_seed(args.seed, block))
-        cloud = res.cloud
-        if sensor is not None:
-            from .sensor.generated import photon_generated
-            cloud = photon_generated(cloud, res.table, res.conditions.names, model.lidar,
-                                     sensor, args.seed, offset, model=model)
-        cloud.sample = np.asarray(cloud.sample, np.int64) + offset
-        return cloud, len(res.table)
+        return job.generate_block(model, sensor, args.seed, block, part, count, offset)
 
     size = min(BLOCK_CLOUDS, getattr(model, "block_clouds", BLOCK_CLOUDS))
     work = enumerate(blocks(table, args.count, size))
     lanes = getattr(model, "lanes", 1)
-    from . import generation_job as job
-    if args.resumable or total >= job.RESUMABLE_CLOUDS:
+    engine = task_of = None
+    if args.engine is not None:
+        engine = job.engine(args.engine, args.workers, args.address, job.parts_dir(args.output))
+        lidar = model.lidar if getattr(args, "lidar", None) is not None else None
+
+        def task_of(i, part_blocks, path):
+            return job.PartTask(i, path, [(b, part, count, offset)
+                                          for b, (part, count, offset) in part_blocks],
+                                str(model.directory), args.runtime,
+                                getattr(model, "tau", None) if args.tau is not None else None,
+                                lidar, args.seed, sensor, fields)
+    elif args.address:
+        raise InputError("--address needs --engine dask")
+    if args.resumable or args.engine is not None or total >= job.RESUMABLE_CLOUDS:
         record = job.job_record(meta, model.directory, args.conditions)
         try:
             points, empty = job.run_job(args.output, meta, record, fields, work,
-                                    max(1, BLOCK_CLOUDS // size), block_clouds, lanes,
-                                    progress_from)
+                                        max(1, BLOCK_CLOUDS // size), block_clouds, lanes,
+                                        progress_from, engine, task_of)
         except job.GenerateInterrupted as stop:  # Ctrl-C: say how far it got
             import sys
             print(f"apcg generate: {stop}", file=sys.stderr)
@@ -174,11 +193,3 @@ def blocks(table, count: int, size: int):
             k = min(size, count - done)
             yield part, k, offset
             offset += k
-
-
-def block_seed(seed: int, block: int) -> int:
-    """Block 0 keeps the seed (a one-block request is unchanged); later blocks get seeds
-    drawn from (seed, block), so no two blocks of any two seeds share their noise."""
-    if block == 0:
-        return seed
-    return int(np.random.SeedSequence([seed, block]).generate_state(1)[0])

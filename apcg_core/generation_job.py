@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +32,95 @@ from .errors import InputError
 # (bench/generate_profile.py), where losing the work to a Ctrl-C starts to cost; the part files
 # cost one more write and read of the points (measured in docs/SCALE.md, "Generation").
 RESUMABLE_CLOUDS = 2**17
+ENGINES_GROUP = "apcg.engines"  # entry points: name -> run_tasks(...) context (the builder's)
 _FIELDS = ("xyz", "range_m", "cell_w", "cell_h", "sample")
+
+
+def block_seed(seed: int, block: int) -> int:
+    """Block 0 keeps the seed (a one-block request is unchanged); later blocks get seeds
+    drawn from (seed, block), so no two blocks of any two seeds share their noise."""
+    if block == 0:
+        return seed
+    return int(np.random.SeedSequence([seed, block]).generate_state(1)[0])
+
+
+def generate_block(model, sensor, seed: int, block: int, part, count: int, offset: int):
+    """One block of a request (``generation_cli.blocks``' ``block``-th: ``part``'s rows
+    ``count`` times, its clouds numbered from ``offset``): (stacked cloud, clouds). Noise
+    from ``block_seed(seed, block)``, photons from (seed, cloud number): the same clouds
+    wherever and whenever the block is made."""
+    res = model.generate(part, count=count, seed=block_seed(seed, block))
+    cloud = res.cloud
+    if sensor is not None:
+        from .sensor.generated import photon_generated
+        cloud = photon_generated(cloud, res.table, res.conditions.names, model.lidar,
+                                 sensor, seed, offset, model=model)
+    cloud.sample = np.asarray(cloud.sample, np.int64) + offset
+    return cloud, len(res.table)
+
+
+@dataclass(frozen=True)
+class PartTask:
+    """One part file's work for an engine's worker (picklable): its blocks, and how to open
+    the model as the command did (directory, runtime, tau, lidar) and the sensor."""
+
+    index: int
+    path: str
+    blocks: list  # (block number, Conditions, count, first cloud number)
+    model_dir: str
+    runtime: str
+    tau: float | None
+    lidar: object  # the LidarParams --lidar pointed the model at, or None
+    seed: int
+    sensor: object  # SensorParams, or None: the ideal lidar
+    photon_fields: tuple
+
+
+_MODELS: dict = {}  # a worker's models, opened once per process
+
+
+def _worker_model(task: PartTask):
+    key = (task.model_dir, task.runtime, task.tau, task.lidar)
+    if key not in _MODELS:
+        from .families import load_model
+        model = load_model(task.model_dir, runtime=task.runtime)
+        if task.tau is not None:
+            model.tau = model.check_tau(task.tau)
+        if task.lidar is not None:
+            model.use_lidar(task.lidar)
+        if hasattr(model, "workers"):
+            model.workers = 1  # a worker is one core: the engine runs one per core
+        _MODELS.clear()
+        _MODELS[key] = model
+    return _MODELS[key]
+
+
+def run_part(task: PartTask) -> tuple[int, int]:
+    """An engine's task: compute a part's blocks and write its file whole. (part, clouds)."""
+    from .io.dataset import write_atomic
+    model = _worker_model(task)
+    held = [generate_block(model, task.sensor, task.seed, b, part, count, offset)
+            for b, part, count, offset in task.blocks]
+    write_atomic(Path(task.path), _part_bytes(held, task.photon_fields),
+                 part_suffix=f".{os.getpid()}.part")
+    return task.index, sum(n for _, n in held)
 
 
 class GenerateInterrupted(KeyboardInterrupt):
     """Ctrl-C stopped a resumable generate; the message says how far it got."""
+
+
+def engine(name: str, workers: int, address: str | None, output: Path):
+    """The engine ``name`` (``--engine``) as a context manager yielding ``run(fn, tasks)``:
+    the dataset builder's engines (dataset_builder/tasks.py), found through the
+    ``apcg.engines`` entry point, so the core imports nothing above it."""
+    from importlib.metadata import entry_points
+    found = {ep.name: ep for ep in entry_points(group=ENGINES_GROUP)}
+    if "run_tasks" not in found:
+        raise InputError(f"--engine {name} needs the dataset builder's engines (the apcg "
+                         "package installed with pip, its sim and engine extras)")
+    return found["run_tasks"].load()(name, workers=workers, address=address,
+                                      output=str(output.resolve()))
 
 
 def parts_dir(output) -> Path:
@@ -57,11 +142,15 @@ def job_record(meta: dict, model_dir, conditions) -> dict:
 
 
 def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int, compute,
-            lanes: int, progress_from) -> tuple[int, int]:
+            lanes: int, progress_from, engine=None, task_of=None) -> tuple[int, int]:
     """Generate the sub-blocks ``subs`` (``compute(item)`` -> (cloud, clouds), in order,
     ``lanes`` at once) into part files of ``per_part`` sub-blocks each, skipping the parts
     present, then write the output from them; ``progress_from(clouds done)`` starts the
-    progress bar once the job is known to be this one. Returns (points, empty clouds)."""
+    progress bar once the job is known to be this one. With ``engine`` (a context manager
+    yielding ``run(fn, tasks)``: the dataset builder's engines, through the ``apcg.engines``
+    entry point) the missing parts are computed by its workers (``task_of(part, its blocks,
+    path)`` -> :class:`PartTask`, :func:`run_part`) instead of in this process. Returns
+    (points, empty clouds)."""
     from .io.dataset import json_bytes, write_atomic
     from .lock import ProcessLock
     from .testpoints import wait_point
@@ -89,6 +178,15 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
         def run(k_item):
             return (k_item[0], *compute(k_item[1]))
         try:
+            if engine is not None:
+                tasks = [task_of(i, subs[i * per_part:(i + 1) * per_part],
+                                 str((parts / _part_name(i)).resolve()))
+                         for i in range(n_parts) if i not in done]
+                with engine as run_tasks:
+                    for _, n in run_tasks(run_part, tasks):
+                        progress.update(n)
+                        wait_point("generate.part-written")
+                todo = iter(())
             held: list = []
             for k, cloud, n in in_order(run, todo, lanes):
                 held.append((cloud, n))

@@ -74,3 +74,22 @@ def test_ctrl_c_keeps_the_parts_and_the_same_command_resumes(tmp_path, hold):
     assert whole.returncode == 0, whole.stderr
     assert (tmp_path / "g.ply").read_bytes() == (tmp_path / "direct.ply").read_bytes()
     assert sorted(x.name for x in tmp_path.iterdir()) == ["direct.ply", "g.ply"]
+
+
+@pytest.mark.parametrize("engine", ["dask", "local"])
+def test_an_engine_makes_the_bytes_of_one_process(tmp_path, monkeypatch, engine):
+    """--engine: the parts computed by the dataset builder's engines (a local Dask cluster,
+    a process pool; 2 workers), the output written here: the bytes of one process."""
+    monkeypatch.setattr(gen, "BLOCK_CLOUDS", 2)  # 3 parts, so both workers get some
+    assert main(["generate", *POSE, "--count", "5", "-o", str(tmp_path / "one.ply")]) == 0
+    assert main(["generate", *POSE, "--count", "5", "--engine", engine, "--workers", "2",
+                 "-o", str(tmp_path / "many.ply")]) == 0
+    assert (tmp_path / "many.ply").read_bytes() == (tmp_path / "one.ply").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["many.ply", "one.ply"]
+
+
+def test_address_without_an_engine_is_refused(tmp_path, capsys):
+    assert main(["generate", *POSE, "--address", "tcp://127.0.0.1:1", "-o",
+                 str(tmp_path / "x.ply")]) == 2
+    assert "--address needs --engine dask" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
