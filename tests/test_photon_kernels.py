@@ -120,16 +120,15 @@ def test_the_comparisons_reach_every_route_of_the_loud_cells(hits):
     # Both routes of the fired pulses (by draws, the chain), noise stretches placed and
     # skipped, and with 400 pulses chain binomials that start above 0: what the tests above
     # compare is what the kernels do.
-    from apcg_core.sensor.link import noise_per_bin, range_sigma_m
+    from apcg_core.sensor.link import noise_per_bin, range_sigma_m, signal_photoelectrons
     from apcg_core.sensor.params import check_gate
     from apcg_core.sensor.stage import gate_first_bin, signal_bins
-    from apcg_core.sensor.link import signal_photoelectrons
 
     lidar = DEFAULT_LIDAR
     n_cells = lidar.width * lidar.height
     seen = {"draws": 0, "chain": 0, "big_start": 0}
     walk = kernels.require().chain_prepare
-    for (name, (h, r0, rho)), pulses in itertools.product(hits.items(), (100, 400)):
+    for (_name, (h, r0, rho)), pulses in itertools.product(hits.items(), (100, 400)):
         sensor = dataclasses.replace(load_sensor("1550nm-day"), pulses=pulses)
         n_bins = check_gate(sensor, lidar.r_r)
         pe = signal_photoelectrons(h.range_m, h.cos, rho[h.sample], sensor, h.sub_rays)

@@ -66,10 +66,14 @@ def binomial_inverse(n: np.ndarray, p: np.ndarray, u: np.ndarray,
     mean = nn * qq
     start = np.maximum(0, np.floor(mean - 12.0 * np.sqrt(mean * (1.0 - qq)))).astype(np.int64)
     start[mean < 16.0] = 0
-    log_pk = start * np.log(qq) + (nn - start) * np.log1p(-qq)
+    # log P(X = start) = start log q + (n - start) log(1 - q) (+ the log of the binomial
+    # coefficient): with start 0 the first term is -0.0 (0 times a log q < 0), which adds
+    # nothing to the second, bit for bit, so log q is taken only where start > 0
+    log_pk = (nn - start) * np.log1p(-qq)
     big = start > 0
     if big.any():
         s, m = start[big], nn[big]
+        log_pk[big] = s * np.log(qq[big]) + log_pk[big]
         log_pk[big] += (_lgamma(m + 1) - _lgamma(s + 1) - _lgamma(m - s + 1)).astype(float)
     pk = np.exp(log_pk)
     cdf = pk.copy()

@@ -205,12 +205,12 @@ def _compile() -> _Kernels:
         return out
 
     @jit
-    def chain_prepare(j, active, heads, counts, remaining, q, logq, log1pq):
+    def chain_prepare(j, active, heads, counts, remaining, q, log1pq):
         """Position j of points._loud_peaks' chain, up to the exp: for each active cell with
-        pulses left and a piece at position j, the piece, the sampler's start and log P(X =
-        start) as draws.binomial_inverse makes them (n the pulses left, q = min(p, 1 - p);
-        start -1 where q is not > 0: no walk). The lgamma terms of a start > 0 are added by
-        the caller, in numpy."""
+        pulses left and a piece at position j, the piece, the sampler's start and (n - start)
+        log(1 - q) as draws.binomial_inverse makes them (n the pulses left, q = min(p, 1 - p);
+        start -1 where q is not > 0: no walk). With start > 0 the caller adds start log q and
+        the lgamma terms, in numpy; with start 0 that term is -0.0 and adds nothing."""
         n = active.shape[0]
         idx = np.empty(n, np.int64)
         start = np.empty(n, np.int64)
@@ -232,8 +232,7 @@ def _compile() -> _Kernels:
                     if v > 0:
                         st = np.int64(v)
                 start[m] = st
-                log_pk[m] = (np.float64(st) * logq[piece]
-                             + np.float64(left - st) * log1pq[piece])
+                log_pk[m] = np.float64(left - st) * log1pq[piece]
             else:
                 start[m] = -1
             m += 1
@@ -273,7 +272,12 @@ def _compile() -> _Kernels:
         within the sample, loud cell index, and the sum of the cell's earlier pieces' means;
         per loud cell: first piece, pieces, and the whole gate's mean."""
         n = cell.shape[0]
-        cap = 3 * n
+        cap = 0  # the pieces: every signal bin, the stretches before them, the tails
+        for i in range(n):
+            new = i == 0 or cell[i] != cell[i - 1]
+            cap += 1 + (b[i] > (0 if new else b[i - 1] + 1))
+            if (i == n - 1 or cell[i + 1] != cell[i]) and b[i] < n_bins - 1:
+                cap += 1
         p_start = np.empty(cap, np.int64)
         p_len = np.empty(cap, np.int64)
         p_sig = np.empty(cap, np.int64)
@@ -359,6 +363,6 @@ def _compile() -> _Kernels:
             out[i] = (np.float64(x >> np.uint64(11)) + 0.5) * 1.1102230246251565e-16
         return out
 
-    return _Kernels(pieces=pieces, uniforms=uniforms, spread_sum=spread_sum, sum_before=sum_before, binomial_walk=binomial_walk,
-                    bisect_right=bisect_right, chain_prepare=chain_prepare,
-                    chain_finish=chain_finish)
+    return _Kernels(pieces=pieces, uniforms=uniforms, spread_sum=spread_sum,
+                    sum_before=sum_before, binomial_walk=binomial_walk, bisect_right=bisect_right,
+                    chain_prepare=chain_prepare, chain_finish=chain_finish)

@@ -86,33 +86,32 @@ def _sum_before(values: np.ndarray, steps: list) -> np.ndarray:
     return out
 
 
-def _chain_compiled(k_, chain, p_mean, rest, heads, counts, cell_of_piece, remaining, u,
+def _chain_compiled(k_, chain, em, rest, heads, counts, cell_of_piece, remaining, u,
                     fired) -> None:
     """The chain of _loud_peaks, position by position as there, with each position's
-    binomials (draws.binomial_inverse) split at their transcendentals: p, q, log q, log(1 - q)
-    of every chain piece in numpy at once, then per position the start and log P(start)
-    compiled, the exp (and any lgamma) in numpy, the walk compiled. The same bytes."""
+    binomials (draws.binomial_inverse) split at their transcendentals: p = em / (1 -
+    exp(-rest)) (em = 1 - exp(-mu), every piece's), q and log(1 - q) of every chain piece in
+    numpy at once, then per position the start and log P(start) compiled, the exp (and any
+    log q, lgamma) in numpy, the walk compiled. The same bytes."""
     at = np.flatnonzero(chain)
-    n = len(p_mean)
-    p = np.clip(np.minimum(-np.expm1(-p_mean[at]) / -np.expm1(-rest[at]), 1.0), 0.0, 1.0)
+    n = len(em)
+    p = np.clip(np.minimum(em[at] / -np.expm1(-rest[at]), 1.0), 0.0, 1.0)
     flip = np.zeros(n, bool)
     flip[at] = p > 0.5
     qa = np.where(flip[at], 1.0 - p, p)
-    q, logq, log1pq, ratio = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    q, log1pq, ratio = np.zeros(n), np.zeros(n), np.zeros(n)
     q[at] = qa
     good = qa > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        logq[at[good]] = np.log(qa[good])
-        log1pq[at[good]] = np.log1p(-qa[good])
-        ratio[at[good]] = qa[good] / (1.0 - qa[good])
+    log1pq[at[good]] = np.log1p(-qa[good])
+    ratio[at[good]] = qa[good] / (1.0 - qa[good])
     active = np.flatnonzero(remaining > 0)
     j = 0
     while len(active):
-        idx, start, log_pk = k_.chain_prepare(j, active, heads, counts, remaining, q, logq,
-                                              log1pq)
+        idx, start, log_pk = k_.chain_prepare(j, active, heads, counts, remaining, q, log1pq)
         big = start > 0
         if big.any():
             s, m = start[big], remaining[cell_of_piece[idx[big]]]
+            log_pk[big] = s * np.log(q[idx[big]]) + log_pk[big]
             log_pk[big] += (draws._lgamma(m + 1) - draws._lgamma(s + 1)
                             - draws._lgamma(m - s + 1)).astype(float)
         k_.chain_finish(idx, start, np.exp(log_pk), cell_of_piece, remaining, ratio, flip, u,
@@ -222,11 +221,12 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
     # piece; both are the multinomial histogram of first events.
     by_draws = fired_cell < counts
     fired = np.zeros(n_pieces, np.int64)
+    em = -np.expm1(-p_mean)  # 1 - exp(-mu): P(a pulse has an arrival in the piece)
     # -- by draws: inverse CDF over each cell's pieces, by bisection within the cell's run
     cells_d = np.flatnonzero(by_draws & (fired_cell > 0))
     if len(cells_d):
         # P(a pulse's first event is in the piece), and up to each piece within its cell
-        p_first = np.exp(-before) * -np.expm1(-p_mean)
+        p_first = np.exp(-before) * em
         upto = sum_before(p_first) + p_first
         ev_cell = np.repeat(cells_d, fired_cell[cells_d])
         ev_sample = c_sample[ev_cell]
@@ -248,7 +248,7 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
         remaining = np.where(by_draws, 0, fired_cell)
         rest = total[cell_of_piece] - before
         if k_ is not None:
-            _chain_compiled(k_, chain, p_mean, rest, heads, counts, cell_of_piece, remaining,
+            _chain_compiled(k_, chain, em, rest, heads, counts, cell_of_piece, remaining,
                             u, fired)
         for idx in by_position() if k_ is None else ():
             left = remaining[cell_of_piece[idx]]
@@ -334,7 +334,7 @@ def _distinct(seed, ids, stream, sample, group, limit) -> np.ndarray:
 
 def _quiet_peaks(n_quiet: np.ndarray, loud_global: np.ndarray, n_cells: int, n_bins: int,
                  noise: float, pulses: int, threshold: int, seed: int,
-                 ids: np.ndarray) -> Peaks:
+                 ids: np.ndarray, compiled: bool = False) -> Peaks:
     z0 = np.zeros(0, np.int64)
     n = len(n_quiet)
     alpha = float(-np.expm1(-noise))
@@ -344,7 +344,8 @@ def _quiet_peaks(n_quiet: np.ndarray, loud_global: np.ndarray, n_cells: int, n_b
         return Peaks(z0, z0, z0, z0)
     slots = n_quiet * n_bins
     k = draws.binomial_inverse(slots, np.full(n, heavy),
-                               draws.uniforms(seed, ids, draws.QUIET_COUNT, np.zeros(n)))
+                               draws.uniforms(seed, ids, draws.QUIET_COUNT, np.zeros(n)),
+                               compiled)
     sample = np.repeat(np.arange(n), k)
     if len(sample) == 0:
         return Peaks(z0, z0, z0, z0)
@@ -363,7 +364,8 @@ def _quiet_peaks(n_quiet: np.ndarray, loud_global: np.ndarray, n_cells: int, n_b
     per_sample_cells = np.bincount(c_sample, minlength=n)
     light_slots = per_sample_cells * n_bins
     m = draws.binomial_inverse(light_slots, np.full(n, light),
-                               draws.uniforms(seed, ids, draws.LIGHT_COUNT, np.zeros(n)))
+                               draws.uniforms(seed, ids, draws.LIGHT_COUNT, np.zeros(n)),
+                               compiled)
     l_sample = np.repeat(np.arange(n), m)
     l_pos = _distinct(seed, ids, draws.LIGHT_SLOT, l_sample, l_sample, light_slots[l_sample])
     c_offset = np.concatenate([[0], np.cumsum(per_sample_cells)])
@@ -409,14 +411,15 @@ def _window_cells(quiet_key: np.ndarray, loud_global: np.ndarray, n_cells: int) 
 
 def _quiet_peaks_every_pulse(n_quiet: np.ndarray, loud_global: np.ndarray, n_cells: int,
                              n_bins: int, noise: float, pulses: int, threshold: int, seed: int,
-                             ids: np.ndarray) -> Peaks:
+                             ids: np.ndarray, compiled: bool = False) -> Peaks:
     """The quiet cells' points by following every pulse that fires (one event each): cheaper
     than the heavy-bin route when the noise is so strong that heavy bins are common."""
     p_fire = float(-np.expm1(-noise * n_bins))
     sample = np.repeat(np.arange(len(n_quiet)), n_quiet)
     j = draws.index_within(sample)
     fired = draws.binomial_inverse(np.full(len(sample), pulses), np.full(len(sample), p_fire),
-                                   draws.uniforms(seed, ids[sample], draws.QUIET_COUNT, j))
+                                   draws.uniforms(seed, ids[sample], draws.QUIET_COUNT, j),
+                                   compiled)
     key = np.repeat(sample * n_cells + j, fired)
     ev_sample = key // n_cells
     u = draws.uniforms(seed, ids[ev_sample], draws.QUIET_SLOT, draws.index_within(ev_sample))
@@ -441,7 +444,8 @@ def batch_points(signal: SignalBins, n_samples: int, n_cells: int, n_bins: int, 
     pmf = _binomial_pmf(pulses, float(-np.expm1(-noise)))
     heavy_route, every_pulse = _quiet_cost(n_cells, n_bins, pmf, pulses, threshold, noise)
     route = _quiet_peaks if heavy_route <= every_pulse else _quiet_peaks_every_pulse
-    quiet = route(n_quiet, loud_global, n_cells, n_bins, noise, pulses, threshold, seed, ids)
+    quiet = route(n_quiet, loud_global, n_cells, n_bins, noise, pulses, threshold, seed, ids,
+                  compiled)
     cell = np.concatenate([loud.cell, quiet.cell])
     keep = np.concatenate([loud.count, quiet.count]) >= threshold
     order = np.argsort(cell[keep], kind="stable")
