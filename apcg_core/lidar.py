@@ -48,7 +48,12 @@ class LidarParams:
             if not isinstance(v, (int, np.integer)) or v < 2 or v % 2:
                 raise InputError(f"{name} must be an even integer >= 2, got {v!r}")
         if self.width * self.r_alpha >= math.pi or self.height * self.r_beta >= math.pi / 2:
-            raise InputError("the window must span less than 180 deg azimuth and 90 deg elevation")
+            raise InputError(
+                f"the window must span less than 180 deg azimuth and 90 deg elevation, got "
+                f"width x r_alpha_deg = {self.width} x {self.r_alpha / DEG:g} = "
+                f"{self.width * self.r_alpha / DEG:g} deg, height x r_beta_deg = "
+                f"{self.height} x {self.r_beta / DEG:g} = {self.height * self.r_beta / DEG:g} "
+                "deg")
 
     @classmethod
     def from_degrees(cls, r_alpha_deg: float = 0.0040, r_beta_deg: float = 0.0076,

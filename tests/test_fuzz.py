@@ -1156,3 +1156,62 @@ def test_a_sensor_file_is_refused_by_key_or_used(tmp_path_factory, capsys, case)
         return
     assert not out.exists()
     clear_error("sensor file", kind, rc, err, *names)
+
+
+# --- lidar files (issue 33): every key's bad value, unknown keys and tables, junk -----------
+
+LIDAR_BAD = {
+    "r_alpha_deg": [0.0, -0.004, "0.004", True, 1e9], "r_beta_deg": [0.0, -1.0, [0.0076]],
+    "r_r_m": [0.0, -0.15, "fine"], "width": [255, 0, -256, 2.0, 70000, "256"],
+    "height": [63, 1, 64.0, False],
+}
+LIDAR_BASE = {"r_alpha_deg": 0.004, "r_beta_deg": 0.0076, "r_r_m": 0.15, "width": 256,
+              "height": 64}
+
+LIDAR_CASES = st.one_of(
+    st.tuples(st.just("bad value"), st.sampled_from(sorted(LIDAR_BAD)), st.integers(0, 5)),
+    st.tuples(st.just("unknown key"), st.sampled_from(["r_alpha", "Width", "bins", "r_r"]),
+              st.just(0)),
+    st.tuples(st.just("missing key"), st.sampled_from(sorted(LIDAR_BAD)), st.just(0)),
+    st.tuples(st.just("junk"), st.sampled_from(["[lidar\n", "lidar = 3\n", "\x00\x01",
+                                                "[sensor]\nname = 'x'\n", "",
+                                                "[lidar]\n[optics]\nf = 1\n"]), st.just(0)),
+    st.tuples(st.just("nan"), st.sampled_from(["r_alpha_deg", "r_beta_deg", "r_r_m"]),
+              st.just(0)),
+)
+
+
+@fuzz(40)
+@given(LIDAR_CASES)
+def test_a_lidar_file_is_refused_by_key_or_used(tmp_path_factory, capsys, case):
+    kind, key, i = case
+    tmp = tmp_path_factory.mktemp("lidar")
+    f = tmp / "l.toml"
+
+    def text(table):
+        return "[lidar]\n" + "".join(f"{k} = {_toml_value(v)}\n" for k, v in table.items())
+    if kind == "bad value":
+        bad = LIDAR_BAD[key][i % len(LIDAR_BAD[key])]
+        f.write_text(text({**LIDAR_BASE, key: bad}))
+        names = [key, "l.toml"]
+    elif kind == "unknown key":
+        f.write_text(text({**LIDAR_BASE, key: 1.0}))
+        names = [key, "l.toml"]
+    elif kind == "missing key":  # a key left out takes the paper's value (SPEC section 1)
+        f.write_text(text({k: v for k, v in LIDAR_BASE.items() if k != key}))
+        names = []
+    elif kind == "nan":
+        f.write_text(text(LIDAR_BASE).replace(f"{key} = {_toml_value(LIDAR_BASE[key])}",
+                                              f"{key} = nan"))
+        names = [key]
+    else:
+        f.write_bytes(key.encode("latin-1"))
+        names = ["l.toml"]
+    out = tmp / "c.npz"
+    rc, _, err = run(["simulate", *POSE, "-o", out, "--lidar", f], capsys)
+    if kind == "missing key":
+        assert rc == 0 and out.exists(), err
+        _record("lidar file", kind, "handled")
+        return
+    assert not out.exists()
+    clear_error("lidar file", kind, rc, err, *names)
