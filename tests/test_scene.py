@@ -496,8 +496,7 @@ def test_photons_over_a_crossing_label_each_signal_point_with_the_target_it_came
     assert (np.abs(c.range_m[sig] - 6250.0) < 500.0).all()
 
 
-def test_a_sequences_first_frame_with_photons_is_the_scan_of_the_scene(tmp_path,
-                                                                                  capsys):
+def test_a_sequences_first_frame_with_photons_is_the_scan_of_the_scene(tmp_path, capsys):
     doc = {**SEQUENCE, "sequence": {"frames": 2, "frame_rate_hz": 10.0}}
     scene = _write_scene(tmp_path / "s.toml", doc)
     opts = ["--sensor", "1064nm-night", "--seed", "5", "--supersample", "1"]
