@@ -255,3 +255,40 @@ def test_figure_16_sets_generated_beside_standard(trained, tmp_path):
         ("A320neo", 4500.0), ("A320neo", 9000.0), ("A320neo", 15000.0),
         ("Mavic 3", 150.0), ("Mavic 3", 350.0), ("Mavic 3", 550.0)]
     assert all(p["points_standard"] > 0 for p in data["panels"])
+
+
+@pytest.mark.parametrize("kind", ["shipped", "speckled"])
+def test_device_reader_equals_the_package_reader(monkeypatch, kind):
+    """nn.apcg_plus.read_clouds (the reader that runs where the sheets are, bench/
+    gpu_generate.py) returns the numpy reader's cells, ranges and points, in its order, on
+    the shipped model's sheets at random conditions of every type (near and far, drones), and
+    on speckled sheets; in groups of a few box cells (READ_CELLS) as in one."""
+    import torch
+
+    from apcg_core.families.apcg_plus import box_half_cells
+    from apcg_core.nn import apcg_plus as nn_plus
+    model = load_model(None)
+    rng = np.random.default_rng(7)
+    n = 96
+    table = model.space.decode(rng.uniform(-1, 1, (n, 6)))
+    table[:, 0] = rng.integers(0, len(model.types.names), n)
+    lo, hi = model.space.bounds(table)
+    table[:, 1] = rng.uniform(lo[:, 1], hi[:, 1])
+    table[:4, 1] = lo[:4, 1]  # the nearest: boxes larger than the window
+    sheets = model.sheets(table)
+    if kind == "speckled":
+        sheets = np.where(rng.random(sheets.shape) < 0.03, 5.0, -5.0).astype(np.float32)
+    want = model.clouds_of(table, sheets)
+    rad = model.radius[table[:, 0].astype(int)]
+    box = box_half_cells(table[:, 1], table[:, 2], rad, model.lidar)
+    assert len(want.range_m) > 1000
+    for group in (nn_plus.READ_CELLS, 5000):
+        monkeypatch.setattr(nn_plus, "READ_CELLS", group)
+        xyz, r, w, h, sample = (t.numpy() for t in nn_plus.read_clouds(
+            torch.from_numpy(sheets), table[:, 1], table[:, 2], rad, box, model.lidar,
+            model.tau, model.quantize))
+        np.testing.assert_array_equal(sample, want.sample)
+        np.testing.assert_array_equal(w, want.cell_w)
+        np.testing.assert_array_equal(h, want.cell_h)
+        np.testing.assert_allclose(r, want.range_m, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(xyz, want.xyz, rtol=0, atol=1e-6)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -120,4 +121,83 @@ class PlusNet(nn.Module):
         return self.head(x)
 
 
-__all__ = ["POSE_DIM", "PlusConfig", "PlusNet", "fourier_features"]
+# --- reading clouds off the sheets where the sheets are (a GPU): every box cell ----------------
+READ_CELLS = 2**25  # box cells read at once: bounds the reader's memory (~0.6 GB of float64)
+
+
+def read_clouds(sheets: torch.Tensor, range_m, elevation, radius_m, box, lidar, tau: float,
+                quantize: bool = True):
+    """The clouds of conditions (``range_m``, ``elevation``, ``radius_m``: numpy (N,); ``box``:
+    their box_half_cells) read off their ``sheets`` (N, 2, S, S) on the sheets' device, as
+    torch tensors (xyz (P, 3) and range (P,) float64; cell w, h and sample (P,) int64), in
+    PlusModel.clouds_of's order.
+
+    Every box cell (box_cells) is read as sample_sheets reads it (float64 bilinear, rows
+    then columns): the same returns as the numpy reader, which reads fewer cells but is bound
+    to the CPU; here the cells are read in place, so nothing but the points leaves the
+    device. The box and the cells' angles are the numpy reader's own (box_half_cells, the
+    lidar's cell centres), computed on the device in float64."""
+    dev = sheets.device
+    f64 = torch.float64
+    r0 = np.asarray(range_m, np.float64)
+    b0 = np.asarray(elevation, np.float64)
+    rad = np.asarray(radius_m, np.float64)
+    w_half, h_half = box
+    w_lo = np.maximum(-w_half, lidar.w_min)
+    w_hi = np.minimum(w_half, lidar.width // 2 - 1)
+    h_lo = np.maximum(-h_half, lidar.h_min)
+    h_hi = np.minimum(h_half, lidar.height // 2 - 1)
+    nw, nh = w_hi - w_lo + 1, h_hi - h_lo + 1
+    cells = nw * nh
+    s = sheets.shape[-1]
+    flat = sheets.reshape(sheets.shape[0], sheets.shape[1], s * s)
+    out = []
+    ends = np.cumsum(cells)
+    start = 0
+    while start < len(cells):  # conditions in groups of at most READ_CELLS box cells
+        base = ends[start - 1] if start else 0
+        stop = max(start + 1, int(np.searchsorted(ends, base + READ_CELLS, side="right")))
+        idx = slice(start, stop)
+        n = torch.as_tensor(cells[idx], device=dev)
+        first = torch.cumsum(n, 0) - n
+        sample = torch.repeat_interleave(torch.arange(start, stop, device=dev), n)
+        k = torch.arange(int(n.sum()), device=dev) - torch.repeat_interleave(first, n)
+        t = {name: torch.as_tensor(a, device=dev)
+             for name, a in (("r0", r0), ("b0", b0), ("rad", rad), ("w_lo", w_lo),
+                             ("h_lo", h_lo), ("nw", nw))}
+        nw_j = t["nw"][sample]
+        w = t["w_lo"][sample] + k % nw_j
+        h = t["h_lo"][sample] + torch.div(k, nw_j, rounding_mode="floor")
+        r0_j, b0_j, rad_j = t["r0"][sample], t["b0"][sample], t["rad"][sample]
+        u = r0_j * torch.cos(b0_j) * torch.tan(w.to(f64) * lidar.r_alpha) / rad_j
+        v = r0_j * torch.tan(h.to(f64) * lidar.r_beta) / rad_j
+        x = torch.clamp(((u + 1.0) * s - 1.0) / 2.0, 0.0, s - 1.0)
+        y = torch.clamp(((1.0 - v) * s - 1.0) / 2.0, 0.0, s - 1.0)
+        x0 = torch.clamp(torch.floor(x).long(), max=s - 2)
+        y0 = torch.clamp(torch.floor(y).long(), max=s - 2)
+        fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+
+        def at(yy, xx, sample=sample):
+            return flat[sample, :, yy * s + xx].to(f64)
+
+        read = ((at(y0, x0) * (1 - fy) + at(y0 + 1, x0) * fy) * (1 - fx)
+                + (at(y0, x0 + 1) * (1 - fy) + at(y0 + 1, x0 + 1) * fy) * fx)
+        keep = read[:, 0] > tau
+        sample, w, h = sample[keep], w[keep], h[keep]
+        r = r0_j[keep] + read[keep, 1] * rad_j[keep]
+        if quantize:
+            r = (torch.floor(r / lidar.r_r) + 0.5) * lidar.r_r
+        alpha = w.to(f64) * lidar.r_alpha
+        beta = h.to(f64) * lidar.r_beta + b0_j[keep]
+        cb = torch.cos(beta)
+        xyz = torch.stack([r * cb * torch.sin(alpha), r * torch.sin(beta),
+                           r * cb * torch.cos(alpha)], dim=-1)
+        out.append((xyz, r, w, h, sample))
+        start = stop
+    if not out:
+        z = torch.zeros(0, dtype=torch.long, device=dev)
+        return torch.zeros((0, 3), dtype=f64, device=dev), z.to(f64), z, z, z
+    return tuple(torch.cat([o[i] for o in out]) for i in range(5))
+
+
+__all__ = ["POSE_DIM", "PlusConfig", "PlusNet", "fourier_features", "read_clouds"]
