@@ -235,6 +235,12 @@ def register_scene(sub) -> None:
                        help="keep exact ranges instead of the time-bin centres")
         add_sensor_arguments(c)
         add_lidar_argument(c, "the scene file's [lidar] table, else the paper's")
+        c.add_argument("--generator", metavar="MODEL",
+                       help="draw every target whose [[target]] has no generator key with a "
+                            "model instead of the simulator: \"default\" (the shipped model) "
+                            "or a model directory; composited by range, nearest wins; a pose "
+                            "outside the model's condition space is simulated in that frame "
+                            "(docs/SCENES.md)")
     add_output(s, "-o", "--output", kind=FILE, suffixes=(".npz",), required=True,
                help="the cloud: .npz (xyz, range_m, cell_w, cell_h, instance, type, poses)")
     s.set_defaults(func=_run_scene_scan)
@@ -252,18 +258,22 @@ def register_scene(sub) -> None:
     q.set_defaults(func=_run_scene_sequence)
 
 
-def _scene_warnings(args) -> None:
-    from .scene import sequence_warnings
-    for w in sequence_warnings(args.scene, lidar_of(args)):
+def _scene_warnings(args, summary: dict) -> None:
+    from .scene import fallback_warning, sequence_warnings
+    for w in sequence_warnings(args.scene, lidar_of(args), args.generator):
+        print(f"apcg scene: warning: {w}", file=sys.stderr)
+    w = fallback_warning(summary.get("generator", {}))
+    if w:
         print(f"apcg scene: warning: {w}", file=sys.stderr)
 
 
 def _run_scene_scan(args) -> int:
     from .scene import scan_scene
     summary = scan_scene(args.scene, args.output, args.backend, args.supersample,
-                         not args.no_quantize, sensor_of(args), args.seed, lidar_of(args))
+                         not args.no_quantize, sensor_of(args), args.seed, lidar_of(args),
+                         args.generator)
     print(json.dumps(summary))
-    _scene_warnings(args)
+    _scene_warnings(args, summary)
     if any(summary["clipped"]):
         print("apcg scene: warning: a target reaches beyond the lidar's window; its cloud is "
               "cut at the window's edge", file=sys.stderr)
@@ -278,10 +288,10 @@ def _run_scene_sequence(args) -> int:
                                  not args.no_quantize, sensor_of(args), args.seed,
                                  lidar_of(args), workers=args.workers, engine=args.engine,
                                  address=args.address, connect_timeout_s=args.connect_timeout_s,
-                                 progress=not args.no_progress)
+                                 progress=not args.no_progress, generator=args.generator)
     except BuildInterrupted as stop:  # Ctrl-C among the frames: how far it got
         print(f"apcg scene: {stop}", file=sys.stderr)
         return 130
     print(json.dumps(summary))
-    _scene_warnings(args)
+    _scene_warnings(args, summary)
     return 0

@@ -11,6 +11,14 @@ targets wins (occlusion between aircraft); each point is labelled with its targe
 targets goes to the photon stage (``apcg_core.sensor``) as one window, gated around the
 pointing range, seeded by (seed, frame).
 
+A target may be **generated** instead (its ``generator``: a model, ``apcg_core.families``): for
+each group its pose at the group's time, relative to its own line of sight, is the model's
+condition; the model draws it at the centre of a window, and its cells are moved by the
+target's offset from the window's centre in whole cells (SPEC section 10), cut to the group's
+cells and composited with the other targets by range. A pose outside the model's condition
+space is simulated instead in that frame, and the frame says so (its ``generated`` array and
+``meta``).
+
 A sequence (:func:`build_sequence`) is one frame file per frame, written whole, by tasks that
 any of the dataset builder's engines runs (``engine.py``); killed and run again it finishes the
 same bytes. Its format and loader: ``apcg_core.scene.sequence``.
@@ -19,7 +27,7 @@ same bytes. Its format and loader: ``apcg_core.scene.sequence``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +46,7 @@ from apcg_core.scene.sequence import (
     read_frame,
 )
 from apcg_core.scene.spec import Scene, load_scene
+from apcg_core.scene.trajectory import Static
 
 from .rays import AngularBoxes, angular_boxes, bounding_radius, start_margin_m
 from .simulate import Simulator
@@ -57,6 +66,9 @@ class FrameScan:
     rotation: np.ndarray  # (T, 3, 3) body -> scene
     in_window: np.ndarray  # (T,) bool: some of its cells lie in the window
     clipped: np.ndarray  # (T,) bool: its box reaches beyond the window
+    # (T,) bool: drawn by its generator in this frame; None: the scene generates no target
+    generated: np.ndarray | None = None
+    fallback: dict = field(default_factory=dict)  # instance -> why its model could not draw it
 
     def points_of(self) -> np.ndarray:
         return np.bincount(self.instance, minlength=len(self.type_names) + 1)[1:].astype(
@@ -85,6 +97,7 @@ class SceneScanner:
         self.keys = [t.key if t.key is not None else ("type", t.type_index)
                      for t in scene.targets]
         self.radii = [bounding_radius(m.vertices) for m in self.meshes]
+        self.models = self._open_models()
         if sensor is not None:
             from apcg_core.sensor import reflectivity_of
             self.reflectivity = np.array([
@@ -93,6 +106,27 @@ class SceneScanner:
 
     def close(self) -> None:
         self.sim.close()
+
+    def _open_models(self) -> list:
+        """Each target's generator model (None: simulated), one per directory."""
+        from apcg_core.families import load_model
+        scene, opened, out = self.scene, {}, []
+        for t in scene.targets:
+            if t.generator is None:
+                out.append(None)
+                continue
+            if self.sensor is not None:
+                raise InputError(f"{t.source}: a generated target cannot feed the photon stage "
+                                 "(--sensor takes every sub-ray's hit and incidence, which a "
+                                 "model does not draw); accepted: no --sensor, or generator = "
+                                 "false for this target")
+            if t.generator not in opened:
+                model = load_model(t.generator)
+                if not model.ANY_LIDAR:  # draws at its training lidar only: refused elsewhere
+                    model.use_lidar(scene.lidar)
+                opened[t.generator] = model
+            out.append(opened[t.generator])
+        return out
 
     # --- geometry ------------------------------------------------------------------------------
     def _geometry(self, i: int, t0, per_frame: bool = False):
@@ -128,7 +162,8 @@ class SceneScanner:
         if per_frame:
             return keep.reshape(-1, len(g)).any(axis=1)
         return (table[keep], m[keep], c[keep], cut[keep], bool(keep.any()),
-                bool(boxes.clipped[keep].any()) if keep.any() else False)
+                bool(boxes.clipped[keep].any()) if keep.any() else False,
+                np.flatnonzero(keep) % len(g))
 
     # --- one frame -----------------------------------------------------------------------------
     def scan(self, frame: int) -> FrameScan:
@@ -136,16 +171,26 @@ class SceneScanner:
         t0 = float(scene.frame_times([frame])[0])
         n = len(scene.targets)
         in_window, clipped = np.zeros(n, bool), np.zeros(n, bool)
+        generated = np.array([mo is not None for mo in self.models])
+        fallback = {}
         parts = []
         for i in range(len(scene.targets)):
-            table, m, c, boxes, inside, cl = self._geometry(i, t0)
+            table, m, c, boxes, inside, cl, groups = self._geometry(i, t0)
             in_window[i], clipped[i] = inside, cl
             if not len(table):
                 continue
             key = self.keys[i]
+            if self.models[i] is not None:
+                drawn, why = self._generated(i, frame, t0, groups)
+                if drawn is not None:
+                    parts.append(drawn)
+                    continue
+                generated[i] = False
+                fallback[i + 1] = why
             if self.sensor is None:
                 s, w, h, r = self.sim.posed_cells(self.meshes[i], table, (m, c, boxes), key)
-                parts.append((np.full(len(w), i + 1, np.int32), w, h, r))
+                parts.append((np.full(len(w), i + 1, np.int32), w, h, r,
+                              np.ones(len(w), bool)))
             else:
                 hits, sub = self.sim.sub_ray_hits(self.meshes[i], table, key, (m, c, boxes),
                                                   sub_index=True)
@@ -159,19 +204,67 @@ class SceneScanner:
             cloud.xyz = turn(scene.pointing_azimuth, cloud.xyz)
         p, b = zip(*(t.poses(t0) for t in scene.targets), strict=True)
         return FrameScan(frame, t0, cloud, inst, [t.type_name for t in scene.targets],
-                         np.concatenate(p), np.concatenate(b), in_window, clipped)
+                         np.concatenate(p), np.concatenate(b), in_window, clipped,
+                         generated if any(mo is not None for mo in self.models) else None,
+                         fallback)
+
+    # --- a generated target --------------------------------------------------------------------
+    def _generated(self, i: int, frame: int, t0: float, groups: np.ndarray):
+        """Target i drawn by its model in the groups ``groups`` (those its box reaches):
+        ((instance, w, h, range, False) in the window's cells, None), or (None, why) when a
+        group's pose lies outside the model's condition space (it is simulated instead).
+
+        The model draws a target on its own line of sight, at the centre of a window (SPEC
+        section 10): the pose relative to that line of sight is the condition, and the cells
+        are then moved by the target's offset from the window's centre, rounded to whole
+        cells (at most half a cell of azimuth and of elevation off; none for a target at the
+        window's centre, `apcg generate`'s cloud). Its ranges are the model's (its own
+        quantization), not quantized again."""
+        scene, lidar, g = self.scene, self.scene.lidar, self.groups
+        target, model = scene.targets[i], self.models[i]
+        if isinstance(target.trajectory, Static):  # the pose as given, bit for bit
+            s = target.trajectory.start
+            ang = np.tile([s.range_m, s.azimuth, s.elevation, *s.attitude], (len(groups), 1))
+        else:
+            ang = angles_of_poses(*target.poses(t0 + g.time_s[groups]))
+        table = np.empty((len(groups), 6))
+        table[:, 0] = model.types.code(target.type_name)
+        table[:, 1:] = ang[:, [0, 2, 3, 4, 5]]
+        why = _outside_space(model.space, table)
+        if why is not None:
+            return None, why
+        turn_a = np.mod(ang[:, 1] - scene.pointing_azimuth + np.pi, 2 * np.pi) - np.pi
+        dw = np.rint(turn_a / lidar.r_alpha).astype(np.int64)
+        dh = np.rint((ang[:, 2] - scene.pointing_elevation) / lidar.r_beta).astype(np.int64)
+        if model.ANY_LIDAR:
+            # the target's own window, wide enough to reach every cell of the scene's from
+            # its offset (the same cells, read at the same coordinates, never clipped short)
+            model.use_lidar(replace(lidar,
+                                    width=2 * (lidar.width // 2 + int(np.abs(dw).max()) + 1),
+                                    height=2 * (lidar.height // 2 + int(np.abs(dh).max()) + 1)))
+        from apcg_core.typetable import Conditions
+        seed = int(np.random.SeedSequence([self.seed % 2**63, frame, i + 1]).generate_state(1)[0])
+        cloud = model.generate(Conditions(model.types, table), count=1, seed=seed).cloud
+        j = cloud.sample
+        w = cloud.cell_w.astype(np.int64) + dw[j]
+        h = cloud.cell_h.astype(np.int64) + dh[j]
+        k = groups[j]
+        keep = (w >= g.w_lo[k]) & (w <= g.w_hi[k]) & (h >= g.h_lo[k]) & (h <= g.h_hi[k])
+        n = int(keep.sum())
+        return (np.full(n, i + 1, np.int32), w[keep], h[keep],
+                np.asarray(cloud.range_m, np.float64)[keep], np.zeros(n, bool)), None
 
     def _ideal(self, parts):
         lidar, el = self.scene.lidar, self.scene.pointing_elevation
-        inst, w, h, r = _concat(parts, 4, (np.int32, np.int32, np.int32, np.float64))
+        inst, w, h, r, sim = _concat(parts, 5, (np.int32, np.int32, np.int32, np.float64, bool))
         # per cell the nearest surface of every target; a tie goes to the first target
         order = np.lexsort((inst, r, w, h))
-        inst, w, h, r = inst[order], w[order], h[order], r[order]
+        inst, w, h, r, sim = inst[order], w[order], h[order], r[order], sim[order]
         first = np.ones(len(w), bool)
         first[1:] = (w[1:] != w[:-1]) | (h[1:] != h[:-1])
-        inst, w, h, r = inst[first], w[first], h[first], r[first]
-        if self.sim.quantize:
-            r = lidar.quantize_range(r)
+        inst, w, h, r, sim = inst[first], w[first], h[first], r[first], sim[first]
+        if self.sim.quantize:  # a simulated range to its bin; a generated one is the model's
+            r = np.where(sim, lidar.quantize_range(r), r)
         alpha, beta = lidar.cell_centre_angles(w, h, el)
         return PointCloud(spherical_to_cartesian(alpha, beta, r), r, w, h,
                           np.zeros(len(w), np.int64)), inst
@@ -214,6 +307,23 @@ class SceneScanner:
         return cloud, label
 
 
+def _outside_space(space, table: np.ndarray) -> str | None:
+    """Why condition rows lie outside a model's condition space (the first value out), or
+    None (``ConditionSpace.check``'s bounds and slack)."""
+    from apcg_core.condition import FIELDS
+    lo, hi = space.bounds(table)
+    slack = 1e-12 * np.maximum(np.abs(lo), np.abs(hi))
+    out = (table < lo - slack) | (table > hi + slack)
+    if not out.any():
+        return None
+    row, col = np.argwhere(out)[0]
+    f = 1.0 if col == 1 else 1.0 / DEG
+    unit = " m" if col == 1 else " deg"
+    name = FIELDS[col] + ("" if col == 1 else "_deg")
+    return (f"{name} {table[row, col] * f:.4g}{unit} outside the model's "
+            f"{lo[row, col] * f:.4g} .. {hi[row, col] * f:.4g}{unit}")
+
+
 def _concat(parts, k, dtypes):
     if not parts:
         return tuple(np.zeros(0, d) for d in dtypes)
@@ -222,8 +332,10 @@ def _concat(parts, k, dtypes):
 
 
 # --- files -------------------------------------------------------------------------------------
-def scan_meta(scene: Scene, scanner: SceneScanner, frame: int) -> dict:
-    """What a frame file's ``meta`` says (the same for a scan and a sequence's frame)."""
+def scan_meta(scene: Scene, scanner: SceneScanner, frame: int, scan=None) -> dict:
+    """What a frame file's ``meta`` says (the same for a scan and a sequence's frame); with
+    generated targets, ``generator`` (track id -> the model, as the scene's record names it)
+    and ``fallback`` (track id -> why its model could not draw it in this frame)."""
     meta = {"format": FORMAT, "version": FORMAT_VERSION, "frame": int(frame),
             "scene_sha256": scene.digest(), "backend": scanner.sim.backend,
             "supersample": scanner.sim.supersample, "quantized": scanner.sim.quantize,
@@ -231,6 +343,11 @@ def scan_meta(scene: Scene, scanner: SceneScanner, frame: int) -> dict:
             "types": [t.type_name for t in scene.targets]}
     if scanner.sensor is not None:
         meta.update(sensor=scanner.sensor.to_dict(), seed=scanner.seed)
+    if any(m is not None for m in scanner.models):
+        meta["generator"] = {str(t.instance): scene.record["targets"][k]["generator"]
+                             for k, t in enumerate(scene.targets) if t.generator is not None}
+        meta["fallback"] = {str(k): v for k, v in sorted(scan.fallback.items())} \
+            if scan is not None else {}
     return meta
 
 
@@ -239,7 +356,8 @@ def frame_npz(scanner: SceneScanner, frame: int) -> tuple[bytes, FrameScan]:
     from apcg_core.io.dataset import npz_bytes
     scan = scanner.scan(frame)
     angles = angles_of_poses(scan.position, scan.rotation)
-    return npz_bytes(frame_arrays(scan, angles, scan_meta(scanner.scene, scanner, frame))), \
+    return npz_bytes(frame_arrays(scan, angles, scan_meta(scanner.scene, scanner, frame,
+                                                          scan))), \
         scan
 
 
@@ -309,10 +427,12 @@ def check_targets_seen(scanner: SceneScanner, frames, every_frame: bool) -> np.n
 
 
 def scan_scene(scene_path, output, backend: str = "embree", supersample: int | None = None,
-               quantize: bool = True, sensor=None, seed: int = 0, lidar=None) -> dict:
-    """`apcg scene scan`: the scene's first frame (its [sequence] start_s) to one NPZ file."""
+               quantize: bool = True, sensor=None, seed: int = 0, lidar=None,
+               generator: str | None = None) -> dict:
+    """`apcg scene scan`: the scene's first frame (its [sequence] start_s) to one NPZ file.
+    ``generator``: `--generator`, the model of every target that does not name its own."""
     from apcg_core.io.dataset import write_atomic
-    scene = load_scene(scene_path, lidar=lidar)
+    scene = load_scene(scene_path, lidar=lidar, generator=generator)
     k = supersample or (4 if sensor else 1)  # as `apcg simulate`: 4 rays a side feed a sensor
     scanner = SceneScanner(scene, backend, k, quantize, sensor, seed)
     try:
@@ -327,7 +447,48 @@ def scan_scene(scene_path, output, backend: str = "embree", supersample: int | N
     if sensor is not None:
         summary.update(signal=int((scan.cloud.label == 1).sum()),
                        noise=int((scan.cloud.label == 0).sum()))
+    if scan.generated is not None:
+        stats = generator_stats(scene.record, [(0, scan.generated, scan.in_window,
+                                                scan.fallback)])
+        summary["generator"] = stats
     return summary
+
+
+def generator_stats(record: dict, frames) -> dict:
+    """Per generated track, over ``frames`` ((frame, generated, in_window, fallback) each):
+    the model, the frames in the window its model drew and those it could not (simulated
+    instead: the fallback rule, SPEC section 10), with the first one's reason."""
+    out = {}
+    for f, generated, in_window, fallback in frames:
+        for k, entry in enumerate(record["targets"]):
+            if not entry.get("generator"):
+                continue
+            tid = str(k + 1)
+            row = out.setdefault(tid, {"type": entry["type"],
+                                       "model": entry["generator"]["model"],
+                                       "model_sha256": entry["generator"]["sha256"],
+                                       "generated_frames": 0, "fallback_frames": []})
+            if not in_window[k]:
+                continue
+            if generated[k]:
+                row["generated_frames"] += 1
+            else:
+                row["fallback_frames"].append(int(f))
+                why = fallback.get(tid, fallback.get(k + 1))
+                row.setdefault("first_fallback", f"frame {f}: {why}")
+    return out
+
+
+def fallback_warning(stats: dict) -> str | None:
+    """One line naming each generated target its model could not draw in some frames."""
+    bad = [(tid, row) for tid, row in stats.items() if row["fallback_frames"]]
+    if not bad:
+        return None
+    parts = [f"target {tid} ({row['type']}) in {len(row['fallback_frames'])} of "
+             f"{len(row['fallback_frames']) + row['generated_frames']} frames (first: "
+             f"{row['first_fallback']})" for tid, row in bad]
+    return ("the generator cannot draw every pose, so the simulator scanned "
+            + "; ".join(parts) + ' (recorded under "generator")')
 
 
 # --- sequences ---------------------------------------------------------------------------------
@@ -351,6 +512,7 @@ class SequenceTask:
     quantize: bool
     sensor: dict | None
     seed: int
+    generator: str | None = None  # --generator ("default" or an absolute model directory)
 
 
 _SCANNERS: dict = {}
@@ -359,13 +521,13 @@ _SCANNERS: dict = {}
 def _scanner(task: SequenceTask) -> SceneScanner:
     from apcg_core.lidar import LidarParams
     key = (task.scene_path, task.scene_sha256, str(task.lidar), task.backend, task.supersample,
-           task.quantize, str(task.sensor), task.seed)
+           task.quantize, str(task.sensor), task.seed, task.generator)
     if key not in _SCANNERS:
         for old in _SCANNERS.values():
             old.close()
         _SCANNERS.clear()
         lidar = LidarParams.from_dict(task.lidar) if task.lidar else None
-        scene = load_scene(task.scene_path, lidar=lidar)
+        scene = load_scene(task.scene_path, lidar=lidar, generator=task.generator)
         if scene.digest() != task.scene_sha256:
             raise InputError(f"{task.scene_path} (or a trajectory file it names) changed while "
                              "its sequence was being built; run the command again")
@@ -415,10 +577,11 @@ def sequence_header(scene: Scene, scanner: SceneScanner) -> dict:
 def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: int | None = None,
                    quantize: bool = True, sensor=None, seed: int = 0, lidar=None,
                    workers: int = 1, engine: str = "local", address: str | None = None,
-                   connect_timeout_s: float | None = None, progress: bool = True) -> dict:
+                   connect_timeout_s: float | None = None, progress: bool = True,
+                   generator: str | None = None) -> dict:
     """`apcg scene sequence`: every frame of the scene's [sequence] into ``out_dir``
     (``apcg_core.scene.sequence``'s format); resumes where a killed run stopped, the same
-    bytes whatever the engine and the number of workers."""
+    bytes whatever the engine and the number of workers. ``generator``: `--generator`."""
     from apcg_core.io.dataset import json_bytes, write_atomic
     from apcg_core.lock import ProcessLock
     from apcg_core.progress import Progress
@@ -427,7 +590,9 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
     from .build import BuildInterrupted, _remove_dead_parts
     from .engine import RunSettings, get_engine
     from .shards import part_suffix
-    scene = load_scene(scene_path, lidar=lidar)
+    scene = load_scene(scene_path, lidar=lidar, generator=generator)
+    if generator not in (None, "default"):  # every worker reads the same directory
+        generator = str(Path(generator).expanduser().resolve())
     k = supersample or (4 if sensor else 1)
     scanner = SceneScanner(scene, backend, k, quantize, sensor, seed)
     out = Path(out_dir)
@@ -459,7 +624,8 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
                               lidar.to_dict() if lidar is not None else None,
                               tuple(todo[i:i + FRAMES_PER_TASK]), str(out.resolve()), backend,
                               k, quantize, sensor.to_dict() if sensor is not None else None,
-                              int(seed)) for i in range(0, len(todo), FRAMES_PER_TASK)]
+                              int(seed), generator)
+                 for i in range(0, len(todo), FRAMES_PER_TASK)]
         bar = Progress(len(frames), "frame", progress, done=len(frames) - len(todo))
         t0 = time.perf_counter()
         try:
@@ -483,25 +649,44 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
         elapsed = time.perf_counter() - t0
         _remove_dead_parts(out / "frames")
         _remove_dead_parts(out)
-        finish_sequence(out, frames)
+        stats = finish_sequence(out, frames)
     finally:
         lock.release()
-    return {"directory": str(out), "frames": len(frames), "built_frames": len(todo),
-            "skipped_frames": len(frames) - len(todo), "seconds": round(elapsed, 3),
-            "complete": True}
+    summary = {"directory": str(out), "frames": len(frames), "built_frames": len(todo),
+               "skipped_frames": len(frames) - len(todo), "seconds": round(elapsed, 3),
+               "complete": True}
+    if stats is not None:
+        summary["generator"] = stats
+    return summary
 
 
-def finish_sequence(out: Path, frames) -> None:
-    """poses.csv from every frame file, then the manifest (last: the sequence is complete)."""
+def finish_sequence(out: Path, frames) -> dict | None:
+    """poses.csv from every frame file, then the manifest (last: the sequence is complete);
+    with generated targets the manifest's ``generator`` counts, per track, the frames its
+    model drew and those it could not (:func:`generator_stats`), which are returned."""
     from apcg_core.io.dataset import json_bytes, sha256_file, write_atomic
-    from apcg_core.scene.sequence import MANIFEST, POSES
+    from apcg_core.scene.sequence import HEADER, MANIFEST, POSES
 
     from .shards import part_suffix
-    write_atomic(out / POSES, poses_csv_bytes(read_frame(out / frame_file(f)) for f in frames),
+    seen = []
+
+    def read(f):
+        fr = read_frame(out / frame_file(f))
+        if fr.generated is not None:
+            seen.append((f, fr.generated, fr.in_window, fr.meta.get("fallback", {})))
+        return fr
+
+    write_atomic(out / POSES, poses_csv_bytes(read(f) for f in frames),
                  part_suffix=part_suffix())
     manifest = {"complete": True, "frames": [
         {"file": frame_file(f), "sha256": sha256_file(out / frame_file(f))} for f in frames]}
+    stats = None
+    if seen:
+        import json
+        record = json.loads((out / HEADER).read_text())["scene"]
+        stats = manifest["generator"] = generator_stats(record, seen)
     write_atomic(out / MANIFEST, json_bytes(manifest), part_suffix=part_suffix())
+    return stats
 
 
 def write_sequence(scanner: SceneScanner, out_dir, header_extra: dict | None = None,
@@ -528,6 +713,15 @@ def write_sequence(scanner: SceneScanner, out_dir, header_extra: dict | None = N
     return out
 
 
-def sequence_warnings(scene_path, lidar=None) -> list[str]:
+def sequence_warnings(scene_path, lidar=None, generator: str | None = None) -> list[str]:
+    """Trajectories beyond their types; a generator's model used at a lidar it was not
+    measured on."""
+    from apcg_core.families.base import ModelTypes
     from apcg_core.scene.spec import scene_warnings
-    return scene_warnings(load_scene(scene_path, lidar=lidar))
+    scene = load_scene(scene_path, lidar=lidar, generator=generator)
+    out = scene_warnings(scene)
+    for d in dict.fromkeys(t.generator for t in scene.targets if t.generator is not None):
+        w = ModelTypes(d).lidar_warning(scene.lidar)
+        if w:
+            out.append(w)
+    return out

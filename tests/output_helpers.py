@@ -43,6 +43,7 @@ NOT_OUTPUTS = {
     ("scene scan", "scene"): INPUT, ("scene scan", "sensor"): INPUT,
     ("scene sequence", "scene"): INPUT, ("scene sequence", "sensor"): INPUT,
     ("scene sequence", "engine"): VALUE, ("scene sequence", "address"): VALUE,
+    ("scene scan", "generator"): INPUT, ("scene sequence", "generator"): INPUT,
     # --lidar PRESET|FILE (apcg_core/lidar_options.py), a lidar file read, never written
     ("simulate", "lidar"): INPUT, ("generate", "lidar"): INPUT,
     ("dataset build", "lidar"): INPUT, ("evaluate", "lidar"): INPUT,

@@ -18,8 +18,9 @@ per target (T rows, track id i at row i - 1) ``track_id``, ``track_type``, ``pos
 (T, 3) and ``rotation`` (T, 3, 3) body -> scene (a body point p at position + rotation @ p;
 det -1, the scene frame being left-handed as numbers), ``pose`` (T, 6: range_m, azimuth_deg,
 elevation_deg, pitch_deg, yaw_deg, roll_deg, SPEC section 2's angles), ``points`` (its points
-in this frame), ``in_window`` and ``clipped``; and ``frame``, ``t_s`` (the frame's start) and
-``meta`` (JSON).
+in this frame), ``in_window`` and ``clipped`` (and, in a scene with a generated target,
+``generated``: drawn by its model in this frame, False where it is simulated); and ``frame``,
+``t_s`` (the frame's start) and ``meta`` (JSON).
 """
 
 from __future__ import annotations
@@ -67,7 +68,10 @@ def frame_arrays(scan, angles: np.ndarray, meta: dict) -> dict:
                track_type=np.array(scan.type_names), position=scan.position,
                rotation=scan.rotation, pose=pose, points=scan.points_of(),
                in_window=np.asarray(scan.in_window, bool),
-               clipped=np.asarray(scan.clipped, bool), frame=np.int64(scan.frame),
+               clipped=np.asarray(scan.clipped, bool))
+    if getattr(scan, "generated", None) is not None:
+        out["generated"] = np.asarray(scan.generated, bool)
+    out.update(frame=np.int64(scan.frame),
                t_s=np.float64(scan.t_s), meta=np.array(json.dumps(meta, sort_keys=True)))
     return out
 
@@ -95,6 +99,7 @@ class Frame:
     label: np.ndarray | None = None
     count: np.ndarray | None = None
     pulse: np.ndarray | None = None
+    generated: np.ndarray | None = None  # (T,): drawn by its model (a scene that generates)
     meta: dict | None = None
 
     def points_of(self, track_id: int) -> np.ndarray:
@@ -107,14 +112,14 @@ def read_frame(path) -> Frame:
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
-            need = [f for f in Frame.__dataclass_fields__
-                    if f not in ("label", "count", "pulse", "meta")]
+            optional = ("label", "count", "pulse", "generated")
+            need = [f for f in Frame.__dataclass_fields__ if f not in (*optional, "meta")]
             missing = [f for f in need if f not in z.files]
             if missing:
                 raise InputError(f"{path}: not a scene frame file (no {', '.join(missing)})")
             kw = {f: z[f] for f in need}
             kw["frame"], kw["t_s"] = int(kw["frame"]), float(kw["t_s"])
-            for f in ("label", "count", "pulse"):
+            for f in optional:
                 kw[f] = z[f] if f in z.files else None
             kw["meta"] = json.loads(str(z["meta"])) if "meta" in z.files else None
     except (OSError, ValueError) as exc:

@@ -21,6 +21,8 @@ elevation_deg = 3.5
 pitch_deg = 0.0              # defaults 0: SPEC section 2's zero attitude (nose at the lidar)
 yaw_deg = 0.0
 roll_deg = 0.0
+generator = "default"        # optional: its cells from a model (the shipped one, or a model
+                             #   directory, relative to this file); false: simulated
 [target.trajectory]          # optional: the target moves (trajectory.py's kinds)
 kind = "line"
 speed_mps = 250.0
@@ -53,7 +55,10 @@ TABLES = ("lidar", "pointing", "scan", "sequence", "target")
 POINTING_KEYS = ("azimuth_deg", "elevation_deg", "range_m")
 SEQUENCE_KEYS = ("frames", "frame_rate_hz", "start_s")
 TARGET_KEYS = ("type", "range_m", "azimuth_deg", "elevation_deg", "pitch_deg", "yaw_deg",
-               "roll_deg", "trajectory")
+               "roll_deg", "trajectory", "generator")
+# a [[target]]'s `generator` (and `apcg scene --generator`): what is accepted
+GENERATOR_ACCEPTED = ('"default" (the shipped model), a model directory (a path; in a scene '
+                      'file relative to it) or false (simulated)')
 # Most targets a scene may hold: beyond this a scene is a dataset, not a picture.
 MAX_TARGETS = 64
 # Most frames a sequence may hold (a frame file each): an hour at 30 Hz.
@@ -73,6 +78,9 @@ class SceneTarget:
     mesh: object = None
     reflectivity: float | None = None
     key: object = None
+    # the model that draws this target instead of the simulator (SPEC section 10): its
+    # directory; None: simulated
+    generator: Path | None = None
 
     def poses(self, t):
         return self.trajectory.poses(np.atleast_1d(np.asarray(t, np.float64)))
@@ -128,9 +136,11 @@ def _keys(table, accepted, where: str) -> dict:
     return table
 
 
-def load_scene(path, catalog=None, lidar: LidarParams | None = None) -> Scene:
+def load_scene(path, catalog=None, lidar: LidarParams | None = None,
+               generator: str | None = None) -> Scene:
     """Read and check the scene file ``path``. ``lidar`` (a command's lidar option) overrides
-    the file's ``[lidar]`` table."""
+    the file's ``[lidar]`` table; ``generator`` (a command's ``--generator``: "default" or a
+    model directory) draws every target whose table has no ``generator`` key."""
     path = Path(path)
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
@@ -140,11 +150,12 @@ def load_scene(path, catalog=None, lidar: LidarParams | None = None) -> Scene:
         raise InputError(f"{path}: not a readable TOML file ({exc})") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot be read ({exc.strerror})") from None
-    return scene_from_dict(doc, str(path), path.parent, catalog, lidar)
+    return scene_from_dict(doc, str(path), path.parent, catalog, lidar, generator)
 
 
 def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = None,
-                    catalog=None, lidar: LidarParams | None = None) -> Scene:
+                    catalog=None, lidar: LidarParams | None = None,
+                    generator: str | None = None) -> Scene:
     if catalog is None:
         from ..catalog.catalog import default_catalog
         catalog = default_catalog()
@@ -183,9 +194,24 @@ def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = No
               "targets": []}
     times = start_s + np.arange(frames) / rate
     scan_t = (times[:, None] + pattern.groups(lidar).time_s[None, :]).ravel()
+    models: dict = {}  # a model directory's types, read once
+    if generator is not None:
+        given = _generator_value(generator, "--generator", models, Path.cwd(), absolute=True)
     targets = []
     for i, t in enumerate(targets_doc, start=1):
-        targets.append(_target(t, i, source, base_dir, catalog, scan_t, record))
+        target = _target(t, i, source, base_dir, catalog, scan_t, record)
+        entry = record["targets"][-1]
+        if "generator" in t:
+            value = _generator_value(t["generator"], f"{target.source}: generator", models,
+                                     base_dir or Path.cwd())
+        else:
+            value = given if generator is not None else None
+        if value is not None:
+            entry["generator"] = value[0]
+            target.generator = value[1]
+            if value[1] is not None:
+                _check_model_type(target, models[value[1]][0])
+        targets.append(target)
     az0, el0 = default_pointing(targets, float(times[0]))
     pt = _keys(doc.get("pointing", {}), POINTING_KEYS, f"{source} [pointing]")
     az = _get(pt, "azimuth_deg", f"{source} [pointing]", -360, 360,
@@ -202,6 +228,49 @@ def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = No
     record["pointing"] = {"azimuth_deg": az / DEG, "elevation_deg": el / DEG,
                           "range_m": gate}
     return Scene(lidar, targets, pattern, az, el, gate, frames, rate, start_s, record, source)
+
+
+def _generator_value(v, where: str, models: dict, base: Path, absolute: bool = False):
+    """A ``generator`` value: (what the scene's record keeps, the model directory or None).
+    The record names the model as given ("default", or the path; from the command line made
+    absolute, so that every worker reads the same one) with the sha256 of its files, so that
+    a sequence made with another model is not resumed with this one."""
+    if v is False:
+        return False, None
+    if not isinstance(v, str) or not v.strip():
+        raise InputError(f"{where} = {v!r} is not accepted: {GENERATOR_ACCEPTED}")
+    from ..families.base import ModelTypes, default_model_dir
+    name = v.strip()
+    if name == "default":
+        d = default_model_dir().resolve()
+    else:
+        d = Path(name).expanduser()
+        d = (d if d.is_absolute() else base / d).resolve()
+        if absolute:
+            name = str(d)
+    if d not in models:
+        try:
+            models[d] = ModelTypes(d), _model_digest(d)
+        except InputError as exc:
+            raise InputError(f"{where} = {v!r}: {exc}; accepted: {GENERATOR_ACCEPTED}") from None
+    return {"model": name, "sha256": models[d][1]}, d
+
+
+def _model_digest(d: Path) -> str:
+    """sha256 over a model directory's files (names and contents, top level, sorted)."""
+    h = hashlib.sha256()
+    for f in sorted(p for p in d.iterdir() if p.is_file()):
+        h.update(f.name.encode() + b"\0")
+        h.update(hashlib.sha256(f.read_bytes()).digest())
+    return h.hexdigest()
+
+
+def _check_model_type(target: SceneTarget, model) -> None:
+    try:
+        model.types.code(target.type_name)
+    except InputError as exc:
+        raise InputError(f"{target.source}: generator: {exc} (or generator = false: "
+                         "simulated)") from None
 
 
 def default_pointing(targets, t0: float) -> tuple[float, float]:
@@ -230,7 +299,7 @@ def _target(t, i: int, source: str, base_dir, catalog, scan_t, record) -> SceneT
     traj = t.get("trajectory")
     csv = isinstance(traj, dict) and traj.get("kind") == "csv"
     if csv:
-        given = [k for k in TARGET_KEYS[1:-1] if k in t]
+        given = [k for k in TARGET_KEYS[1:7] if k in t]
         if given:
             raise InputError(f"{where}: {', '.join(given)} come from its trajectory CSV file; "
                              "leave them out of the [[target]] table")
