@@ -244,15 +244,32 @@ class SceneScanner:
                                     height=2 * (lidar.height // 2 + int(np.abs(dh).max()) + 1)))
         from apcg_core.typetable import Conditions
         seed = int(np.random.SeedSequence([self.seed % 2**63, frame, i + 1]).generate_state(1)[0])
-        cloud = model.generate(Conditions(model.types, table), count=1, seed=seed).cloud
-        j = cloud.sample
-        w = cloud.cell_w.astype(np.int64) + dw[j]
-        h = cloud.cell_h.astype(np.int64) + dh[j]
-        k = groups[j]
+        # groups that see the target in the same pose (a static target, a flash) share one
+        # drawing: each distinct (condition, offset) is generated once, in first-seen order
+        key = np.column_stack([table, dw, dh])
+        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        order = np.argsort(first)
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        inverse = rank[np.ravel(inverse)]
+        cloud = model.generate(Conditions(model.types, table[first[order]]), count=1,
+                               seed=seed).cloud
+        drawn = np.argsort(cloud.sample, kind="stable")  # each drawing's cells together
+        c_w, c_h, c_r = (np.asarray(a)[drawn] for a in (cloud.cell_w, cloud.cell_h,
+                                                         cloud.range_m))
+        # every group's cells: its drawing's cells, moved by the offset, cut to the group
+        per = np.bincount(cloud.sample, minlength=len(order))
+        starts = np.concatenate([[0], np.cumsum(per)[:-1]])
+        pos = np.repeat(np.arange(len(groups)), per[inverse])  # group position of each cell
+        idx = np.arange(len(pos)) - np.repeat(np.cumsum(per[inverse]) - per[inverse],
+                                              per[inverse]) + starts[inverse][pos]
+        w = c_w.astype(np.int64)[idx] + dw[pos]
+        h = c_h.astype(np.int64)[idx] + dh[pos]
+        k = groups[pos]
         keep = (w >= g.w_lo[k]) & (w <= g.w_hi[k]) & (h >= g.h_lo[k]) & (h <= g.h_hi[k])
         n = int(keep.sum())
         return (np.full(n, i + 1, np.int32), w[keep], h[keep],
-                np.asarray(cloud.range_m, np.float64)[keep], np.zeros(n, bool)), None
+                c_r.astype(np.float64)[idx][keep], np.zeros(n, bool)), None
 
     def _ideal(self, parts):
         lidar, el = self.scene.lidar, self.scene.pointing_elevation

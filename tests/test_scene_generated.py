@@ -91,6 +91,56 @@ def test_an_off_centre_generated_target_is_its_own_line_of_sight_cloud_moved_by_
     assert np.abs(alpha - c.cell_w * 0.004 * DEG).max() < 1e-9
 
 
+def test_a_static_generated_target_is_the_same_under_any_scan_pattern():
+    """Every row (or column) group of a still target has the same pose: one drawing, each
+    group cut from it, the flash's cells."""
+    still = {"pointing": {"azimuth_deg": 0.0, "elevation_deg": 3.5},
+             "target": [{"type": "A320neo", **POSE, "azimuth_deg": 0.03,
+                         "generator": "default"}]}
+    flash = _scan(still)
+    assert len(flash.cloud) > 200
+    for pattern in ({"pattern": "rows", "line_time_s": 1e-3},
+                    {"pattern": "columns", "line_time_s": 1e-4}):
+        assert _cells(_scan({**still, "scan": pattern})) == _cells(flash)
+
+
+def test_a_moving_generated_target_is_drawn_row_by_row_where_it_was_when_each_row_fired():
+    """Rows 1 ms apart: each row's cells are the model's drawing of the target at the pose it
+    had when that row fired (its offset in whole cells), so the generated cloud carries the
+    motion distortion as the simulated one does."""
+    from apcg_core.scene.poses import angles_of_poses
+    from dataset_builder.scene import SceneScanner
+    doc = {"pointing": {"azimuth_deg": 0.0, "elevation_deg": 3.5},
+           "scan": {"pattern": "rows", "line_time_s": 1e-3},
+           "target": [{"type": "A320neo", "range_m": 5000.0, "azimuth_deg": -0.05,
+                       "elevation_deg": 3.5, "generator": "default",
+                       "trajectory": {"kind": "line", "speed_mps": 150.0,
+                                      "heading_deg": 150.0, "climb_deg": 3.0}}]}
+    from apcg_core.scene import scene_from_dict
+    sc = SceneScanner(scene_from_dict(doc))
+    try:
+        scan = sc.scan(0)
+        g, target = sc.groups, sc.scene.targets[0]
+    finally:
+        sc.close()
+    model = load_model()
+    got = _cells(scan)
+    rows = sorted({h for _, h in got})
+    assert len(rows) > 10
+    shifts = []
+    for h in rows:
+        row = int(np.flatnonzero((g.h_lo <= h) & (g.h_hi >= h))[0])
+        ang = angles_of_poses(*target.poses(g.time_s[row]))[0]
+        own = model.generate(model.condition("A320neo", ang[0], ang[2], *ang[3:])).cloud
+        dw = int(np.rint(ang[1] / (0.004 * DEG)))
+        dh = int(np.rint((ang[2] - 3.5 * DEG) / (0.0076 * DEG)))
+        want = {(int(w) + dw, int(hh) + dh): float(r) for w, hh, r in
+                zip(own.cell_w, own.cell_h, own.range_m, strict=True) if int(hh) + dh == h}
+        assert {k: v for k, v in got.items() if k[1] == h} == want, h
+        shifts.append(dw)
+    assert len(set(shifts)) > 1  # the target moved by whole cells while the rows fired
+
+
 # --- nearest wins ------------------------------------------------------------------------------
 CROSSING = {
     "pointing": {"azimuth_deg": 0.0, "elevation_deg": 3.5},
