@@ -43,11 +43,13 @@ NOT_OUTPUTS = {
     ("scene scan", "scene"): INPUT, ("scene scan", "sensor"): INPUT,
     ("scene sequence", "scene"): INPUT, ("scene sequence", "sensor"): INPUT,
     ("scene sequence", "engine"): VALUE, ("scene sequence", "address"): VALUE,
+    ("generate", "engine"): VALUE, ("generate", "address"): VALUE,
     ("scene scan", "generator"): INPUT, ("scene sequence", "generator"): INPUT,
     # --lidar PRESET|FILE (apcg_core/lidar_options.py), a lidar file read, never written
     ("simulate", "lidar"): INPUT, ("generate", "lidar"): INPUT,
     ("dataset build", "lidar"): INPUT, ("evaluate", "lidar"): INPUT,
     ("compare", "lidar"): INPUT, ("teach", "lidar"): INPUT, ("figure", "lidar"): INPUT,
+    ("scene scan", "lidar"): INPUT, ("scene sequence", "lidar"): INPUT,
     ("train", "data"): INPUT,
     ("benchmark recognize", "source"): INPUT, ("benchmark recognize", "types"): VALUE,
     ("benchmark recognize", "sensor"): INPUT, ("benchmark recognize", "lidar"): INPUT,
