@@ -16,6 +16,7 @@ at 100-600 m), the same for every row. Each round times, per type batch:
 
 Figures: the median over rounds of each, and the ratios stage / ideal_k4 (what the stage adds)
 and (hits_k4 + stage) / ideal_k4 (the whole photon cloud against the ideal one at K = 4).
+Times are CPU seconds of the process by default (`--clock wall` for wall clock).
 """
 
 from __future__ import annotations
@@ -34,6 +35,10 @@ from apcg_core.catalog.catalog import default_catalog  # noqa: E402
 from apcg_core.depth import DEFAULT_LIDAR  # noqa: E402
 from apcg_core.sensor import load_sensor, photon_cloud, reflectivity_of  # noqa: E402
 from dataset_builder.simulate import Simulator  # noqa: E402
+
+# CPU seconds of this process (every thread): on a shared machine the ratios of CPU time hold
+# where wall-clock ratios drift with the load; --clock wall for wall-clock seconds
+CLOCK = time.process_time
 
 TYPES = ["A320neo", "777-300ER", "F-16C Fighting Falcon", "UH-60 Black Hawk",
          "Matrice 300 RTK", "Mavic 3"]
@@ -62,17 +67,17 @@ def one_round(catalog, conds: dict, sensors: dict, sims: dict) -> dict:
         mesh = catalog.mesh(t)
         key = ("type", t.index)
         for label, sim in (("ideal_k1", sims[1]), ("ideal_k4", sims[4])):
-            t0 = time.perf_counter()
+            t0 = CLOCK()
             sim.simulate_cells(mesh, table, key)
-            times[label] += time.perf_counter() - t0
-        t0 = time.perf_counter()
+            times[label] += CLOCK() - t0
+        t0 = CLOCK()
         hits = sims[4].sub_ray_hits(mesh, table, key)
-        times["hits_k4"] += time.perf_counter() - t0
+        times["hits_k4"] += CLOCK() - t0
         rho = np.full(len(table), reflectivity_of(t))
         for s, sensor in sensors.items():
-            t0 = time.perf_counter()
+            t0 = CLOCK()
             pc = photon_cloud(hits, table[:, 1], rho, sensor, DEFAULT_LIDAR, seed=1)
-            times[f"stage[{s}]"] += time.perf_counter() - t0
+            times[f"stage[{s}]"] += CLOCK() - t0
             points[s] += len(pc.range_m)
     return {"seconds": times, "points": points}
 
@@ -84,8 +89,12 @@ def main() -> int:
     ap.add_argument("--samples-per-type", type=int, default=40)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--sensors", default="1550nm-day,1550nm-night")
+    ap.add_argument("--clock", choices=("cpu", "wall"), default="cpu",
+                    help="what is timed: this process's CPU seconds (default) or wall clock")
     ap.add_argument("--json", help="write the result here too")
     args = ap.parse_args()
+    global CLOCK
+    CLOCK = time.process_time if args.clock == "cpu" else time.perf_counter
     catalog = default_catalog()
     conds = conditions(catalog, args.samples_per_type)
     sensors = {s: load_sensor(s) for s in args.sensors.split(",")}
@@ -103,7 +112,7 @@ def main() -> int:
                                                                          / ideal)), 3)}
     n = args.samples_per_type * len(TYPES)
     emit({"command": "python bench/photons.py " + " ".join(sys.argv[1:]),
-          "machine": {"cpus": os.cpu_count()}, "samples": n, "types": TYPES,
+          "machine": {"cpus": os.cpu_count()}, "clock": args.clock, "samples": n, "types": TYPES,
           "rounds": args.rounds, "median_seconds": {k: round(v, 4) for k, v in med.items()},
           "ms_per_sample": {k: round(1e3 * v / n, 3) for k, v in med.items()},
           "ratios": ratios, "points_per_sample": {s: round(rounds[0]["points"][s] / n, 1)

@@ -218,8 +218,9 @@ def test_the_kernels_hold_no_fused_multiply_add(monkeypatch, hits):
     k = kernels.require()
     fused = re.compile(r"\b(v?fn?m(add|sub)\w*|fml[as]\w*)\b", re.IGNORECASE)
     code = {}
-    for name in ("spread_sum", "pieces", "binomial_walk", "bisect_right", "chain_prepare",
-                 "chain_finish", "uniforms"):
+    for name in ("spread_sum", "pieces", "binomial_walk", "place_fired", "chain_prepare",
+                 "chain_finish", "uniforms", "masked_uniforms", "top", "histogram_top",
+                 "merge_top"):
         f = getattr(k, name)
         assert f.signatures, name
         options = {o: v for o, v in f.targetoptions.items() if o != "nopython"}

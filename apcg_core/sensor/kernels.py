@@ -4,7 +4,8 @@ The batched points path (``stage.signal_bins``, ``points._loud_peaks``) spends i
 few loops that numpy runs as many passes over large arrays: spreading every sub-ray's return
 over the bins its Gaussian reaches and adding them up per (cell, bin), the sums of a cell's
 earlier pieces, the walk of the binomial sampler's inverse CDF and the bisection that places
-each fired pulse in its cell's pieces. Here each is one pass. Every float64 operation is the
+each fired pulse in its cell's pieces, and the histograms and peaks of a cell's bins. Here
+each is one pass. Every float64 operation is the
 numpy code's, operand for operand and in the same order: products, quotients and sums of two
 operands only, each rounded (numba contracts nothing into a fused multiply-add without
 ``fastmath``, which is never set here), and every exp, log, expm1 or log1p stays in numpy,
@@ -188,23 +189,6 @@ def _compile() -> _Kernels:
             cdf[i] = c
 
     @jit
-    def bisect_right(keys, lo, hi, x):
-        """detector._bisect(right=True): per query, searchsorted(keys[lo:hi], x, 'right') + lo."""
-        out = np.empty(lo.shape[0], np.int64)
-        for q in range(lo.shape[0]):
-            a = lo[q]
-            b = hi[q]
-            v = x[q]
-            while a < b:
-                mid = (a + b) // 2
-                if keys[mid] <= v:
-                    a = mid + 1
-                else:
-                    b = mid
-            out[q] = a
-        return out
-
-    @jit
     def chain_prepare(j, active, heads, counts, remaining, q, log1pq):
         """Position j of points._loud_peaks' chain, up to the exp: for each active cell with
         pulses left and a piece at position j, the piece, the sampler's start and (n - start)
@@ -239,9 +223,10 @@ def _compile() -> _Kernels:
         return idx[:m], start[:m], log_pk[:m]
 
     @jit
-    def chain_finish(idx, start, pk, cell_of_piece, remaining, ratio, flip, u, fired):
-        """The rest of position j: each piece's binomial walk (draws.binomial_inverse's), its
-        count of fired pulses, and its cell's pulses left."""
+    def chain_finish(idx, start, pk, cell_of_piece, remaining, q, flip, u, fired):
+        """The rest of position j: each piece's binomial walk (draws.binomial_inverse's, its
+        ratio q / (1 - q) one rounded quotient as there), its count of fired pulses, and its
+        cell's pulses left."""
         for a in range(idx.shape[0]):
             piece = idx[a]
             c = cell_of_piece[piece]
@@ -251,7 +236,7 @@ def _compile() -> _Kernels:
                 kk = start[a]
                 p = pk[a]
                 cdf = p
-                r = ratio[piece]
+                r = q[piece] / (1.0 - q[piece])
                 uu = u[piece]
                 while uu > cdf and kk < left:
                     kk += 1
@@ -363,6 +348,164 @@ def _compile() -> _Kernels:
             out[i] = (np.float64(x >> np.uint64(11)) + 0.5) * 1.1102230246251565e-16
         return out
 
-    return _Kernels(pieces=pieces, uniforms=uniforms, spread_sum=spread_sum,
-                    sum_before=sum_before, binomial_walk=binomial_walk, bisect_right=bisect_right,
+    @jit
+    def masked_uniforms(key, ids, sample, mask):
+        """Where ``mask``: uniforms(key, ids, sample[mask], index_within(sample[mask])) (sample
+        sorted), 0.0 elsewhere: the masked elements numbered within their sample in order."""
+        golden = np.uint64(0x9E3779B97F4A7C15)
+        m1 = np.uint64(0xBF58476D1CE4E5B9)
+        m2 = np.uint64(0x94D049BB133111EB)
+        n = sample.shape[0]
+        out = np.zeros(n)
+        at = 0
+        last = -1
+        a = np.uint64(0)
+        for i in range(n):
+            if not mask[i]:
+                continue
+            s = sample[i]
+            if s != last:
+                last = s
+                at = 0
+                a = key ^ (np.uint64(ids[s]) * golden)
+                a = (a ^ (a >> np.uint64(30))) * m1
+                a = (a ^ (a >> np.uint64(27))) * m2
+                a = a ^ (a >> np.uint64(31))
+            x = a + (np.uint64(at) + np.uint64(1)) * golden
+            x = (x ^ (x >> np.uint64(30))) * m1
+            x = (x ^ (x >> np.uint64(27))) * m2
+            x = x ^ (x >> np.uint64(31))
+            out[i] = (np.float64(x >> np.uint64(11)) + 0.5) * 1.1102230246251565e-16
+            at += 1
+        return out
+
+    @jit
+    def place_fired(p_first, cells, heads, counts, n_events, target, fired):
+        """points._loud_peaks' "by draws" route for the cells ``cells`` (ascending): their
+        pieces' P(first event) ``p_first`` (the cells' runs, in order), summed up within each
+        cell as sum_before(p_first) + p_first sums them (each sum the previous sum plus one
+        term), and each of the cell's ``n_events[c]`` targets (in that order) placed at
+        min(searchsorted(upto, target, 'right'), pieces - 1), counted into ``fired``."""
+        upto = np.empty(p_first.shape[0])
+        at = 0
+        e = 0
+        for i in range(cells.shape[0]):
+            c = cells[i]
+            m = counts[c]
+            run = 0.0
+            for k in range(m):
+                if k == 0:
+                    run = 0.0 + p_first[at]
+                else:
+                    run = upto[at - 1] + p_first[at]
+                upto[at] = run
+                at += 1
+            first = at - m
+            for _ in range(n_events[c]):
+                v = target[e]
+                e += 1
+                a = first
+                b = at
+                while a < b:
+                    mid = (a + b) // 2
+                    if upto[mid] <= v:
+                        a = mid + 1
+                    else:
+                        b = mid
+                if a > at - 1:
+                    a = at - 1
+                fired[heads[c] + a - first] += 1
+
+    @jit
+    def top(cell, b, count, sig, n_bins):
+        """points._top: per run of equal ``cell`` (sorted; a (cell, bin) at most once), the
+        entry of the highest count * (n_bins + 1) + n_bins - bin: the most counts, then the
+        nearest bin. Returns the chosen entries' (cell, bin, count, signal count)."""
+        n = cell.shape[0]
+        oc = np.empty(n, np.int64)
+        ob = np.empty(n, np.int64)
+        on = np.empty(n, np.int64)
+        os_ = np.empty(n, np.int64)
+        m = 0
+        i = 0
+        while i < n:
+            best = i
+            best_score = np.int64(count[i]) * (n_bins + 1) + (n_bins - b[i])
+            j = i + 1
+            while j < n and cell[j] == cell[i]:
+                score = np.int64(count[j]) * (n_bins + 1) + (n_bins - b[j])
+                if score > best_score:
+                    best, best_score = j, score
+                j += 1
+            oc[m], ob[m], on[m], os_[m] = cell[best], b[best], count[best], sig[best]
+            m += 1
+            i = j
+        return oc[:m], ob[:m], on[:m], os_[:m]
+
+    @jit
+    def histogram_top(cell, b, n_bins):
+        """points._histogram: the counts of events per (cell, bin) (``cell`` sorted, bins in
+        any order), reduced to each cell's peak as points._top reduces them (the most
+        counts, then the nearest bin); signal counts 0."""
+        n = cell.shape[0]
+        oc = np.empty(n, np.int64)
+        ob = np.empty(n, np.int64)
+        on = np.empty(n, np.int64)
+        hist = np.zeros(n_bins, np.int64)
+        m = 0
+        i = 0
+        while i < n:
+            j = i
+            while j < n and cell[j] == cell[i]:
+                hist[b[j]] += 1
+                j += 1
+            best_b = -1
+            best_n = 0
+            for k in range(i, j):  # each bin's count is final: the peak, then clear
+                bk = b[k]
+                h = hist[bk]
+                if h > best_n or (h == best_n and h > 0 and bk < best_b):
+                    best_n, best_b = h, bk
+            for k in range(i, j):
+                hist[b[k]] = 0
+            oc[m], ob[m], on[m] = cell[i], best_b, best_n
+            m += 1
+            i = j
+        return oc[:m], ob[:m], on[:m], np.zeros(m, np.int64)
+
+    @jit
+    def merge_top(c1, b1, n1, s1, c2, b2, n2, s2, n_bins):
+        """points._top of two peak lists (each sorted by cell, one entry a cell, no bin in
+        both) concatenated and stably sorted by cell: per cell, the better of its entries."""
+        n = c1.shape[0] + c2.shape[0]
+        oc = np.empty(n, np.int64)
+        ob = np.empty(n, np.int64)
+        on = np.empty(n, np.int64)
+        os_ = np.empty(n, np.int64)
+        i = 0
+        j = 0
+        m = 0
+        while i < c1.shape[0] or j < c2.shape[0]:
+            if j >= c2.shape[0] or (i < c1.shape[0] and c1[i] < c2[j]):
+                oc[m], ob[m], on[m], os_[m] = c1[i], b1[i], n1[i], s1[i]
+                i += 1
+            elif i >= c1.shape[0] or c2[j] < c1[i]:
+                oc[m], ob[m], on[m], os_[m] = c2[j], b2[j], n2[j], s2[j]
+                j += 1
+            else:
+                first = np.int64(n1[i]) * (n_bins + 1) + (n_bins - b1[i])
+                second = np.int64(n2[j]) * (n_bins + 1) + (n_bins - b2[j])
+                if second > first:
+                    oc[m], ob[m], on[m], os_[m] = c2[j], b2[j], n2[j], s2[j]
+                else:
+                    oc[m], ob[m], on[m], os_[m] = c1[i], b1[i], n1[i], s1[i]
+                i += 1
+                j += 1
+            m += 1
+        return oc[:m], ob[:m], on[:m], os_[:m]
+
+    return _Kernels(place_fired=place_fired, masked_uniforms=masked_uniforms, top=top,
+                    histogram_top=histogram_top, merge_top=merge_top, pieces=pieces,
+                    uniforms=uniforms, spread_sum=spread_sum, sum_before=sum_before,
+                    binomial_walk=binomial_walk,
                     chain_prepare=chain_prepare, chain_finish=chain_finish)

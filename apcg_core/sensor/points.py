@@ -99,11 +99,10 @@ def _chain_compiled(k_, chain, em, rest, heads, counts, cell_of_piece, remaining
     flip = np.zeros(n, bool)
     flip[at] = p > 0.5
     qa = np.where(flip[at], 1.0 - p, p)
-    q, log1pq, ratio = np.zeros(n), np.zeros(n), np.zeros(n)
+    q, log1pq = np.zeros(n), np.zeros(n)
     q[at] = qa
     good = qa > 0
     log1pq[at[good]] = np.log1p(-qa[good])
-    ratio[at[good]] = qa[good] / (1.0 - qa[good])
     active = np.flatnonzero(remaining > 0)
     j = 0
     while len(active):
@@ -114,7 +113,7 @@ def _chain_compiled(k_, chain, em, rest, heads, counts, cell_of_piece, remaining
             log_pk[big] = s * np.log(q[idx[big]]) + log_pk[big]
             log_pk[big] += (draws._lgamma(m + 1) - draws._lgamma(s + 1)
                             - draws._lgamma(m - s + 1)).astype(float)
-        k_.chain_finish(idx, start, np.exp(log_pk), cell_of_piece, remaining, ratio, flip, u,
+        k_.chain_finish(idx, start, np.exp(log_pk), cell_of_piece, remaining, q, flip, u,
                         fired)
         j += 1
         active = active[(remaining[active] > 0) & (counts[active] > j)]
@@ -224,7 +223,14 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
     em = -np.expm1(-p_mean)  # 1 - exp(-mu): P(a pulse has an arrival in the piece)
     # -- by draws: inverse CDF over each cell's pieces, by bisection within the cell's run
     cells_d = np.flatnonzero(by_draws & (fired_cell > 0))
-    if len(cells_d):
+    if len(cells_d) and k_ is not None:  # the same, on these cells' pieces only
+        run = counts[cells_d]
+        idx = np.arange(int(run.sum())) + np.repeat(heads[cells_d] - (np.cumsum(run) - run), run)
+        ev_sample = np.repeat(c_sample[cells_d], fired_cell[cells_d])
+        ev_u = uniforms(draws.FIRST_PIECE, ev_sample, draws.index_within(ev_sample))
+        k_.place_fired(np.exp(-before[idx]) * em[idx], cells_d, heads, counts, fired_cell,
+                       ev_u * np.repeat(p_fire[cells_d], fired_cell[cells_d]), fired)
+    elif len(cells_d):
         # P(a pulse's first event is in the piece), and up to each piece within its cell
         p_first = np.exp(-before) * em
         upto = sum_before(p_first) + p_first
@@ -233,18 +239,18 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
         ev_u = uniforms(draws.FIRST_PIECE, ev_sample, draws.index_within(ev_sample))
         target = ev_u * p_fire[ev_cell]
         lo, hi = heads[ev_cell], heads[ev_cell] + counts[ev_cell]
-        if k_ is not None:
-            at = np.minimum(k_.bisect_right(upto, lo, hi, target), hi - 1)
-        else:
-            at = np.minimum(_bisect(upto, lo, hi, target, right=True), hi - 1)
+        at = np.minimum(_bisect(upto, lo, hi, target, right=True), hi - 1)
         fired += np.bincount(at, minlength=n_pieces)
     # -- the chain, for the cells where most pulses fire: of the pulses that fire at all and
     # have not yet, a piece takes each with chance (1 - exp(-mu)) / (1 - exp(-C_rest)), C_rest
     # the mean from the piece's start to the gate's end
     if (~by_draws).any():
         chain = ~by_draws[cell_of_piece]
-        u = np.zeros(n_pieces)
-        u[chain] = uniforms(draws.PIECES, sample[chain], draws.index_within(sample[chain]))
+        if k_ is not None:
+            u = k_.masked_uniforms(draws.stream_key(seed, draws.PIECES), ids, sample, chain)
+        else:
+            u = np.zeros(n_pieces)
+            u[chain] = uniforms(draws.PIECES, sample[chain], draws.index_within(sample[chain]))
         remaining = np.where(by_draws, 0, fired_cell)
         rest = total[cell_of_piece] - before
         if k_ is not None:
@@ -269,7 +275,9 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
         fired[in_sig], share, uniforms(draws.LABELS, sample[in_sig], p_index[in_sig]),
         compiled)
     # the signal bins' peak per cell
-    sig_top = _top(cell_of_piece[in_sig], p_start[in_sig], fired[in_sig], sig_count, n_bins)
+    top_of = _top if k_ is None else (lambda *a: Peaks(*k_.top(*a)))
+    sig_top = top_of(cell_of_piece[in_sig], p_start[in_sig], fired[in_sig],
+                     np.asarray(sig_count, np.int64), n_bins)
     # stretches of noise: each event placed by the first-arrival law truncated to its stretch.
     # A stretch whose events number less than both the threshold and its cell's highest
     # signal bin cannot hold the cell's point (no bin of it can beat that bin, nor make a
@@ -296,8 +304,15 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
         off = np.floor(-np.log1p(-uu * -np.expm1(-noise * e_len)) / noise).astype(np.int64)
     else:
         off = np.zeros(len(uu), np.int64)
-    gaps = _histogram(cell_of_piece[e_piece], p_start[e_piece] + np.minimum(off, e_len - 1),
-                      n_bins)
+    gap_cell = cell_of_piece[e_piece]
+    gap_bin = p_start[e_piece] + np.minimum(off, e_len - 1)
+    gaps = (_histogram(gap_cell, gap_bin, n_bins) if k_ is None
+            else Peaks(*k_.histogram_top(gap_cell, gap_bin, n_bins)))
+    if k_ is not None:
+        top = Peaks(*k_.merge_top(sig_top.cell, sig_top.bin, sig_top.count,
+                                  sig_top.signal_count, gaps.cell, gaps.bin, gaps.count,
+                                  gaps.signal_count, n_bins))
+        return Peaks(cell[new_cell][top.cell], top.bin, top.count, top.signal_count)
     # each cell's peak: its signal bins' or its stretches' (sorted by cell, one of each)
     both = np.concatenate([sig_top.cell, gaps.cell])
     order = np.argsort(both, kind="stable")
