@@ -118,6 +118,9 @@ def _deg_pair(lo: float, hi: float) -> tuple[float, float]:
     return (lo * DEG, hi * DEG)
 
 
+CHECK_ROWS = 65536  # rows checked at once by ConditionSpace.check
+
+
 @dataclass(frozen=True)
 class ConditionSpace:
     """The configured ranges of each condition parameter (the paper's Table 1 by default).
@@ -185,6 +188,13 @@ class ConditionSpace:
         table = np.atleast_2d(np.asarray(table, dtype=np.float64))
         if table.ndim != 2 or table.shape[1] != 6:
             raise InputError(f"a condition table has shape (N, 6) {FIELDS}, got {table.shape}")
+        # in blocks of rows: the checks' temporaries stay a few MB for 10^6 conditions
+        for start in range(0, len(table), CHECK_ROWS):
+            self._check_rows(table[start:start + CHECK_ROWS],
+                             lambda i, j, s=start: where(s + i, j))
+        return table
+
+    def _check_rows(self, table: np.ndarray, where) -> None:
         nan = ~np.isfinite(table)
         if nan.any():
             i, j = np.argwhere(nan)[0]
@@ -205,7 +215,6 @@ class ConditionSpace:
             raise InputError(
                 f"{where(i, j)}: {FIELDS[j]} = {table[i, j] * scale:.6g}{unit} is outside the "
                 f"configured range [{lo[i, j] * scale:.6g}{unit}, {hi[i, j] * scale:.6g}{unit}]")
-        return table
 
     def encode(self, table) -> np.ndarray:
         """Condition table (N, 6) or one Condition -> nu in [-1, 1] (SPEC section 3)."""

@@ -125,10 +125,10 @@ def _run_generate(args) -> int:
         raise InputError("--address needs --engine dask")
     if args.resumable or args.engine is not None or total >= job.RESUMABLE_CLOUDS:
         record = job.job_record(meta, model.directory, args.conditions)
+        per_part = max(1, min(BLOCK_CLOUDS, job.PART_CLOUDS) // size)
         try:
-            points, empty = job.run_job(args.output, meta, record, fields, work,
-                                        max(1, BLOCK_CLOUDS // size), block_clouds, lanes,
-                                        progress_from, engine, task_of)
+            points, empty = job.run_job(args.output, meta, record, fields, work, per_part,
+                                        block_clouds, lanes, progress_from, engine, task_of)
         except job.GenerateInterrupted as stop:  # Ctrl-C: say how far it got
             import sys
             print(f"apcg generate: {stop}", file=sys.stderr)

@@ -4,9 +4,10 @@ output, then written into the output in order.
 The dataset builder's way (dataset_builder/build.py: shards, resume, locks), for one output
 file: a request of at least :data:`RESUMABLE_CLOUDS` clouds keeps its finished work in
 ``OUT.parts/``: ``job.json`` (what the request is: the output's header, the digests of the
-model's files and of the conditions file), one ``part-NNNNNN.npz`` per block of 8192 clouds
-(``generation_cli.BLOCK_CLOUDS``) (each written whole through ``NAME.PID.part`` + fsync + rename,
-``apcg_core.io.dataset.write_atomic``), and the lock ``.generate.lock`` (one live process per
+model's files and of the conditions file), one ``part-NNNNNN.npz`` per :data:`PART_CLOUDS`
+clouds (or per block, ``generation_cli.BLOCK_CLOUDS``, where a model's blocks are larger) (each
+written whole through ``NAME.PID.part`` + fsync + rename, ``apcg_core.io.dataset.write_npz``),
+and the lock ``.generate.lock`` (one live process per
 job, ``apcg_core.lock``). Ctrl-C (or SIGTERM) stops it with a line saying how far it got; the
 same command then skips the parts present and continues. When every part is there they are
 copied into the output in order (``CloudWriter``: memory flat in the number of clouds) and the
@@ -32,6 +33,10 @@ from .errors import InputError
 # (bench/generate_profile.py), where losing the work to a Ctrl-C starts to cost; the part files
 # cost one more write and read of the points (measured in docs/SCALE.md, "Generation").
 RESUMABLE_CLOUDS = 2**17
+# Clouds per part file: a part's clouds are held until it is written (~200 points, ~11 KB a
+# cloud), so this bounds a job's memory; 2048 clouds (~23 MB) measured 8192's speed, with
+# ~90 MB less peak RSS (docs/SCALE.md, "Generation at scale")
+PART_CLOUDS = 2048
 ENGINES_GROUP = "apcg.engines"  # entry points: name -> run_tasks(...) context (the builder's)
 _FIELDS = ("xyz", "range_m", "cell_w", "cell_h", "sample")
 
@@ -97,12 +102,10 @@ def _worker_model(task: PartTask):
 
 def run_part(task: PartTask) -> tuple[int, int]:
     """An engine's task: compute a part's blocks and write its file whole. (part, clouds)."""
-    from .io.dataset import write_atomic
     model = _worker_model(task)
     held = [generate_block(model, task.sensor, task.seed, b, part, count, offset)
             for b, part, count, offset in task.blocks]
-    write_atomic(Path(task.path), _part_bytes(held, task.photon_fields),
-                 part_suffix=f".{os.getpid()}.part")
+    _write_part(Path(task.path), held, task.photon_fields, f".{os.getpid()}.part")
     return task.index, sum(n for _, n in held)
 
 
@@ -192,8 +195,8 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
                 held.append((cloud, n))
                 progress.update(n)
                 if k % per_part == per_part - 1 or k == len(subs) - 1:
-                    write_atomic(parts / _part_name(k // per_part),
-                                 _part_bytes(held, photon_fields), part_suffix=suffix)
+                    _write_part(parts / _part_name(k // per_part), held, photon_fields,
+                                suffix)
                     held = []
                     wait_point("generate.part-written")
             points, empty = _write_output(output, meta, photon_fields, parts, n_parts)
@@ -228,14 +231,18 @@ def in_order(fn, items, lanes: int = 1):
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _part_bytes(held: list, photon_fields) -> bytes:
-    from .io.dataset import npz_bytes
+def _write_part(path: Path, held: list, photon_fields, suffix: str) -> None:
+    """A part file of the clouds ``held`` ((cloud, clouds) per block), written field by
+    field: beside the blocks, memory holds one concatenated field at a time."""
+    from .io.dataset import write_npz
     clouds = [c for c, _ in held]
-    arrays = {k: np.concatenate([getattr(c, k) for c in clouds]) for k in _FIELDS}
-    arrays.update({k: np.concatenate([getattr(c, k) for c in clouds]) for k in photon_fields})
-    arrays["clouds"] = np.int64(sum(n for _, n in held))
-    arrays["empty"] = np.int64(sum(n - len(np.unique(c.sample)) for c, n in held))
-    return npz_bytes(arrays)
+
+    def field(k):
+        return lambda: np.concatenate([getattr(c, k) for c in clouds])
+    members = [(k, field(k)) for k in (*_FIELDS, *photon_fields)]
+    members.append(("clouds", np.int64(sum(n for _, n in held))))
+    members.append(("empty", np.int64(sum(n - len(np.unique(c.sample)) for c, n in held))))
+    write_npz(path, members, part_suffix=suffix)
 
 
 def _write_output(output, meta, photon_fields, parts: Path, n_parts: int) -> tuple[int, int]:

@@ -2,6 +2,12 @@
 
     .venv/bin/python bench/generate_vs_build.py --model DIR [--per-type 168] [--repeats 3]
         [--workers 2] [--json bench/results/generate_vs_build.json]
+    .venv/bin/python bench/generate_vs_build.py --model DIR --workloads issue34 --repeats 1
+
+``--workloads issue34`` runs the four workloads of the issue "The generator earns its place"
+instead of the one below, each a dataset config of its own: 2 types on a Table-1 style grid
+(16,384 and 102,400 clouds), 10 types at random conditions (100,000) and all 98 types on a
+168-condition grid (16,464); each figure with the peak RSS of each command.
 
 1. A random Table-1 dataset config over every built-in type (``--per-type`` conditions each:
    168 x 98 = 16,464 clouds by default) is written and built once, to fix the conditions.
@@ -39,13 +45,97 @@ types = "all"
 """
 
 
-def timed(cmd: list[str], cwd: Path) -> float:
+TYPES_2 = '["A320neo", "737-800"]'
+TYPES_10 = ('["A320neo", "737-800", "G650ER", "G550", "777-300ER", "F-16C Fighting Falcon", '
+            '"UH-60 Black Hawk", "Matrice 300 RTK", "Mavic 3", "eBee X"]')
+GRID = """description = "bench: {what}"
+seed = 11
+backend = "embree"
+shard_size = 2500
+test_fraction = 0.2
+quantize = true
+supersample = 1
+sampling = "grid"
+types = {types}
+
+[counts]
+range_m = {range_m}
+elevation = {elevation}
+yaw = {yaw}
+pitch = {pitch}
+roll = {roll}
+"""
+RANDOM = """description = "bench: {what}"
+seed = 11
+backend = "embree"
+shard_size = 2500
+test_fraction = 0.2
+quantize = true
+supersample = 1
+sampling = "random"
+samples_per_type = {n}
+types = {types}
+"""
+ISSUE34 = {  # the issue's four workloads: (clouds, config)
+    "2 types, grid, 16,384": GRID.format(what="2 types x 8192 grid", types=TYPES_2, range_m=8,
+                                         elevation=4, yaw=8, pitch=4, roll=8),
+    "2 types, grid, 102,400": GRID.format(what="2 types x 51200 grid", types=TYPES_2,
+                                          range_m=10, elevation=8, yaw=16, pitch=8, roll=5),
+    "10 types, random, 100,000": RANDOM.format(what="10 types x 10000 random", types=TYPES_10,
+                                               n=10000),
+    "98 types, grid, 16,464": GRID.format(what="98 types x 168 grid", types='"all"', range_m=7,
+                                          elevation=2, yaw=6, pitch=2, roll=1),
+}
+
+
+def timed(cmd: list[str], cwd: Path, rss: list | None = None) -> float:
+    """Wall seconds of ``cmd``; its peak RSS (MiB, the largest process of its tree that it
+    waited for) appended to ``rss`` when given."""
     t0 = time.perf_counter()
-    r = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True)
+    p = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         text=True)
+    err = p.stderr.read()
+    _, status, usage = os.wait4(p.pid, 0)
     dt = time.perf_counter() - t0
-    if r.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed:\n{r.stderr[-2000:]}")
+    p.returncode = os.waitstatus_to_exitcode(status)
+    if p.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{err[-2000:]}")
+    if rss is not None:
+        rss.append(round(usage.ru_maxrss / 1024, 1))
     return dt
+
+
+def workloads(args) -> dict:
+    """Each workload's report: build and generate timed in turn, ``--repeats`` times."""
+    out = {}
+    for name, config in ISSUE34.items():
+        work = Path(tempfile.mkdtemp(prefix="apcg-gen-vs-build-"))
+        try:
+            cfg = work / "bench.toml"
+            cfg.write_text(config)
+            build = [*APCG, "dataset", "build", "--config", str(cfg), "-o", str(work / "ds"),
+                     "--workers", str(args.workers)]
+            timed(build, ROOT)  # fixes the conditions (and warms the file cache)
+            conditions = work / "ds" / "conditions.csv"
+            n = sum(1 for _ in open(conditions)) - 1
+            gen = [*APCG, "generate", "--model", str(args.model), "--conditions",
+                   str(conditions), "-o", str(work / "clouds.npz")]
+            times: dict = {"build": [], "generate": []}
+            rss: dict = {"build": [], "generate": []}
+            for _ in range(args.repeats):
+                shutil.rmtree(work / "ds2", ignore_errors=True)
+                times["build"].append(timed([*build[:-3], str(work / "ds2"), *build[-2:]], ROOT,
+                                            rss["build"]))
+                (work / "clouds.npz").unlink(missing_ok=True)
+                times["generate"].append(timed(gen, ROOT, rss["generate"]))
+            med = {k: sorted(v)[len(v) // 2] for k, v in times.items()}
+            out[name] = {"clouds": n, "seconds": times, "peak_rss_mib": rss,
+                         "ms_per_cloud": {k: round(1e3 * v / n, 4) for k, v in med.items()},
+                         "ratio_generate_over_build": round(med["generate"] / med["build"], 3)}
+            print(name, out[name], file=sys.stderr, flush=True)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return out
 
 
 def main() -> int:
@@ -56,8 +146,16 @@ def main() -> int:
     ap.add_argument("--per-type", type=int, default=168)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--workers", type=int, default=2, help="build worker processes")
+    ap.add_argument("--workloads", choices=("random-all", "issue34"), default="random-all",
+                    help="random-all: every type x --per-type random conditions (default); "
+                         "issue34: the issue's four workloads")
     ap.add_argument("--json")
     args = ap.parse_args()
+    if args.workloads == "issue34":
+        emit({"command": "python bench/generate_vs_build.py " + " ".join(sys.argv[1:]),
+              "repeats": args.repeats, "build_workers": args.workers,
+              "cpu_count": os.cpu_count(), "workloads": workloads(args)}, args.json)
+        return 0
     work = Path(tempfile.mkdtemp(prefix="apcg-gen-vs-build-"))
     try:
         cfg = work / "bench.toml"

@@ -139,3 +139,18 @@ def test_generation_refuses_a_bad_count_for_every_model_kind():
     for bad in (0, 1.5, True):
         with pytest.raises(InputError, match="count must be an integer >= 1"):
             model.generate(row, count=bad)
+
+
+def test_a_bad_row_beyond_the_first_block_is_named_by_its_own_row(monkeypatch):
+    """check() works in blocks of CHECK_ROWS rows: a value out of range (or NaN) in a later
+    block is still named with its row in the whole table."""
+    import apcg_core.condition as condition
+    monkeypatch.setattr(condition, "CHECK_ROWS", 7)
+    space = ConditionSpace()
+    table = space.decode(np.zeros((30, 6)))
+    assert space.check(table) is not None
+    for bad, says in ((np.nan, "must be finite"), (1e6, "outside the configured range")):
+        t = table.copy()
+        t[23, 1] = bad
+        with pytest.raises(InputError, match=f"row 23: range_m.*{says}"):
+            space.check(t)

@@ -51,6 +51,28 @@ def write_atomic(path: Path, data: bytes, part_suffix: str = ".part") -> None:
     _fsync_dir(path.parent)
 
 
+def write_npz(path: Path, members, part_suffix: str = ".part") -> None:
+    """An uncompressed .npz at ``path`` (through ``path`` + ``part_suffix`` + fsync + rename)
+    of ``members``, (name, array or a function that makes it) pairs, each made, written into
+    the file and let go in turn: memory holds one member at a time, not the whole file. For
+    a job's own files (np.load reads them); a file whose bytes must depend only on its arrays
+    is ``npz_bytes``'s."""
+    path = Path(path)
+    with atomic_path(path, part_suffix) as tmp, open(tmp, "wb") as f:
+        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
+            for name, arr in members:
+                a = np.asarray(arr() if callable(arr) else arr)
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
+                info.external_attr = 0o644 << 16
+                with zf.open(info, "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, a if a.ndim == 0
+                                              else np.ascontiguousarray(a), allow_pickle=False)
+                del a
+        f.flush()
+        os.fsync(f.fileno())
+    _fsync_dir(path.parent)
+
+
 def npz_bytes(arrays: dict) -> bytes:
     """An uncompressed .npz of ``arrays`` (in the given order) whose bytes depend only on them.
     A 0-d array (a scene frame's ``meta``) stays 0-d, as ``np.savez`` stores it."""
