@@ -121,6 +121,14 @@ class LidarParams:
         return ((w >= -self.width // 2) & (w < self.width // 2)
                 & (h >= -self.height // 2) & (h < self.height // 2))
 
+    def clip_box(self, w_half, h_half):
+        """The cells w in [-w_half, w_half] x h in [-h_half, h_half] about the window's centre,
+        cut to the window: (w_lo, w_hi, h_lo, h_hi), inclusive."""
+        return (np.maximum(-np.asarray(w_half), self.w_min),
+                np.minimum(w_half, self.width // 2 - 1),
+                np.maximum(-np.asarray(h_half), self.h_min),
+                np.minimum(h_half, self.height // 2 - 1))
+
     def cell_centre_angles(self, w, h, beta0: float):
         """Azimuth and elevation of the centres of cells (w, h) (paper eqs. 3-4)."""
         return (np.asarray(w, dtype=np.float64) * self.r_alpha,

@@ -61,10 +61,7 @@ def box_half_cells(range_m, elevation, radius_m, lidar: LidarParams):
 def box_cells(range_m, elevation, radius_m, lidar: LidarParams):
     """Every box cell of each condition, clipped to the lidar's window: (sample, w, h) arrays."""
     w_half, h_half = box_half_cells(range_m, elevation, radius_m, lidar)
-    w_lo = np.maximum(-w_half, lidar.w_min)
-    w_hi = np.minimum(w_half, lidar.width // 2 - 1)
-    h_lo = np.maximum(-h_half, lidar.h_min)
-    h_hi = np.minimum(h_half, lidar.height // 2 - 1)
+    w_lo, w_hi, h_lo, h_hi = lidar.clip_box(w_half, h_half)
     nw, nh = w_hi - w_lo + 1, h_hi - h_lo + 1
     n = nw * nh
     sample = np.repeat(np.arange(len(n)), n)
@@ -215,10 +212,8 @@ class PlusModel(ModelTypes):
         r0, b0, rad = table[:, 1], table[:, 2], self.radius[codes]
         s = sheets.shape[-1]
         w_half, h_half = box_half_cells(r0, b0, rad, lidar)
-        w_lo = np.maximum(-w_half, lidar.w_min)
-        w_hi = np.minimum(w_half, lidar.width // 2 - 1)
-        h_lo = np.maximum(-h_half, lidar.h_min)
-        nh = np.minimum(h_half, lidar.height // 2 - 1) - h_lo + 1
+        w_lo, w_hi, h_lo, h_hi = lidar.clip_box(w_half, h_half)
+        nh = h_hi - h_lo + 1
         row_n = np.repeat(np.arange(len(table)), nh)
         h = h_lo[row_n] + np.arange(nh.sum()) - np.repeat(np.cumsum(nh) - nh, nh)
         _, v = sheet_coords(0, h, r0[row_n], b0[row_n], rad[row_n], lidar)

@@ -143,10 +143,7 @@ def read_clouds(sheets: torch.Tensor, range_m, elevation, radius_m, box, lidar, 
     b0 = np.asarray(elevation, np.float64)
     rad = np.asarray(radius_m, np.float64)
     w_half, h_half = box
-    w_lo = np.maximum(-w_half, lidar.w_min)
-    w_hi = np.minimum(w_half, lidar.width // 2 - 1)
-    h_lo = np.maximum(-h_half, lidar.h_min)
-    h_hi = np.minimum(h_half, lidar.height // 2 - 1)
+    w_lo, w_hi, h_lo, h_hi = lidar.clip_box(w_half, h_half)
     nw, nh = w_hi - w_lo + 1, h_hi - h_lo + 1
     cells = nw * nh
     s = sheets.shape[-1]
