@@ -2,7 +2,7 @@
 under 6 s on its GPU).
 
     python bench/gpu_generate.py [--model DIR] [--device cuda] [--sizes 10000,100000,1000000]
-                                 [--dtype fp32,bf16] [--json OUT.json]
+                                 [--dtype fp32,bf16] [--lidar PRESET|FILE] [--json OUT.json]
 
 For each of Fig. 18's four workloads (2, 4 and 8 aircraft types with equal counts, 8 types
 with random counts) and each size N, it times condition table -> point clouds on the device:
@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from apcg_core.families import load_model  # noqa: E402
 from apcg_core.families.apcg_plus import box_half_cells  # noqa: E402
+from apcg_core.lidar import load_lidar  # noqa: E402
 from apcg_core.nn.apcg_plus import read_clouds  # noqa: E402
 
 BATCH = 4096  # conditions per network call on the device
@@ -131,10 +132,13 @@ def main() -> int:
     ap.add_argument("--dtype", default="fp32,bf16", help="network precision(s): fp32, bf16, fp16")
     ap.add_argument("--cpu-reference", type=int, default=0,
                     help="also time the package's CPU path on this many conditions")
+    ap.add_argument("--lidar", help="a lidar preset or file (default: the model's own)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json")
     args = ap.parse_args()
     model = load_model(args.model)
+    if args.lidar:
+        model.use_lidar(load_lidar(args.lidar))
     rng = np.random.default_rng(args.seed)
     sizes = [int(x) for x in args.sizes.split(",")]
     machine = {"device": args.device, "torch": torch.__version__, "numpy": np.__version__,
@@ -144,7 +148,8 @@ def main() -> int:
         machine.update(gpu=p.name, gpu_memory_gib=round(p.total_memory / 2**30, 1),
                        multiprocessors=p.multi_processor_count)
     print(json.dumps(machine), flush=True)
-    report = {"machine": machine, "model": str(model.directory), "runs": []}
+    report = {"machine": machine, "model": str(model.directory), "runs": [],
+              "lidar": {"width": model.lidar.width, "height": model.lidar.height}}
     for dtype in args.dtype.split(","):
         gen = DeviceGenerator(model, args.device, dtype)
         check = check_reader(model, gen, rng)
