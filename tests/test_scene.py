@@ -5,6 +5,7 @@ machinery, so one target alone at azimuth 0 must be `apcg simulate` byte for byt
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -199,9 +200,48 @@ def test_a_static_scene_is_the_same_under_any_scan_pattern():
     still = {"target": [{"type": "A320neo", **POSE}]}
     flash = _scan(still)
     for pattern in ({"pattern": "rows", "line_time_s": 1e-3},
-                    {"pattern": "columns", "line_time_s": 1e-4}):
+                    {"pattern": "columns", "line_time_s": 1e-4},
+                    {"pattern": "cells", "cell_time_s": 1e-6, "order": "columns"}):
         other = _scan({**still, "scan": pattern})
         assert _cells(other) == _cells(flash)
+
+
+@pytest.mark.parametrize("order", ["rows", "columns"])
+def test_a_cell_by_cell_raster_draws_each_cell_where_the_target_was_when_it_fired(order):
+    """[scan] pattern = "cells": every cell fires on its own, cell_time_s apart, in raster
+    order. Each cell of a fast pass is the cell of a flash scan of the scene at that cell's
+    own firing time, exactly; and the pass comes out skewed against a flash of the frame's
+    start by the distance flown until each cell fired."""
+    dt = 2e-6
+    raster = _scan(_pass({"pattern": "cells", "cell_time_s": dt, "order": order}))
+    got = _cells(raster)
+    assert len(got) > 1000
+    W, H = 256, 64
+    rng = np.random.default_rng(3)
+    picked = [list(got)[i] for i in rng.choice(len(got), 6, replace=False)]
+    for w, h in picked:
+        row, col = H // 2 - 1 - h, w + W // 2
+        k = row * W + col if order == "rows" else col * H + row
+        at = _scan({**_pass(), "sequence": {"start_s": k * dt}})
+        assert _cells(at).get((w, h)) == got[(w, h)], (w, h, k)
+    flash = _scan(_pass())
+    # 250 m/s along +X: a cell's shift against the frame's start is 250 m/s x its firing time
+    # (to the cells' size: the surface under a cell changes as the target moves)
+    c, f = raster.cloud, flash.cloud
+    t = np.where(order == "rows", (H // 2 - 1 - c.cell_h) * W + (c.cell_w + W // 2),
+                 (c.cell_w + W // 2) * H + (H // 2 - 1 - c.cell_h)) * dt
+    shift = c.xyz[:, 0].mean() - f.xyz[:, 0].mean()
+    assert shift == pytest.approx(250.0 * t.mean(), abs=0.5)
+
+
+def test_a_raster_needs_its_cell_time_and_a_known_order():
+    for table, says in (({"pattern": "cells"}, "cell_time_s = None is not accepted"),
+                        ({"pattern": "cells", "cell_time_s": -1.0}, "cell_time_s = -1.0"),
+                        ({"pattern": "cells", "cell_time_s": 1e-6, "order": "diagonal"},
+                         "order = 'diagonal' is not accepted"),
+                        ({"pattern": "cells", "line_time_s": 1e-6}, "unknown key(s) line_time_s")):
+        with pytest.raises(InputError, match=re.escape(says)):
+            scene_from_dict({**_pass(), "scan": table})
 
 
 # --- poses and trajectories --------------------------------------------------------------------

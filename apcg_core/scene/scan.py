@@ -114,6 +114,38 @@ class Columns:
         return {"pattern": self.name, "line_time_s": self.line_time_s, "order": self.order}
 
 
+_CELL = "the time between two cells in seconds, > 0"
+
+
+@register("cells", {"cell_time_s": _CELL,
+                    "order": '"rows" (default: along each row, left to right, the top row '
+                             'first) or "columns" (down each column, the left column first)'})
+class Cells:
+    """One cell after another, ``cell_time_s`` apart (a single-beam raster scanner): along
+    each row from the left, the top row first; ``order = "columns"`` goes down each column
+    from the top, the left column first. Every cell is a group of its own."""
+
+    def __init__(self, cell_time_s, order="rows") -> None:
+        if order not in ("rows", "columns"):
+            raise InputError(f'[scan] order = {order!r} is not accepted: "rows" or "columns"')
+        self.cell_time_s, self.order = float(cell_time_s), order
+
+    def groups(self, lidar: LidarParams) -> Groups:
+        W2, H2 = lidar.width // 2, lidar.height // 2
+        h, w = np.meshgrid(np.arange(H2 - 1, -H2 - 1, -1), np.arange(-W2, W2), indexing="ij")
+        w, h = w.ravel(), h.ravel()  # row by row from the top, left to right in a row
+        row, col = H2 - 1 - h, w + W2
+        k = (row * lidar.width + col if self.order == "rows"
+             else col * lidar.height + row)
+        return Groups(k * self.cell_time_s, w, w, h, h)
+
+    def to_dict(self) -> dict:
+        return {"pattern": self.name, "cell_time_s": self.cell_time_s, "order": self.order}
+
+
+_TIME_KEYS = {"line_time_s": _LINE, "cell_time_s": _CELL}
+
+
 def make_pattern(table: dict | None, source: str):
     """The scan pattern of a ``[scan]`` table (None: flash)."""
     if table is None:
@@ -131,11 +163,12 @@ def make_pattern(table: dict | None, source: str):
     if unknown:
         raise InputError(f"{source}: unknown key(s) {', '.join(unknown)} in [scan] for pattern "
                          f"{name}; accepted: {', '.join(keys) or 'none'}")
-    if "line_time_s" in keys:
-        v = args.get("line_time_s")
+    for key in sorted(set(keys) & set(_TIME_KEYS)):  # every pattern's time step, one rule
+        v = args.get(key)
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) \
                 or v <= 0:
-            raise InputError(f"{source}: [scan] line_time_s = {v!r} is not accepted: {_LINE}")
+            raise InputError(f"{source}: [scan] {key} = {v!r} is not accepted: "
+                             f"{_TIME_KEYS[key]}")
     try:
         return cls(**args)
     except InputError as exc:
