@@ -4,13 +4,13 @@ The batched points path (``stage.signal_bins``, ``points._loud_peaks``) spends i
 few loops that numpy runs as many passes over large arrays: spreading every sub-ray's return
 over the bins its Gaussian reaches and adding them up per (cell, bin), the sums of a cell's
 earlier pieces, the walk of the binomial sampler's inverse CDF and the bisection that places
-each fired pulse in its cell's pieces, and the histograms and peaks of a cell's bins. Here
-each is one pass. Every float64 operation is the
-numpy code's, operand for operand and in the same order: products, quotients and sums of two
-operands only, each rounded (numba contracts nothing into a fused multiply-add without
-``fastmath``, which is never set here), and every exp, log, expm1 or log1p stays in numpy,
-computed before or between the loops on the same values (a compiled ``exp`` need not be the
-one numpy calls). ``tests/test_photon_kernels.py`` checks that both paths give the same bytes.
+each fired pulse in its cell's pieces, and the histograms and peaks of a cell's bins. Here each
+is one pass. Every float64 operation is the numpy code's, operand for operand and in the same
+order: products, quotients and sums of two operands only, each rounded (numba contracts nothing
+into a fused multiply-add without ``fastmath``, which is never set here), and every exp, log,
+expm1 or log1p stays in numpy, computed before or between the loops on the same values (a
+compiled ``exp`` need not be the one numpy calls). ``tests/test_photon_kernels.py`` checks that
+both paths give the same bytes.
 
 The core imports with numpy alone (the add-on runs in Blender's Python, which has no numba):
 numba is imported only inside :func:`_load`, when it is installed and allowed, and the numpy
@@ -157,17 +157,6 @@ def _compile() -> _Kernels:
                     buf[k] = 0.0
             i = j
         return out_cell[:m_out], out_bin[:m_out], out_total[:m_out]
-
-    @jit
-    def sum_before(values, heads, counts):
-        """points._sum_before: per piece, the sum of its cell's earlier pieces' values, added
-        in their order (cells are runs heads[c] .. heads[c] + counts[c] - 1)."""
-        out = np.zeros(values.shape[0])
-        for c in range(heads.shape[0]):
-            h = heads[c]
-            for i in range(h + 1, h + counts[c]):
-                out[i] = out[i - 1] + values[i - 1]
-        return out
 
     @jit
     def binomial_walk(nn, ratio, uu, pk, cdf, k):
@@ -329,32 +318,35 @@ def _compile() -> _Kernels:
                 cell_of_piece[:m], before[:m], heads[:nc], counts[:nc], total[:nc])
 
     @jit
+    def mix(x):
+        """draws._mix: SplitMix64's finaliser on uint64, wrapping as numpy's does."""
+        x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return x ^ (x >> np.uint64(31))
+
+    @jit
+    def uniform(sample_key, index):
+        """The uniform of draw ``index`` from a sample's key (``mix(key ^ id * golden)``)."""
+        x = mix(sample_key + (np.uint64(index) + np.uint64(1)) * np.uint64(0x9E3779B97F4A7C15))
+        return (np.float64(x >> np.uint64(11)) + 0.5) * 1.1102230246251565e-16
+
+    @jit
+    def sample_key(key, sample_id):
+        return mix(key ^ (np.uint64(sample_id) * np.uint64(0x9E3779B97F4A7C15)))
+
+    @jit
     def uniforms(key, ids, sample, index):
         """draws.uniforms(seed, ids[sample], stream, index) with ``key`` the seed's and the
         stream's mix: the same SplitMix64 steps on uint64, wrapping as numpy's do."""
-        golden = np.uint64(0x9E3779B97F4A7C15)
-        m1 = np.uint64(0xBF58476D1CE4E5B9)
-        m2 = np.uint64(0x94D049BB133111EB)
         out = np.empty(sample.shape[0])
         for i in range(sample.shape[0]):
-            a = key ^ (np.uint64(ids[sample[i]]) * golden)
-            a = (a ^ (a >> np.uint64(30))) * m1
-            a = (a ^ (a >> np.uint64(27))) * m2
-            a = a ^ (a >> np.uint64(31))
-            x = a + (np.uint64(index[i]) + np.uint64(1)) * golden
-            x = (x ^ (x >> np.uint64(30))) * m1
-            x = (x ^ (x >> np.uint64(27))) * m2
-            x = x ^ (x >> np.uint64(31))
-            out[i] = (np.float64(x >> np.uint64(11)) + 0.5) * 1.1102230246251565e-16
+            out[i] = uniform(sample_key(key, ids[sample[i]]), index[i])
         return out
 
     @jit
     def masked_uniforms(key, ids, sample, mask):
         """Where ``mask``: uniforms(key, ids, sample[mask], index_within(sample[mask])) (sample
         sorted), 0.0 elsewhere: the masked elements numbered within their sample in order."""
-        golden = np.uint64(0x9E3779B97F4A7C15)
-        m1 = np.uint64(0xBF58476D1CE4E5B9)
-        m2 = np.uint64(0x94D049BB133111EB)
         n = sample.shape[0]
         out = np.zeros(n)
         at = 0
@@ -363,19 +355,10 @@ def _compile() -> _Kernels:
         for i in range(n):
             if not mask[i]:
                 continue
-            s = sample[i]
-            if s != last:
-                last = s
-                at = 0
-                a = key ^ (np.uint64(ids[s]) * golden)
-                a = (a ^ (a >> np.uint64(30))) * m1
-                a = (a ^ (a >> np.uint64(27))) * m2
-                a = a ^ (a >> np.uint64(31))
-            x = a + (np.uint64(at) + np.uint64(1)) * golden
-            x = (x ^ (x >> np.uint64(30))) * m1
-            x = (x ^ (x >> np.uint64(27))) * m2
-            x = x ^ (x >> np.uint64(31))
-            out[i] = (np.float64(x >> np.uint64(11)) + 0.5) * 1.1102230246251565e-16
+            if sample[i] != last:
+                last, at = sample[i], 0
+                a = sample_key(key, ids[last])
+            out[i] = uniform(a, at)
             at += 1
         return out
 
@@ -383,7 +366,7 @@ def _compile() -> _Kernels:
     def place_fired(p_first, cells, heads, counts, n_events, target, fired):
         """points._loud_peaks' "by draws" route for the cells ``cells`` (ascending): their
         pieces' P(first event) ``p_first`` (the cells' runs, in order), summed up within each
-        cell as sum_before(p_first) + p_first sums them (each sum the previous sum plus one
+        cell as points._sum_before(p_first) + p_first sums them (each sum the previous sum plus one
         term), and each of the cell's ``n_events[c]`` targets (in that order) placed at
         min(searchsorted(upto, target, 'right'), pieces - 1), counted into ``fired``."""
         upto = np.empty(p_first.shape[0])
@@ -393,11 +376,8 @@ def _compile() -> _Kernels:
             c = cells[i]
             m = counts[c]
             run = 0.0
-            for k in range(m):
-                if k == 0:
-                    run = 0.0 + p_first[at]
-                else:
-                    run = upto[at - 1] + p_first[at]
+            for _ in range(m):
+                run = run + p_first[at]
                 upto[at] = run
                 at += 1
             first = at - m
@@ -417,6 +397,11 @@ def _compile() -> _Kernels:
                 fired[heads[c] + a - first] += 1
 
     @jit
+    def score(count, b, n_bins):
+        """points._top's order of a cell's bins: the most counts, then the nearest bin."""
+        return np.int64(count) * (n_bins + 1) + (n_bins - b)
+
+    @jit
     def top(cell, b, count, sig, n_bins):
         """points._top: per run of equal ``cell`` (sorted; a (cell, bin) at most once), the
         entry of the highest count * (n_bins + 1) + n_bins - bin: the most counts, then the
@@ -430,12 +415,12 @@ def _compile() -> _Kernels:
         i = 0
         while i < n:
             best = i
-            best_score = np.int64(count[i]) * (n_bins + 1) + (n_bins - b[i])
+            best_score = score(count[i], b[i], n_bins)
             j = i + 1
             while j < n and cell[j] == cell[i]:
-                score = np.int64(count[j]) * (n_bins + 1) + (n_bins - b[j])
-                if score > best_score:
-                    best, best_score = j, score
+                s_j = score(count[j], b[j], n_bins)
+                if s_j > best_score:
+                    best, best_score = j, s_j
                 j += 1
             oc[m], ob[m], on[m], os_[m] = cell[best], b[best], count[best], sig[best]
             m += 1
@@ -486,26 +471,20 @@ def _compile() -> _Kernels:
         j = 0
         m = 0
         while i < c1.shape[0] or j < c2.shape[0]:
-            if j >= c2.shape[0] or (i < c1.shape[0] and c1[i] < c2[j]):
-                oc[m], ob[m], on[m], os_[m] = c1[i], b1[i], n1[i], s1[i]
-                i += 1
-            elif i >= c1.shape[0] or c2[j] < c1[i]:
+            both = i < c1.shape[0] and j < c2.shape[0] and c1[i] == c2[j]
+            second = (i >= c1.shape[0] or (j < c2.shape[0] and c2[j] < c1[i])
+                      or (both and score(n2[j], b2[j], n_bins) > score(n1[i], b1[i], n_bins)))
+            if second:
                 oc[m], ob[m], on[m], os_[m] = c2[j], b2[j], n2[j], s2[j]
-                j += 1
             else:
-                first = np.int64(n1[i]) * (n_bins + 1) + (n_bins - b1[i])
-                second = np.int64(n2[j]) * (n_bins + 1) + (n_bins - b2[j])
-                if second > first:
-                    oc[m], ob[m], on[m], os_[m] = c2[j], b2[j], n2[j], s2[j]
-                else:
-                    oc[m], ob[m], on[m], os_[m] = c1[i], b1[i], n1[i], s1[i]
-                i += 1
-                j += 1
+                oc[m], ob[m], on[m], os_[m] = c1[i], b1[i], n1[i], s1[i]
+            i += 1 if both or not second else 0
+            j += 1 if both or second else 0
             m += 1
         return oc[:m], ob[:m], on[:m], os_[:m]
 
     return _Kernels(place_fired=place_fired, masked_uniforms=masked_uniforms, top=top,
                     histogram_top=histogram_top, merge_top=merge_top, pieces=pieces,
-                    uniforms=uniforms, spread_sum=spread_sum, sum_before=sum_before,
+                    uniforms=uniforms, spread_sum=spread_sum,
                     binomial_walk=binomial_walk,
                     chain_prepare=chain_prepare, chain_finish=chain_finish)

@@ -200,11 +200,6 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
             steps.extend(by_pos[bounds[j]:bounds[j + 1]] for j in range(len(bounds) - 1))
         return steps
 
-    def sum_before(values):
-        if k_ is not None:
-            return k_.sum_before(values, heads, counts)
-        return _sum_before(values, by_position())
-
     def uniforms(stream, of_sample, index):  # draws.uniforms(seed, ids[of_sample], ...)
         if k_ is not None:
             return k_.uniforms(draws.stream_key(seed, stream), ids, of_sample, index)
@@ -233,7 +228,7 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
     elif len(cells_d):
         # P(a pulse's first event is in the piece), and up to each piece within its cell
         p_first = np.exp(-before) * em
-        upto = sum_before(p_first) + p_first
+        upto = _sum_before(p_first, by_position()) + p_first
         ev_cell = np.repeat(cells_d, fired_cell[cells_d])
         ev_sample = c_sample[ev_cell]
         ev_u = uniforms(draws.FIRST_PIECE, ev_sample, draws.index_within(ev_sample))
