@@ -7,7 +7,6 @@ import json
 import numpy as np
 
 from .cli import add_pose_arguments
-from .generation_job import block_seed  # noqa: F401 (one home: the job's blocks)
 from .io.clouds import FORMATS as CLOUD_FORMATS
 from .lidar_options import add_lidar_argument, model_at_lidar
 from .outputs import FILE, add_output

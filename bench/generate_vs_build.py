@@ -32,58 +32,37 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 APCG = [sys.executable, "-m", "apcg_core.cli"]
 
-CONFIG = """description = "bench: every type x {n} random Table-1 conditions"
+HEAD = """description = "bench: {what}"
 seed = 11
 backend = "embree"
-shard_size = 500
+shard_size = {shard}
 test_fraction = 0.2
 quantize = true
 supersample = 1
-sampling = "random"
-samples_per_type = {n}
-types = "all"
+types = {types}
 """
+
+
+def random_config(what: str, types: str, n: int, shard: int = 2500) -> str:
+    return (HEAD.format(what=what, shard=shard, types=types)
+            + f'sampling = "random"\nsamples_per_type = {n}\n')
+
+
+def grid_config(what: str, types: str, **counts) -> str:
+    return (HEAD.format(what=what, shard=2500, types=types) + 'sampling = "grid"\n\n[counts]\n'
+            + "".join(f"{k} = {v}\n" for k, v in counts.items()))
 
 
 TYPES_2 = '["A320neo", "737-800"]'
 TYPES_10 = ('["A320neo", "737-800", "G650ER", "G550", "777-300ER", "F-16C Fighting Falcon", '
             '"UH-60 Black Hawk", "Matrice 300 RTK", "Mavic 3", "eBee X"]')
-GRID = """description = "bench: {what}"
-seed = 11
-backend = "embree"
-shard_size = 2500
-test_fraction = 0.2
-quantize = true
-supersample = 1
-sampling = "grid"
-types = {types}
-
-[counts]
-range_m = {range_m}
-elevation = {elevation}
-yaw = {yaw}
-pitch = {pitch}
-roll = {roll}
-"""
-RANDOM = """description = "bench: {what}"
-seed = 11
-backend = "embree"
-shard_size = 2500
-test_fraction = 0.2
-quantize = true
-supersample = 1
-sampling = "random"
-samples_per_type = {n}
-types = {types}
-"""
-ISSUE34 = {  # the issue's four workloads: (clouds, config)
-    "2 types, grid, 16,384": GRID.format(what="2 types x 8192 grid", types=TYPES_2, range_m=8,
+ISSUE34 = {  # the issue's four workloads: name -> config
+    "2 types, grid, 16,384": grid_config("2 types x 8192 grid", TYPES_2, range_m=8,
                                          elevation=4, yaw=8, pitch=4, roll=8),
-    "2 types, grid, 102,400": GRID.format(what="2 types x 51200 grid", types=TYPES_2,
-                                          range_m=10, elevation=8, yaw=16, pitch=8, roll=5),
-    "10 types, random, 100,000": RANDOM.format(what="10 types x 10000 random", types=TYPES_10,
-                                               n=10000),
-    "98 types, grid, 16,464": GRID.format(what="98 types x 168 grid", types='"all"', range_m=7,
+    "2 types, grid, 102,400": grid_config("2 types x 51200 grid", TYPES_2, range_m=10,
+                                          elevation=8, yaw=16, pitch=8, roll=5),
+    "10 types, random, 100,000": random_config("10 types x 10000 random", TYPES_10, 10000),
+    "98 types, grid, 16,464": grid_config("98 types x 168 grid", '"all"', range_m=7,
                                           elevation=2, yaw=6, pitch=2, roll=1),
 }
 
@@ -159,7 +138,8 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="apcg-gen-vs-build-"))
     try:
         cfg = work / "bench.toml"
-        cfg.write_text(CONFIG.format(n=args.per_type))
+        cfg.write_text(random_config(f"every type x {args.per_type} random Table-1 conditions",
+                                     '"all"', args.per_type, shard=500))
         build = [*APCG, "dataset", "build", "--config", str(cfg), "-o", str(work / "ds"),
                  "--workers", str(args.workers)]
         timed(build, ROOT)  # fixes the conditions (and warms the file cache)

@@ -125,6 +125,8 @@ def check_reader(model, gen: DeviceGenerator, rng) -> dict:
 
 
 def main() -> int:
+    from bench_output import emit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default=None, help="model directory (default: the shipped one)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -187,8 +189,7 @@ def main() -> int:
                "threads": model.workers}
         print(json.dumps(row), flush=True)
         report["cpu_reference"] = row
-    if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=1) + "\n")
+    emit(report, args.json, show=False)  # the JSON rows were printed as they came
     return 0
 
 

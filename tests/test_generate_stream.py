@@ -5,6 +5,7 @@ import pytest
 
 import apcg_core.generation_cli as gen
 from apcg_core.cli import main
+from apcg_core.generation_job import block_seed
 from apcg_core.io import read_cloud
 
 POSE = ["--type", "A320neo", "--range-m", "3000", "--elevation-deg", "3", "--pitch-deg", "2"]
@@ -25,8 +26,8 @@ def test_blocks_cover_every_cloud_once_in_order():
 
 
 def test_block_seeds_differ_and_block_0_keeps_the_seed():
-    assert gen.block_seed(7, 0) == 7
-    seeds = {gen.block_seed(s, b) for s in range(5) for b in range(1, 50)}
+    assert block_seed(7, 0) == 7
+    seeds = {block_seed(s, b) for s in range(5) for b in range(1, 50)}
     assert len(seeds) == 5 * 49
 
 

@@ -51,6 +51,15 @@ def write_atomic(path: Path, data: bytes, part_suffix: str = ".part") -> None:
     _fsync_dir(path.parent)
 
 
+def _npz_member(name: str, arr) -> tuple[zipfile.ZipInfo, np.ndarray]:
+    """A .npz member's zip entry (fixed date and mode: bytes that depend only on the array)
+    and the array as np.save stores it (0-d kept, others C-contiguous)."""
+    info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
+    info.external_attr = 0o644 << 16
+    a = np.asarray(arr)
+    return info, a if a.ndim == 0 else np.ascontiguousarray(a)
+
+
 def write_npz(path: Path, members, part_suffix: str = ".part") -> None:
     """An uncompressed .npz at ``path`` (through ``path`` + ``part_suffix`` + fsync + rename)
     of ``members``, (name, array or a function that makes it) pairs, each made, written into
@@ -61,12 +70,9 @@ def write_npz(path: Path, members, part_suffix: str = ".part") -> None:
     with atomic_path(path, part_suffix) as tmp, open(tmp, "wb") as f:
         with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
             for name, arr in members:
-                a = np.asarray(arr() if callable(arr) else arr)
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
-                info.external_attr = 0o644 << 16
+                info, a = _npz_member(name, arr() if callable(arr) else arr)
                 with zf.open(info, "w", force_zip64=True) as member:
-                    np.lib.format.write_array(member, a if a.ndim == 0
-                                              else np.ascontiguousarray(a), allow_pickle=False)
+                    np.lib.format.write_array(member, a, allow_pickle=False)
                 del a
         f.flush()
         os.fsync(f.fileno())
@@ -79,12 +85,9 @@ def npz_bytes(arrays: dict) -> bytes:
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
         for name, arr in arrays.items():
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
-            info.external_attr = 0o644 << 16
+            info, a = _npz_member(name, arr)
             member = io.BytesIO()
-            a = np.asarray(arr)
-            np.lib.format.write_array(member, a if a.ndim == 0 else np.ascontiguousarray(a),
-                                      allow_pickle=False)
+            np.lib.format.write_array(member, a, allow_pickle=False)
             zf.writestr(info, member.getvalue())
     return buf.getvalue()
 
