@@ -1119,6 +1119,24 @@ SENSOR_CASES = st.one_of(
 )
 
 
+def _write_table_case(f: Path, text, base: dict, bad: dict, kind: str, key, i: int) -> list:
+    """Write a TOML table file's fuzz case into ``f`` (``text(table)`` the file's text): a
+    key's bad value, an unknown key, a key left out, NaN, or junk bytes (``key``). Returns the
+    words its refusal must name: the key, or the file for junk."""
+    if kind == "bad value":
+        f.write_text(text({**base, key: bad[key][i % len(bad[key])]}))
+    elif kind == "unknown key":
+        f.write_text(text({**base, key: 1.0}))
+    elif kind == "missing key":
+        f.write_text(text({k: v for k, v in base.items() if k != key}))
+    elif kind == "nan":
+        f.write_text(text(base).replace(f"{key} = {_toml_value(base[key])}", f"{key} = nan"))
+    else:
+        f.write_bytes(key.encode("latin-1"))
+        return [f.name]
+    return [key]
+
+
 @fuzz(60)
 @given(SENSOR_CASES)
 def test_a_sensor_file_is_refused_by_key_or_used(tmp_path_factory, capsys, case):
@@ -1130,24 +1148,7 @@ def test_a_sensor_file_is_refused_by_key_or_used(tmp_path_factory, capsys, case)
     base = tomllib.loads((PRESET_DIR / "1550nm-night.toml").read_text())["sensor"]
     base.pop("name")
     f = tmp / "s.toml"
-    if kind == "bad value":
-        bad = SENSOR_BAD[key][i % len(SENSOR_BAD[key])]
-        f.write_text(_sensor_text({**base, key: bad}))
-        names = [key]
-    elif kind == "unknown key":
-        f.write_text(_sensor_text({**base, key: 1.0}))
-        names = [key]
-    elif kind == "missing key":
-        table = {k: v for k, v in base.items() if k != key}
-        f.write_text(_sensor_text(table))
-        names = [key] if key != "output" else []
-    elif kind == "nan":
-        f.write_text(_sensor_text(base).replace(f"{key} = {_toml_value(base[key])}",
-                                                f"{key} = nan"))
-        names = [key]
-    else:
-        f.write_bytes(key.encode("latin-1"))
-        names = ["s.toml"]
+    names = _write_table_case(f, _sensor_text, base, SENSOR_BAD, kind, key, i)
     out = tmp / "c.npz"
     rc, _, err = run(["simulate", *POSE, "-o", out, "--sensor", f], capsys)
     if kind == "missing key" and key == "output":  # output has a default: points
@@ -1190,23 +1191,9 @@ def test_a_lidar_file_is_refused_by_key_or_used(tmp_path_factory, capsys, case):
 
     def text(table):
         return "[lidar]\n" + "".join(f"{k} = {_toml_value(v)}\n" for k, v in table.items())
-    if kind == "bad value":
-        bad = LIDAR_BAD[key][i % len(LIDAR_BAD[key])]
-        f.write_text(text({**LIDAR_BASE, key: bad}))
-        names = [key, "l.toml"]
-    elif kind == "unknown key":
-        f.write_text(text({**LIDAR_BASE, key: 1.0}))
-        names = [key, "l.toml"]
-    elif kind == "missing key":  # a key left out takes the paper's value (SPEC section 1)
-        f.write_text(text({k: v for k, v in LIDAR_BASE.items() if k != key}))
-        names = []
-    elif kind == "nan":
-        f.write_text(text(LIDAR_BASE).replace(f"{key} = {_toml_value(LIDAR_BASE[key])}",
-                                              f"{key} = nan"))
-        names = [key]
-    else:
-        f.write_bytes(key.encode("latin-1"))
-        names = ["l.toml"]
+    names = _write_table_case(f, text, LIDAR_BASE, LIDAR_BAD, kind, key, i)
+    if kind in ("bad value", "unknown key"):
+        names.append("l.toml")
     out = tmp / "c.npz"
     rc, _, err = run(["simulate", *POSE, "-o", out, "--lidar", f], capsys)
     if kind == "missing key":
