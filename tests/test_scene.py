@@ -390,12 +390,41 @@ def _sequence_cmd(scene: Path, out: Path, *extra: str) -> list[str]:
             str(out), "--no-progress", *extra]
 
 
-@pytest.fixture(scope="module")
-def sequence_reference(tmp_path_factory):
+def _reference_sequence(tmp_path_factory, doc: dict):
+    """A scene file of ``doc`` and its sequence built in this process: (scene, files, dir)."""
     d = tmp_path_factory.mktemp("seq")
-    scene = _write_scene(d / "scene.toml", SEQUENCE)
+    scene = _write_scene(d / "scene.toml", doc)
     assert main(["scene", "sequence", str(scene), "-o", str(d / "one"), "--no-progress"]) == 0
     return scene, _files(d / "one"), d / "one"
+
+
+def _stop_mid_frame(scene: Path, out: Path, hold, sig) -> tuple[int, str]:
+    """`apcg scene sequence` held after its first frame is computed, sent ``sig``: (exit
+    code, stderr)."""
+    point = "scene.frame-computed"
+    proc = subprocess.Popen(_sequence_cmd(scene, out), env=hold.env(point),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        pid = hold.wait(point, proc)
+        os.kill(pid, sig)
+        hold.release(point)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, err
+
+
+def _sequence_files(scene: Path, out: Path, *extra: str) -> dict:
+    """The files of `apcg scene sequence SCENE -o OUT EXTRA` run in a process of its own."""
+    r = subprocess.run(_sequence_cmd(scene, out, *extra), capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    return _files(out)
+
+
+@pytest.fixture(scope="module")
+def sequence_reference(tmp_path_factory):
+    return _reference_sequence(tmp_path_factory, SEQUENCE)
 
 
 def test_a_sequence_reads_back_with_labels_poses_and_tracks(sequence_reference):
@@ -434,34 +463,20 @@ def test_a_sequence_stopped_mid_frame_resumes_to_the_same_bytes(sequence_referen
                                                                 hold, how):
     scene, want, _ = sequence_reference
     out = tmp_path / "seq"
-    point = "scene.frame-computed"
-    proc = subprocess.Popen(_sequence_cmd(scene, out), env=hold.env(point),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        pid = hold.wait(point, proc)
-        os.kill(pid, signal.SIGKILL if how == "SIGKILL" else signal.SIGINT)
-        hold.release(point)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    rc, err = _stop_mid_frame(scene, out, hold, signal.SIGKILL if how == "SIGKILL"
+                              else signal.SIGINT)
     assert not (out / "manifest.json").exists()
     if how == "Ctrl-C":
         lines = err.strip().splitlines()
-        assert proc.returncode == 130 and len(lines) == 1, err
+        assert rc == 130 and len(lines) == 1, err
         assert lines[0].startswith("apcg scene: interrupted: 0 of 12 frames are done in")
         assert not [p for p in out.rglob("*.part*")]  # nothing half-written left
-    r = subprocess.run(_sequence_cmd(scene, out), capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    assert _files(out) == want
+    assert _sequence_files(scene, out) == want
 
 
 def test_a_sequence_is_the_same_bytes_on_a_local_pool(sequence_reference, tmp_path):
     scene, want, _ = sequence_reference
-    r = subprocess.run(_sequence_cmd(scene, tmp_path / "seq", "--workers", "2"),
-                       capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    assert _files(tmp_path / "seq") == want
+    assert _sequence_files(scene, tmp_path / "seq", "--workers", "2") == want
 
 
 def test_a_sequence_on_a_running_dask_cluster_is_the_same_bytes(sequence_reference, tmp_path):
@@ -470,10 +485,9 @@ def test_a_sequence_on_a_running_dask_cluster_is_the_same_bytes(sequence_referen
     from test_build_engine import _dask_cluster
     scene, want, _ = sequence_reference
     with _dask_cluster(tmp_path, dict(os.environ)) as (address, _):
-        r = subprocess.run(_sequence_cmd(scene, tmp_path / "seq", "--engine", "dask",
-                                         "--address", address), capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    assert _files(tmp_path / "seq") == want
+        got = _sequence_files(scene, tmp_path / "seq", "--engine", "dask", "--address",
+                              address)
+    assert got == want
 
 
 def test_a_sequence_of_another_scene_is_not_mixed_into_a_directory(sequence_reference,

@@ -8,12 +8,18 @@ import json
 import os
 import shutil
 import signal
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_scene import _cells, _files, _scan, _sequence_cmd, _write_scene
+from test_scene import (
+    _cells,
+    _reference_sequence,
+    _scan,
+    _sequence_files,
+    _stop_mid_frame,
+    _write_scene,
+)
 
 from apcg_core.cli import main
 from apcg_core.families import load_model
@@ -295,10 +301,7 @@ SEQUENCE = {
 
 @pytest.fixture(scope="module")
 def generated_reference(tmp_path_factory):
-    d = tmp_path_factory.mktemp("genseq")
-    scene = _write_scene(d / "scene.toml", SEQUENCE)
-    assert main(["scene", "sequence", str(scene), "-o", str(d / "one"), "--no-progress"]) == 0
-    return scene, _files(d / "one"), d / "one"
+    return _reference_sequence(tmp_path_factory, SEQUENCE)
 
 
 def test_a_generated_sequence_draws_its_targets_and_reads_back(generated_reference):
@@ -322,33 +325,17 @@ def test_a_generated_sequence_resumes_after_a_kill_to_the_same_bytes(generated_r
                                                                      tmp_path, hold):
     scene, want, _ = generated_reference
     out = tmp_path / "seq"
-    point = "scene.frame-computed"
-    proc = subprocess.Popen(_sequence_cmd(scene, out), env=hold.env(point),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        pid = hold.wait(point, proc)
-        os.kill(pid, signal.SIGKILL)
-        hold.release(point)
-        proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    _stop_mid_frame(scene, out, hold, signal.SIGKILL)
     assert not (out / "manifest.json").exists()
-    r = subprocess.run(_sequence_cmd(scene, out), capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    assert _files(out) == want
+    assert _sequence_files(scene, out) == want
 
 
 def test_a_generated_sequence_is_the_same_bytes_on_a_pool_and_on_dask(generated_reference,
                                                                       tmp_path):
     from test_build_engine import _dask_cluster
     scene, want, _ = generated_reference
-    r = subprocess.run(_sequence_cmd(scene, tmp_path / "pool", "--workers", "2"),
-                       capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    assert _files(tmp_path / "pool") == want
+    assert _sequence_files(scene, tmp_path / "pool", "--workers", "2") == want
     with _dask_cluster(tmp_path, dict(os.environ)) as (address, _):
-        r = subprocess.run(_sequence_cmd(scene, tmp_path / "dask", "--engine", "dask",
-                                         "--address", address), capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    assert _files(tmp_path / "dask") == want
+        got = _sequence_files(scene, tmp_path / "dask", "--engine", "dask", "--address",
+                              address)
+    assert got == want
