@@ -22,7 +22,7 @@ pytest.importorskip("numba")
 from apcg_core.catalog.catalog import Catalog  # noqa: E402
 from apcg_core.depth import DEFAULT_LIDAR  # noqa: E402
 from apcg_core.sensor import draws, kernels, load_sensor, photon_cloud, reflectivity_of  # noqa: E402
-from apcg_core.sensor.points import _loud_peaks  # noqa: E402
+from apcg_core.sensor.points import BRIGHT_COUNTS, _loud_peaks  # noqa: E402
 from dataset_builder.simulate import Simulator  # noqa: E402
 
 CATALOG = Catalog(include_user=False)
@@ -116,19 +116,19 @@ def _first_samples(h, n):
                                range_m=h.range_m[keep], cos=h.cos[keep], n_samples=n)
 
 
-def test_the_comparisons_reach_every_route_of_the_loud_cells(hits):
-    # Both routes of the fired pulses (by draws, the chain), noise stretches placed and
-    # skipped, and with 400 pulses chain binomials that start above 0: what the tests above
-    # compare is what the kernels do.
+def test_the_comparisons_reach_every_route_of_the_loud_cells(monkeypatch, hits):
+    # Both routes of the fired pulses (by draws, the chain), stretches placed and skipped,
+    # faint signal bins in them that events land in, and with 400 pulses chain binomials that
+    # start above 0: what the tests above compare is what the kernels do.
     from apcg_core.sensor.link import noise_per_bin, range_sigma_m, signal_photoelectrons
     from apcg_core.sensor.params import check_gate
     from apcg_core.sensor.stage import gate_first_bin, signal_bins
 
     lidar = DEFAULT_LIDAR
     n_cells = lidar.width * lidar.height
-    seen = {"draws": 0, "chain": 0, "big_start": 0}
+    seen = {"draws": 0, "chain": 0, "big_start": 0, "faint_pieces": 0, "faint_events": 0}
     walk = kernels.require().chain_prepare
-    for (_name, (h, r0, rho)), pulses in itertools.product(hits.items(), (100, 400)):
+    for (_name, (h, r0, rho)), pulses in itertools.product(hits.items(), (7, 100, 400)):
         sensor = dataclasses.replace(load_sensor("1550nm-day"), pulses=pulses)
         n_bins = check_gate(sensor, lidar.r_r)
         pe = signal_photoelectrons(h.range_m, h.cos, rho[h.sample], sensor, h.sub_rays)
@@ -140,28 +140,42 @@ def test_the_comparisons_reach_every_route_of_the_loud_cells(hits):
                           range_sigma_m(sensor) / lidar.r_r, lidar.r_r)
         noise = noise_per_bin(sensor, lidar.r_r)
         k = kernels.require()
-        _, _, p_sig, p_mean, _, _, _, before, heads, counts, total = k.pieces(
-            sig.cell, sig.bin, sig.mean, n_bins, noise, n_cells)
+        _, _, p_sig, p_flo, p_fhi, p_mean, _, _, _, before, heads, counts, total = k.pieces(
+            sig.cell, sig.bin, sig.mean, n_bins, noise, n_cells, BRIGHT_COUNTS / pulses)
+        seen["faint_pieces"] += int((p_fhi > p_flo).sum())
         fired = draws.binomial_inverse(np.full(len(heads), sensor.pulses), -np.expm1(-total),
                                        draws.uniforms(7, np.zeros(len(heads), np.int64),
                                                       draws.FIRED, np.arange(len(heads))))
         chain = fired >= counts
-        if pulses == 100:
-            seen["draws"] += int((~chain).sum())
-            seen["chain"] += int(chain.sum())
-        # the chain's binomial at the cell's first signal bin: Binomial(left, p), left the
+        seen["draws"] += int((~chain).sum())
+        seen["chain"] += int(chain.sum())
+        # the chain's binomial at the cell's first bright bin: Binomial(left, p), left the
         # pulses the noise before it left (nearly all: margin 30), p the bin's share of the
         # rest of the gate; its start is above 0 when mean - 12 sd is
-        at = heads + (p_sig[heads] < 0)
+        at = np.minimum(heads + (p_sig[heads] < 0), len(p_sig) - 1)
+        chain &= p_sig[at] >= 0  # a cell with a bright bin
         p = -np.expm1(-p_mean[at]) / -np.expm1(-(total - before[at]))
         q = np.minimum(p, 1 - p)
         mean = fired * q
-        start = np.floor(mean - 12 * np.sqrt(mean * (1 - q)))
+        with np.errstate(invalid="ignore"):  # cells without a bright bin: not counted
+            start = np.floor(mean - 12 * np.sqrt(mean * (1 - q)))
         seen["big_start"] += int((chain & (mean >= 16) & (start > 30)).sum())
+        placed = k.stretch_bins
+        calls = []
+
+        def spy(*args, _placed=placed):
+            out = _placed(*args)
+            calls.append(out[1])
+            return out
+
+        monkeypatch.setattr(k, "stretch_bins", spy)
         _loud_peaks(sig, n_bins, noise, sensor.pulses, sensor.threshold, 7,
                     np.arange(len(r0)), n_cells, compiled=True)
+        seen["faint_events"] += sum(int((f >= 0).sum()) for f in calls)
     assert walk.signatures
     assert seen["draws"] > 100 and seen["chain"] > 100 and seen["big_start"] > 0
+    # stretches holding faint signal bins, and events placed in those bins
+    assert seen["faint_pieces"] > 100 and seen["faint_events"] > 10, seen
 
 
 @pytest.mark.parametrize("n, p", [(5, 0.3), (100, 0.97), (2000, 0.5), (10**6, 0.01),
@@ -218,9 +232,9 @@ def test_the_kernels_hold_no_fused_multiply_add(monkeypatch, hits):
     k = kernels.require()
     fused = re.compile(r"\b(v?fn?m(add|sub)\w*|fml[as]\w*)\b", re.IGNORECASE)
     code = {}
-    for name in ("spread_sum", "pieces", "binomial_walk", "place_fired", "chain_prepare",
-                 "chain_finish", "uniforms", "masked_uniforms", "top", "histogram_top",
-                 "merge_top"):
+    for name in ("spread_sum", "pieces", "stretch_bins", "binomial_walk", "place_fired",
+                 "chain_prepare", "chain_finish", "uniforms", "masked_uniforms", "top",
+                 "histogram_top", "merge_top"):
         f = getattr(k, name)
         assert f.signatures, name
         options = {o: v for o, v in f.targetoptions.items() if o != "nopython"}
@@ -272,6 +286,8 @@ def test_the_signal_and_the_pieces_are_the_same_floats(hits):
                 for f in ("cell", "bin", "mean"):
                     a, b = getattr(got, f), getattr(want, f)
                     assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), (name, f)
-            args = (want.cell, want.bin, want.mean, n_bins, noise, n_cells)
-            for a, b in zip(k.pieces(*args), _pieces(*args), strict=True):
-                assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), name
+            # every bin a piece, the split the stage uses, every bin faint (one stretch a cell)
+            for bright_min in (0.0, BRIGHT_COUNTS / sensor.pulses, np.inf):
+                args = (want.cell, want.bin, want.mean, n_bins, noise, n_cells, bright_min)
+                for a, b in zip(k.pieces(*args), _pieces(*args), strict=True):
+                    assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), (name, bright_min)

@@ -334,19 +334,23 @@ def test_the_stages_binomial_sampler_has_the_binomial_law(n, p):
         assert abs((draws == k).mean() - pk) < 4 * math.sqrt(pk * (1 - pk) / len(draws))
 
 
-@pytest.mark.parametrize("background_hz, mean_pe, min_per_window", [
-    (1.5e6, 0.3, 1.0),  # most pulses fire: the chain of binomials over the cell's pieces
-    (1e5, 0.15, 0.0),  # few fire: each fired pulse's piece drawn from the cell's law
-], ids=["chain", "draws"])
+@pytest.mark.parametrize("background_hz, mean_pe, threshold, min_per_window", [
+    (1.5e6, 0.3, 3, 1.0),  # most pulses fire: the chain of binomials over the cell's pieces
+    (1e5, 0.15, 3, 0.0),  # few fire: each fired pulse's piece drawn from the cell's law
+    (1e5, 1.0, 12, 0.0),  # bright signal bins, pieces of their own (points.BRIGHT_COUNTS)
+    (3e4, 0.05, 2, 0.0),  # every signal bin faint: events placed in the stretch, labelled there
+], ids=["chain", "draws", "bright", "faint"])
 def test_points_of_a_batch_follow_the_law_of_every_pulse_followed(background_hz, mean_pe,
-                                                                   min_per_window):
+                                                                   threshold, min_per_window):
     """The points output draws a batch at once (chains of binomials, rare noise peaks); the
     events output follows every pulse. Reduced to points, both must agree in law: points per
-    window, how often and how strongly the target cell reports, and at which surface."""
+    window, how often and how strongly the target cell reports, at which surface, and how
+    often its point is labelled signal."""
     from apcg_core.sensor.detector import Events
     from apcg_core.sensor.detector import peaks as reduce_to_peaks
     n = 300
-    base = sensor(background_hz=background_hz, dark_count_hz=0.0, pulses=40, threshold=3)
+    base = sensor(background_hz=background_hz, dark_count_hz=0.0, pulses=40,
+                  threshold=threshold)
     r = np.tile([5000.0, 5000.0, 5006.0, 5006.0], n)
     hits = one_cell(r, sub_rays=4, n_samples=n)
     base = dataclasses.replace(base, pulse_energy_j=energy_for(mean_pe, 5000.0, base, 4))
@@ -362,6 +366,7 @@ def test_points_of_a_batch_follow_the_law_of_every_pulse_followed(background_hz,
     keep = h.count >= base.threshold
     ev_sample, ev_cell, ev_count = h.cell[keep] // cells, h.cell[keep] % cells, h.count[keep]
     ev_range = (h.bin[keep] + 0.5) * LIDAR.r_r
+    ev_label = 2 * h.signal_count[keep] >= h.count[keep]
     target = (0 - LIDAR.h_min) * LIDAR.width + (0 - LIDAR.w_min)
 
     def z_ok(a, b):
@@ -382,6 +387,8 @@ def test_points_of_a_batch_follow_the_law_of_every_pulse_followed(background_hz,
     assert ok, why
     ok, why = z_ok(pts.range_m[pt_target] < 5003, ev_range[ev_target] < 5003)
     assert ok, why
+    ok, why = z_ok(pts.label[pt_target], ev_label[ev_target])
+    assert ok and pts.label[pt_target].mean() > 0.2, why
 
 
 def test_the_two_routes_for_cells_of_noise_alone_agree_in_law():

@@ -20,7 +20,7 @@ _TO_UNIT = 2.0**-53
 
 # stream numbers: one per kind of draw (a new kind takes a new number)
 PIECES, LABELS, STRETCH, QUIET_COUNT, QUIET_SLOT, QUIET_Z, LIGHT_COUNT, LIGHT_SLOT, LIGHT_Z, \
-    PULSE, FIRED, FIRST_PIECE = range(1, 13)
+    PULSE, FIRED, FIRST_PIECE, FAINT_LABEL = range(1, 14)
 
 
 def _mix(x: np.ndarray) -> np.ndarray:

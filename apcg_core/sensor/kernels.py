@@ -238,23 +238,21 @@ def _compile() -> _Kernels:
             remaining[c] = left - x
 
     @jit
-    def pieces(cell, b, mean, n_bins, noise, n_cells):
-        """points._loud_peaks' pieces in one pass: per cell (``cell`` sorted, its signal bins
-        ``b`` ascending) a stretch of noise before each signal bin that has one, the bin, and
-        after the cell's last bin the rest of the gate. Per piece: start, length, signal bin
-        index (-1 for noise), mean (noise * length, plus the bin's mean), sample, number
-        within the sample, loud cell index, and the sum of the cell's earlier pieces' means;
-        per loud cell: first piece, pieces, and the whole gate's mean."""
+    def pieces(cell, b, mean, n_bins, noise, n_cells, bright_min):
+        """points._pieces in one pass: per cell (``cell`` sorted, its signal bins ``b``
+        ascending) each bright signal bin (mean >= ``bright_min``) a piece, and each run of
+        bins between them (before the first, after the last; the whole gate where there is
+        none) one piece of noise and faint bins. Per piece: start, length, bright bin index
+        (-1 for the others), faint bins [flo, fhi), mean, sample, number within the sample,
+        loud cell index, and the sum of the cell's earlier pieces' means; per loud cell:
+        first piece, pieces, and the whole gate's mean."""
         n = cell.shape[0]
-        cap = 0  # the pieces: every signal bin, the stretches before them, the tails
-        for i in range(n):
-            new = i == 0 or cell[i] != cell[i - 1]
-            cap += 1 + (b[i] > (0 if new else b[i - 1] + 1))
-            if (i == n - 1 or cell[i + 1] != cell[i]) and b[i] < n_bins - 1:
-                cap += 1
+        cap = 2 * n + 1  # at most a bright piece and the run before it per bin, and a tail
         p_start = np.empty(cap, np.int64)
         p_len = np.empty(cap, np.int64)
         p_sig = np.empty(cap, np.int64)
+        p_flo = np.empty(cap, np.int64)
+        p_fhi = np.empty(cap, np.int64)
         p_mean = np.empty(cap)
         sample = np.empty(cap, np.int64)
         p_index = np.empty(cap, np.int64)
@@ -264,58 +262,108 @@ def _compile() -> _Kernels:
         counts = np.empty(n, np.int64)
         total = np.empty(n)
         m = 0
-        nc = -1
+        nc = 0
         prev_sample = -1
         within = 0
-        for i in range(n):
-            new = i == 0 or cell[i] != cell[i - 1]
+        i = 0
+        while i < n:
+            j = i
+            while j < n and cell[j] == cell[i]:
+                j += 1
             s = cell[i] // n_cells
-            if new:
-                nc += 1
-                heads[nc] = m
-                prev_end = 0
-                if s != prev_sample:
-                    within = 0
-                    prev_sample = s
-            else:
-                prev_end = b[i - 1] + 1
-            gap = b[i] - prev_end
-            if gap > 0:
-                p_start[m] = prev_end
-                p_len[m] = gap
-                p_sig[m] = -1
-                p_mean[m] = noise * np.float64(gap)
-                m += 1
-            p_start[m] = b[i]
-            p_len[m] = 1
-            p_sig[m] = i
-            p_mean[m] = noise * np.float64(1) + mean[i]
-            m += 1
-            if i == n - 1 or cell[i + 1] != cell[i]:
-                tail = n_bins - 1 - b[i]
-                if tail > 0:
-                    p_start[m] = b[i] + 1
-                    p_len[m] = tail
+            if s != prev_sample:
+                within = 0
+                prev_sample = s
+            h = m
+            x = 0  # the first bin not yet in a piece
+            flo = i  # the first faint bin not yet in a piece
+            for k in range(i, j + 1):
+                if k < j and not (mean[k] >= bright_min):
+                    continue
+                stop = b[k] if k < j else n_bins
+                if stop > x:  # the run [x, stop): noise and the faint bins flo .. k - 1
+                    acc = 0.0
+                    for f in range(flo, k):
+                        acc = acc + mean[f]
+                    p_start[m] = x
+                    p_len[m] = stop - x
                     p_sig[m] = -1
-                    p_mean[m] = noise * np.float64(tail)
+                    p_flo[m] = flo
+                    p_fhi[m] = k
+                    p_mean[m] = noise * np.float64(stop - x) + acc
                     m += 1
-                h = heads[nc]
-                counts[nc] = m - h
-                acc = 0.0
-                for j in range(h, m):
-                    sample[j] = s
-                    p_index[j] = within
-                    within += 1
-                    cell_of_piece[j] = nc
-                    if j == h:
-                        before[j] = 0.0
-                    else:
-                        acc = before[j - 1] + p_mean[j - 1]
-                        before[j] = acc
-                total[nc] = before[m - 1] + p_mean[m - 1]
-        nc += 1
-        return (p_start[:m], p_len[:m], p_sig[:m], p_mean[:m], sample[:m], p_index[:m],
-                cell_of_piece[:m], before[:m], heads[:nc], counts[:nc], total[:nc])
+                if k < j:
+                    p_start[m] = b[k]
+                    p_len[m] = 1
+                    p_sig[m] = k
+                    p_flo[m] = k
+                    p_fhi[m] = k
+                    p_mean[m] = noise * np.float64(1) + mean[k]
+                    m += 1
+                    x = b[k] + 1
+                    flo = k + 1
+            heads[nc] = h
+            counts[nc] = m - h
+            for q in range(h, m):
+                sample[q] = s
+                p_index[q] = within
+                within += 1
+                cell_of_piece[q] = nc
+                if q == h:
+                    before[q] = 0.0
+                else:
+                    before[q] = before[q - 1] + p_mean[q - 1]
+            total[nc] = before[m - 1] + p_mean[m - 1]
+            nc += 1
+            i = j
+        return (p_start[:m], p_len[:m], p_sig[:m], p_flo[:m], p_fhi[:m], p_mean[:m],
+                sample[:m], p_index[:m], cell_of_piece[:m], before[:m], heads[:nc],
+                counts[:nc], total[:nc])
+
+    @jit
+    def stretch_bins(t, e_piece, p_start, p_len, p_flo, p_fhi, b, mean, noise):
+        """points._stretch_bins: each event's walk from its piece's start through the runs of
+        noise and the faint bins until the mean passed reaches its ``t``: its bin, and the
+        faint bin's index (-1 in a run of noise)."""
+        n = t.shape[0]
+        out_bin = np.empty(n, np.int64)
+        out_faint = np.full(n, -1, np.int64)
+        for e in range(n):
+            piece = e_piece[e]
+            te = t[e]
+            x = p_start[piece]
+            end = x + p_len[piece]
+            cum = 0.0
+            done = False
+            for f in range(p_flo[piece], p_fhi[piece]):
+                a = cum + noise * np.float64(b[f] - x)
+                if a > te:  # in the run of noise before faint bin f
+                    off = np.floor((te - cum) / noise)
+                    lim = np.float64(b[f] - 1 - x)
+                    if off > lim:
+                        off = lim
+                    out_bin[e] = x + np.int64(off)
+                    done = True
+                    break
+                cum = a + (noise + mean[f])
+                if cum > te:  # in faint bin f
+                    out_bin[e] = b[f]
+                    out_faint[e] = f
+                    done = True
+                    break
+                x = b[f] + 1
+            if done:
+                continue
+            if p_fhi[piece] > p_flo[piece] and (x >= end or not (noise > 0)):
+                out_bin[e] = b[p_fhi[piece] - 1]  # no run after the last faint bin
+                out_faint[e] = p_fhi[piece] - 1
+            else:
+                off = np.floor((te - cum) / noise)
+                lim = np.float64(end - 1 - x)
+                if off > lim:
+                    off = lim
+                out_bin[e] = x + np.int64(off)
+        return out_bin, out_faint
 
     @jit
     def mix(x):
@@ -428,21 +476,24 @@ def _compile() -> _Kernels:
         return oc[:m], ob[:m], on[:m], os_[:m]
 
     @jit
-    def histogram_top(cell, b, n_bins):
-        """points._histogram: the counts of events per (cell, bin) (``cell`` sorted, bins in
-        any order), reduced to each cell's peak as points._top reduces them (the most
-        counts, then the nearest bin); signal counts 0."""
+    def histogram_top(cell, b, label, n_bins):
+        """points._histogram: the counts of events (and of the signal ones, ``label`` 1) per
+        (cell, bin) (``cell`` sorted, bins in any order), reduced to each cell's peak as
+        points._top reduces them (the most counts, then the nearest bin)."""
         n = cell.shape[0]
         oc = np.empty(n, np.int64)
         ob = np.empty(n, np.int64)
         on = np.empty(n, np.int64)
+        os_ = np.empty(n, np.int64)
         hist = np.zeros(n_bins, np.int64)
+        hsig = np.zeros(n_bins, np.int64)
         m = 0
         i = 0
         while i < n:
             j = i
             while j < n and cell[j] == cell[i]:
                 hist[b[j]] += 1
+                hsig[b[j]] += label[j]
                 j += 1
             best_b = -1
             best_n = 0
@@ -451,12 +502,13 @@ def _compile() -> _Kernels:
                 h = hist[bk]
                 if h > best_n or (h == best_n and h > 0 and bk < best_b):
                     best_n, best_b = h, bk
+            oc[m], ob[m], on[m], os_[m] = cell[i], best_b, best_n, hsig[best_b]
             for k in range(i, j):
                 hist[b[k]] = 0
-            oc[m], ob[m], on[m] = cell[i], best_b, best_n
+                hsig[b[k]] = 0
             m += 1
             i = j
-        return oc[:m], ob[:m], on[:m], np.zeros(m, np.int64)
+        return oc[:m], ob[:m], on[:m], os_[:m]
 
     @jit
     def merge_top(c1, b1, n1, s1, c2, b2, n2, s2, n_bins):
@@ -485,6 +537,7 @@ def _compile() -> _Kernels:
 
     return _Kernels(place_fired=place_fired, masked_uniforms=masked_uniforms, top=top,
                     histogram_top=histogram_top, merge_top=merge_top, pieces=pieces,
+                    stretch_bins=stretch_bins,
                     uniforms=uniforms, spread_sum=spread_sum,
                     binomial_walk=binomial_walk,
                     chain_prepare=chain_prepare, chain_finish=chain_finish)

@@ -32,6 +32,14 @@ import numpy as np
 from . import draws, kernels
 from .detector import SignalBins, _binomial_pmf, _bisect, _quiet_cost
 
+# A signal bin is a piece of its own (its count kept, its binomial in the chain) when it
+# expects at least this many counts over the pulses; fainter bins join the stretch of noise
+# they lie in, where an event is placed only when the stretch could hold the cell's point.
+# The law is the same either way (a piece is any run of bins); the split only moves work:
+# the faint bins of the spread's tails (half of all signal bins expect < 0.04 counts at the
+# 1550 nm day preset) stop costing a binomial each. Chosen by bench/photons.py.
+BRIGHT_COUNTS = 3.0
+
 
 @dataclass
 class Peaks:
@@ -65,16 +73,21 @@ def _top(cell, b, count, sig, n_bins: int) -> Peaks:
     return Peaks(cell[at], b[at], count[at], sig[at])
 
 
-def _histogram(cell, b, n_bins: int) -> Peaks:
-    """Counts per (cell, bin) of noise events, reduced to each cell's peak."""
+def _histogram(cell, b, n_bins: int, label=None) -> Peaks:
+    """Counts per (cell, bin) of events (``label`` 1 for a signal event; none: all noise),
+    reduced to each cell's peak with its signal count."""
     if len(cell) == 0:
         z = np.zeros(0, np.int64)
         return Peaks(z, z, z, z)
-    key = np.sort(cell * n_bins + b)
+    key = cell * n_bins + b
+    order = np.argsort(key, kind="stable")
+    key = key[order]
     first = np.flatnonzero(_first_of_groups(key))
     counts = np.diff(np.append(first, len(key)))
+    sig = (np.add.reduceat(np.asarray(label, np.int64)[order], first) if label is not None
+           else np.zeros(len(first), np.int64))
     k = key[first]
-    return _top(k // n_bins, k % n_bins, counts, np.zeros(len(first), np.int64), n_bins)
+    return _top(k // n_bins, k % n_bins, counts, sig, n_bins)
 
 
 def _sum_before(values: np.ndarray, steps: list) -> np.ndarray:
@@ -119,44 +132,136 @@ def _chain_compiled(k_, chain, em, rest, heads, counts, cell_of_piece, remaining
         active = active[(remaining[active] > 0) & (counts[active] > j)]
 
 
-def _pieces(cell, b, mean, n_bins: int, noise: float, n_cells: int,
+def _sequential_sums(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Per run [lo, hi) of ``values``, its sum added up in order from 0.0 (((0 + v0) + v1) +
+    ...), as the compiled loop adds it: position by position, all runs at once."""
+    acc = np.zeros(len(lo))
+    size = hi - lo
+    for k in range(int(size.max()) if len(size) else 0):
+        at = np.flatnonzero(size > k)
+        acc[at] = acc[at] + values[lo[at] + k]
+    return acc
+
+
+def _stretch_bins(t, e_piece, p_start, p_len, p_flo, p_fhi, b, mean, noise: float) -> tuple:
+    """Where each event of a stretch lands (numpy; ``kernels.stretch_bins`` compiled, the same
+    bytes): ``t`` the mean its first arrival took from the piece's start (the first-arrival
+    law: -log(1 - u (1 - exp(-M)))), walked through the piece's noise runs and faint signal
+    bins in order (A_f, B_f: the mean up to faint bin f's start and end). Returns the bin
+    and the faint signal bin's index (-1 in a run of noise)."""
+    n = len(t)
+    start, end = p_start[e_piece], p_start[e_piece] + p_len[e_piece]
+    flo, fhi = p_flo[e_piece], p_fhi[e_piece]
+    # A_f and B_f of the faint bins of the pieces these events are in, position by position
+    pieces = np.unique(e_piece[fhi > flo])
+    lo, hi = p_flo[pieces], p_fhi[pieces]
+    a_f, b_f = np.zeros(len(mean)), np.zeros(len(mean))
+    cum, x = np.zeros(len(pieces)), p_start[pieces].copy()
+    for k in range(int((hi - lo).max()) if len(pieces) else 0):
+        at = np.flatnonzero(hi - lo > k)
+        f = lo[at] + k
+        a_f[f] = cum[at] + noise * (b[f] - x[at])
+        b_f[f] = a_f[f] + (noise + mean[f])
+        cum[at], x[at] = b_f[f], b[f] + 1
+    # the first of A_lo, B_lo, A_lo+1, ... above t: 2k a run of noise before faint bin k,
+    # 2k + 1 faint bin k, 2 fhi the run after the last
+    v = np.empty(2 * len(mean))
+    v[0::2], v[1::2] = a_f, b_f
+    pos = _bisect(v, 2 * flo, 2 * fhi, t, right=True)
+    k = pos // 2
+    in_faint = (pos % 2 == 1)
+    had = k > flo  # a faint bin before: the run starts after it
+    prev = np.maximum(k - 1, 0)
+    x = np.where(had, b[prev] + 1, start)
+    cum = np.where(had, b_f[prev], 0.0)
+    run_end = np.where(k < fhi, b[np.minimum(k, len(b) - 1)], end) if len(b) else end
+    bin_ = np.empty(n, np.int64)
+    faint = np.full(n, -1, np.int64)
+    faint[in_faint] = k[in_faint]
+    bin_[in_faint] = b[k[in_faint]]
+    run = np.flatnonzero(~in_faint)
+    # after the last faint bin with no run left, or no noise: the last faint bin
+    last = (k[run] == fhi[run]) & (fhi[run] > flo[run]) & ((x[run] >= end[run]) | (noise <= 0))
+    lf = run[last]
+    faint[lf] = fhi[lf] - 1
+    bin_[lf] = b[fhi[lf] - 1]
+    run = run[~last]
+    if len(run):
+        off = np.minimum(np.floor((t[run] - cum[run]) / noise),
+                         (run_end[run] - 1 - x[run]).astype(np.float64))
+        bin_[run] = x[run] + off.astype(np.int64)
+    return bin_, faint
+
+
+def _pieces(cell, b, mean, n_bins: int, noise: float, n_cells: int, bright_min: float,
             steps: list | None = None) -> tuple:
-    """The loud cells' pieces (numpy; ``kernels.pieces`` compiled, the same bytes): per cell
-    (``cell`` sorted, its signal bins ``b`` ascending) a stretch of noise before each signal
-    bin that has one, the bin, and after the cell's last bin the rest of the gate. Per piece:
-    start, length, signal bin index (-1 for noise), mean (noise * length, plus the bin's
-    mean), sample, number within the sample, loud cell index, and the sum of the cell's
-    earlier pieces' means (C before it); per loud cell: first piece, pieces, and C of the
-    whole gate. ``steps``, when given, receives the pieces by position in their cell."""
+    """The loud cells' pieces (numpy; ``kernels.pieces`` compiled, the same bytes). Per cell
+    (``cell`` sorted, its signal bins ``b`` ascending) each bright signal bin (mean >=
+    ``bright_min``) is a piece; the bins between them, and before the first and after the
+    last (the whole gate in a cell with none), are one piece each where there are any: noise
+    and the faint signal bins there. Per piece: start, length, bright signal bin index (-1
+    for the others), its faint signal bins [flo, fhi), mean (noise * length plus the bright
+    bin's mean, or plus its faint bins' means added up in order), sample, number within the
+    sample, loud cell index, and the sum of the cell's earlier pieces' means (C before it);
+    per loud cell: first piece, pieces, and C of the whole gate. ``steps``, when given,
+    receives the pieces by position in their cell."""
     n_sig = len(cell)
     new_cell = _first_of_groups(cell)
-    last = np.empty(n_sig, bool)
-    last[-1] = True
-    last[:-1] = new_cell[1:]
-    prev_end = np.where(new_cell, 0, np.concatenate([[0], b[:-1] + 1]))
-    gap_len = b - prev_end
+    cell_id = np.cumsum(new_cell) - 1
+    n_loud = int(cell_id[-1]) + 1
+    cs = np.flatnonzero(new_cell)
+    ce = np.append(cs[1:], n_sig)
+    bi = np.flatnonzero(mean >= bright_min)  # the bright signal bins
+    bc = cell_id[bi]
+    first_b = _first_of_groups(bc)
+    last_b = np.append(bc[1:] != bc[:-1], True) if len(bi) else np.zeros(0, bool)
+    prev = np.concatenate([[0], bi[:-1]]) if len(bi) else bi
+    prev_end = np.where(first_b, 0, b[prev] + 1)
+    gap_len = b[bi] - prev_end
     gap = gap_len > 0
-    tail_len = np.where(last, n_bins - 1 - b, 0)
+    tail_len = np.where(last_b, n_bins - 1 - b[bi], 0)
     tail = tail_len > 0
-    per = gap.astype(np.int64) + 1 + tail
-    end_slot = np.cumsum(per)
-    sig_slot = end_slot - 1 - tail
-    n_pieces = int(end_slot[-1])
-    p_cell = np.repeat(cell, per)
+    dark = np.ones(n_loud, bool)  # cells without a bright bin: the whole gate one piece
+    dark[bc] = False
+    dark = np.flatnonzero(dark)
+    # units in cell order: each bright bin (with the piece before it and the tail), each dark
+    # cell (one piece)
+    unit_cell = np.concatenate([bc, dark])
+    order = np.argsort(unit_cell, kind="stable")
+    per = np.concatenate([gap.astype(np.int64) + 1 + tail, np.ones(len(dark), np.int64)])
+    end_slot = np.empty(len(order), np.int64)
+    end_slot[order] = np.cumsum(per[order])
+    n_pieces = int(end_slot.max())
+    nb = len(bi)
+    sig_slot = end_slot[:nb] - 1 - tail
     p_start = np.empty(n_pieces, np.int64)
     p_len = np.empty(n_pieces, np.int64)
     p_sig = np.full(n_pieces, -1, np.int64)
-    p_start[sig_slot], p_len[sig_slot], p_sig[sig_slot] = b, 1, np.arange(n_sig)
+    p_flo = np.zeros(n_pieces, np.int64)
+    p_fhi = np.zeros(n_pieces, np.int64)
+    p_start[sig_slot], p_len[sig_slot], p_sig[sig_slot] = b[bi], 1, bi
+    p_flo[sig_slot], p_fhi[sig_slot] = bi, bi
     g = sig_slot[gap] - 1
     p_start[g], p_len[g] = prev_end[gap], gap_len[gap]
+    p_flo[g], p_fhi[g] = np.where(first_b, cs[bc], prev + 1)[gap], bi[gap]
     t = sig_slot[tail] + 1
-    p_start[t], p_len[t] = b[tail] + 1, tail_len[tail]
+    p_start[t], p_len[t] = b[bi][tail] + 1, tail_len[tail]
+    p_flo[t], p_fhi[t] = bi[tail] + 1, ce[bc[tail]]
+    d = end_slot[nb:] - 1
+    p_start[d], p_len[d], p_flo[d], p_fhi[d] = 0, n_bins, cs[dark], ce[dark]
     p_mean = noise * p_len
-    p_mean[sig_slot] += mean
-    sample = p_cell // n_cells
-    heads = np.flatnonzero(_first_of_groups(p_cell))
+    p_mean[sig_slot] += mean[bi]
+    comp = np.flatnonzero(p_sig < 0)
+    p_mean[comp] = p_mean[comp] + _sequential_sums(mean, p_flo[comp], p_fhi[comp])
+    p_cell = np.empty(n_pieces, np.int64)
+    p_cell[sig_slot] = bc
+    p_cell[g] = bc[gap]
+    p_cell[t] = bc[tail]
+    p_cell[d] = dark
+    cell_of_piece = p_cell  # loud cell index, ascending
+    heads = np.flatnonzero(_first_of_groups(cell_of_piece))
     counts = np.diff(np.append(heads, n_pieces))
-    cell_of_piece = np.repeat(np.arange(len(heads)), counts)
+    sample = cell[cs][cell_of_piece] // n_cells
     p_index = draws.index_within(sample)  # a piece's number within its sample
     # the sums run position by position, so a cell's numbers never depend on the other cells
     pos = np.arange(n_pieces) - heads[cell_of_piece]
@@ -168,8 +273,8 @@ def _pieces(cell, b, mean, n_bins: int, noise: float, n_cells: int,
     before = _sum_before(p_mean, steps)
     last = heads + counts - 1
     total = before[last] + p_mean[last]
-    return (p_start, p_len, p_sig, p_mean, sample, p_index, cell_of_piece, before, heads, counts,
-            total)
+    return (p_start, p_len, p_sig, p_flo, p_fhi, p_mean, sample, p_index, cell_of_piece,
+            before, heads, counts, total)
 
 
 def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, threshold: int,
@@ -186,9 +291,10 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
     new_cell = _first_of_groups(cell)
     steps = []
     build = k_.pieces if k_ is not None else functools.partial(_pieces, steps=steps)
-    (p_start, p_len, p_sig, p_mean, sample, p_index, cell_of_piece, before, heads, counts,
-     total) = build(cell, b, np.ascontiguousarray(mean, np.float64), int(n_bins), float(noise),
-                    int(n_cells))
+    (p_start, p_len, p_sig, p_flo, p_fhi, p_mean, sample, p_index, cell_of_piece, before,
+     heads, counts, total) = build(cell, b, np.ascontiguousarray(mean, np.float64),
+                                   int(n_bins), float(noise), int(n_cells),
+                                   float(BRIGHT_COUNTS / pulses))
     n_pieces = len(p_start)
 
     def by_position() -> list:  # steps[j]: the pieces at position j of their cell
@@ -273,9 +379,10 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
     top_of = _top if k_ is None else (lambda *a: Peaks(*k_.top(*a)))
     sig_top = top_of(cell_of_piece[in_sig], p_start[in_sig], fired[in_sig],
                      np.asarray(sig_count, np.int64), n_bins)
-    # stretches of noise: each event placed by the first-arrival law truncated to its stretch.
+    # stretches (noise and faint signal bins): each event placed by the first-arrival law
+    # truncated to its stretch, an event in a faint bin signal with the bin's signal share.
     # A stretch whose events number less than both the threshold and its cell's highest
-    # signal bin cannot hold the cell's point (no bin of it can beat that bin, nor make a
+    # bright bin cannot hold the cell's point (no bin of it can beat that bin, nor make a
     # point where the cell has none): its events are not placed. Each event keeps its number
     # among all the stretches' events of its sample, so the others draw as if it were.
     in_gap = np.flatnonzero((p_sig < 0) & (fired > 0))
@@ -293,16 +400,19 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
     e_piece = np.repeat(in_gap, reps)
     e_index = np.repeat(g_base, reps) + draws.index_within(np.repeat(np.arange(len(in_gap)),
                                                                       reps))
-    uu = uniforms(draws.STRETCH, sample[e_piece], e_index)
-    e_len = p_len[e_piece]
-    if noise > 0:
-        off = np.floor(-np.log1p(-uu * -np.expm1(-noise * e_len)) / noise).astype(np.int64)
-    else:
-        off = np.zeros(len(uu), np.int64)
+    e_sample = sample[e_piece]
+    t = -np.log1p(-uniforms(draws.STRETCH, e_sample, e_index) * em[e_piece])
+    place = _stretch_bins if k_ is None else k_.stretch_bins
+    gap_bin, faint = place(t, e_piece, p_start, p_len, p_flo, p_fhi, b, mean, float(noise))
+    gap_label = np.zeros(len(t), np.int64)
+    lit = np.flatnonzero(faint >= 0)
+    if len(lit):
+        f = faint[lit]
+        gap_label[lit] = uniforms(draws.FAINT_LABEL, e_sample[lit], e_index[lit]) < (
+            mean[f] / (mean[f] + noise))
     gap_cell = cell_of_piece[e_piece]
-    gap_bin = p_start[e_piece] + np.minimum(off, e_len - 1)
-    gaps = (_histogram(gap_cell, gap_bin, n_bins) if k_ is None
-            else Peaks(*k_.histogram_top(gap_cell, gap_bin, n_bins)))
+    gaps = (_histogram(gap_cell, gap_bin, n_bins, gap_label) if k_ is None
+            else Peaks(*k_.histogram_top(gap_cell, gap_bin, gap_label, n_bins)))
     if k_ is not None:
         top = Peaks(*k_.merge_top(sig_top.cell, sig_top.bin, sig_top.count,
                                   sig_top.signal_count, gaps.cell, gaps.bin, gaps.count,
