@@ -22,6 +22,7 @@ pytest.importorskip("numba")
 from apcg_core.catalog.catalog import Catalog  # noqa: E402
 from apcg_core.depth import DEFAULT_LIDAR  # noqa: E402
 from apcg_core.sensor import draws, kernels, load_sensor, photon_cloud, reflectivity_of  # noqa: E402
+from apcg_core.sensor import points  # noqa: E402
 from apcg_core.sensor.points import BRIGHT_COUNTS, _loud_peaks  # noqa: E402
 from dataset_builder.simulate import Simulator  # noqa: E402
 
@@ -160,15 +161,16 @@ def test_the_comparisons_reach_every_route_of_the_loud_cells(monkeypatch, hits):
         with np.errstate(invalid="ignore"):  # cells without a bright bin: not counted
             start = np.floor(mean - 12 * np.sqrt(mean * (1 - q)))
         seen["big_start"] += int((chain & (mean >= 16) & (start > 30)).sum())
-        placed = k.stretch_bins
         calls = []
 
-        def spy(*args, _placed=placed):
+        def spy(*args, _placed=points._stretch_bins):
             out = _placed(*args)
             calls.append(out[1])
             return out
 
-        monkeypatch.setattr(k, "stretch_bins", spy)
+        monkeypatch.setattr(points, "_stretch_bins", spy)
+        _loud_peaks(sig, n_bins, noise, sensor.pulses, sensor.threshold, 7,
+                    np.arange(len(r0)), n_cells, compiled=False)
         _loud_peaks(sig, n_bins, noise, sensor.pulses, sensor.threshold, 7,
                     np.arange(len(r0)), n_cells, compiled=True)
         seen["faint_events"] += sum(int((f >= 0).sum()) for f in calls)
@@ -227,14 +229,16 @@ def test_the_kernels_hold_no_fused_multiply_add(monkeypatch, hits):
     # types they were called with, and read the machine code.
     from numba import njit
     h, r0, rho = hits["Mavic 3"]
-    _cloud(monkeypatch, "compiled", h, r0, rho, load_sensor("1550nm-day"))
+    for change in ({}, {"pulses": 7, "threshold": 2}):  # with few pulses, the "by draws" route
+        sensor = dataclasses.replace(load_sensor("1550nm-day"), **change)
+        _cloud(monkeypatch, "compiled", h, r0, rho, sensor)
     draws.binomial_inverse(np.array([10]), np.array([0.3]), np.array([0.5]), compiled=True)
     k = kernels.require()
     fused = re.compile(r"\b(v?fn?m(add|sub)\w*|fml[as]\w*)\b", re.IGNORECASE)
     code = {}
-    for name in ("spread_sum", "pieces", "stretch_bins", "binomial_walk", "place_fired",
-                 "chain_prepare", "chain_finish", "uniforms", "masked_uniforms", "top",
-                 "histogram_top", "merge_top"):
+    for name in ("spread_sum", "pieces", "stretch_events", "stretch_peaks", "binomial_walk",
+                 "place_fired", "chain_prepare", "chain_finish", "uniforms", "masked_uniforms",
+                 "top", "histogram_top", "merge_top"):
         f = getattr(k, name)
         assert f.signatures, name
         options = {o: v for o, v in f.targetoptions.items() if o != "nopython"}

@@ -103,6 +103,29 @@ def _compile() -> _Kernels:
     jit = njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
     @jit
+    def ascending(a):
+        """Whether ``a`` never decreases (numpy: not (diff(a) < 0).any())."""
+        for i in range(1, a.shape[0]):
+            if a[i] < a[i - 1]:
+                return False
+        return True
+
+    @jit
+    def spread_start(range_m, first_bin, r_r, half, rows):
+        """stage.signal_bins' place of each return's window: lo = floor(u - half) and the
+        table row rint((u - half - lo) rows), u = range / r_r - first bin, as numpy rounds
+        them."""
+        n = range_m.shape[0]
+        lo = np.empty(n, np.int64)
+        row = np.empty(n, np.int64)
+        for i in range(n):
+            start = (range_m[i] / r_r - np.float64(first_bin[i])) - half
+            f = np.floor(start)
+            row[i] = np.int64(np.rint((start - f) * rows))
+            lo[i] = np.int64(f)
+        return lo, row
+
+    @jit
     def spread_sum(cell, lo, row, mean, weights, n_bins):
         """stage.signal_bins' spread and sum: hit i's mean times weights[row[i], j] in bin
         lo[i] + j, kept when the bin is in the gate and the product is > 0, then added up
@@ -321,51 +344,6 @@ def _compile() -> _Kernels:
                 counts[:nc], total[:nc])
 
     @jit
-    def stretch_bins(t, e_piece, p_start, p_len, p_flo, p_fhi, b, mean, noise):
-        """points._stretch_bins: each event's walk from its piece's start through the runs of
-        noise and the faint bins until the mean passed reaches its ``t``: its bin, and the
-        faint bin's index (-1 in a run of noise)."""
-        n = t.shape[0]
-        out_bin = np.empty(n, np.int64)
-        out_faint = np.full(n, -1, np.int64)
-        for e in range(n):
-            piece = e_piece[e]
-            te = t[e]
-            x = p_start[piece]
-            end = x + p_len[piece]
-            cum = 0.0
-            done = False
-            for f in range(p_flo[piece], p_fhi[piece]):
-                a = cum + noise * np.float64(b[f] - x)
-                if a > te:  # in the run of noise before faint bin f
-                    off = np.floor((te - cum) / noise)
-                    lim = np.float64(b[f] - 1 - x)
-                    if off > lim:
-                        off = lim
-                    out_bin[e] = x + np.int64(off)
-                    done = True
-                    break
-                cum = a + (noise + mean[f])
-                if cum > te:  # in faint bin f
-                    out_bin[e] = b[f]
-                    out_faint[e] = f
-                    done = True
-                    break
-                x = b[f] + 1
-            if done:
-                continue
-            if p_fhi[piece] > p_flo[piece] and (x >= end or not (noise > 0)):
-                out_bin[e] = b[p_fhi[piece] - 1]  # no run after the last faint bin
-                out_faint[e] = p_fhi[piece] - 1
-            else:
-                off = np.floor((te - cum) / noise)
-                lim = np.float64(end - 1 - x)
-                if off > lim:
-                    off = lim
-                out_bin[e] = x + np.int64(off)
-        return out_bin, out_faint
-
-    @jit
     def mix(x):
         """draws._mix: SplitMix64's finaliser on uint64, wrapping as numpy's does."""
         x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -511,6 +489,101 @@ def _compile() -> _Kernels:
         return oc[:m], ob[:m], on[:m], os_[:m]
 
     @jit
+    def stretch_events(pieces, reps, base, sample, key, ids, em):
+        """points._loud_peaks' events of the stretches ``pieces`` (``reps`` each, numbered
+        from ``base`` within their sample): each one's piece, number, and -u em (u its
+        uniform of ``key``'s stream, em its piece's 1 - exp(-M)), the log1p's argument of
+        its first-arrival mean."""
+        n = 0
+        for g in range(pieces.shape[0]):
+            n += reps[g]
+        e_piece = np.empty(n, np.int64)
+        e_index = np.empty(n, np.int64)
+        arg = np.empty(n)
+        e = 0
+        for g in range(pieces.shape[0]):
+            piece = pieces[g]
+            a = sample_key(key, ids[sample[piece]])
+            for r in range(reps[g]):
+                e_piece[e] = piece
+                e_index[e] = base[g] + r
+                arg[e] = -uniform(a, base[g] + r) * em[piece]
+                e += 1
+        return e_piece, e_index, arg
+
+    @jit
+    def stretch_peaks(t, e_piece, e_index, p_start, p_len, p_flo, p_fhi, cell_of_piece, sample,
+                      b, mean, noise, key, ids, n_bins):
+        """points._loud_peaks' stretch events from their first-arrival means ``t`` (events
+        grouped by piece) to each cell's peak: each event walked to its bin as
+        points._stretch_bins walks it, an event in a faint bin labelled signal when its
+        uniform of ``key``'s stream is below the bin's signal share, and the histogram's
+        peak per cell as histogram_top finds it. A piece's events are walked in order of
+        ``t`` in one pass: the sums along the walk are the same floats for every event."""
+        n = t.shape[0]
+        gap_cell = np.empty(n, np.int64)
+        gap_bin = np.empty(n, np.int64)
+        label = np.zeros(n, np.int64)
+        order = np.empty(n, np.int64)
+        i = 0
+        while i < n:
+            piece = e_piece[i]
+            j = i
+            while j < n and e_piece[j] == piece:
+                # insertion sort of the piece's events by t (a few each)
+                k = j
+                while k > i and t[order[k - 1]] > t[j]:
+                    order[k] = order[k - 1]
+                    k -= 1
+                order[k] = j
+                j += 1
+            x = p_start[piece]
+            end = x + p_len[piece]
+            flo = p_flo[piece]
+            fhi = p_fhi[piece]
+            f = flo
+            cum = 0.0
+            c = cell_of_piece[piece]
+            a_key = sample_key(key, ids[sample[piece]])
+            for q in range(i, j):
+                e = order[q]
+                te = t[e]
+                gap_cell[e] = c
+                while True:
+                    if f < fhi:
+                        a = cum + noise * np.float64(b[f] - x)
+                        if a > te:  # in the run of noise before faint bin f
+                            off = np.floor((te - cum) / noise)
+                            lim = np.float64(b[f] - 1 - x)
+                            if off > lim:
+                                off = lim
+                            gap_bin[e] = x + np.int64(off)
+                            break
+                        after = a + (noise + mean[f])
+                        if after > te:  # in faint bin f
+                            gap_bin[e] = b[f]
+                            if uniform(a_key, e_index[e]) < mean[f] / (mean[f] + noise):
+                                label[e] = 1
+                            break
+                        cum = after
+                        x = b[f] + 1
+                        f += 1
+                    elif fhi > flo and (x >= end or not (noise > 0)):
+                        gap_bin[e] = b[fhi - 1]  # no run after the last faint bin
+                        if uniform(a_key, e_index[e]) < mean[fhi - 1] / (mean[fhi - 1] + noise):
+                            label[e] = 1
+                        break
+                    else:
+                        off = np.floor((te - cum) / noise)
+                        lim = np.float64(end - 1 - x)
+                        if off > lim:
+                            off = lim
+                        gap_bin[e] = x + np.int64(off)
+                        break
+            i = j
+        return histogram_top(gap_cell, gap_bin, label, n_bins)
+
+    @jit
     def merge_top(c1, b1, n1, s1, c2, b2, n2, s2, n_bins):
         """points._top of two peak lists (each sorted by cell, one entry a cell, no bin in
         both) concatenated and stably sorted by cell: per cell, the better of its entries."""
@@ -537,7 +610,9 @@ def _compile() -> _Kernels:
 
     return _Kernels(place_fired=place_fired, masked_uniforms=masked_uniforms, top=top,
                     histogram_top=histogram_top, merge_top=merge_top, pieces=pieces,
-                    stretch_bins=stretch_bins,
-                    uniforms=uniforms, spread_sum=spread_sum,
+                    stretch_events=stretch_events,
+                    stretch_peaks=stretch_peaks,
+                    uniforms=uniforms, spread_sum=spread_sum, ascending=ascending,
+                    spread_start=spread_start,
                     binomial_walk=binomial_walk,
                     chain_prepare=chain_prepare, chain_finish=chain_finish)

@@ -397,27 +397,31 @@ def _loud_peaks(signal: SignalBins, n_bins: int, noise: float, pulses: int, thre
                                                                               len(in_gap))))
     kept = reps >= need
     in_gap, reps, g_base = in_gap[kept], reps[kept], g_base[kept]
+    if k_ is not None:  # the same draws and walks, in two passes over the events
+        e_piece, e_index, arg = k_.stretch_events(
+            in_gap, reps, g_base, sample, draws.stream_key(seed, draws.STRETCH), ids, em)
+        gaps = Peaks(*k_.stretch_peaks(-np.log1p(arg), e_piece, e_index, p_start, p_len, p_flo,
+                                       p_fhi, cell_of_piece, sample, b, mean, float(noise),
+                                       draws.stream_key(seed, draws.FAINT_LABEL), ids,
+                                       int(n_bins)))
+        top = Peaks(*k_.merge_top(sig_top.cell, sig_top.bin, sig_top.count,
+                                  sig_top.signal_count, gaps.cell, gaps.bin, gaps.count,
+                                  gaps.signal_count, n_bins))
+        return Peaks(cell[new_cell][top.cell], top.bin, top.count, top.signal_count)
     e_piece = np.repeat(in_gap, reps)
     e_index = np.repeat(g_base, reps) + draws.index_within(np.repeat(np.arange(len(in_gap)),
                                                                       reps))
     e_sample = sample[e_piece]
     t = -np.log1p(-uniforms(draws.STRETCH, e_sample, e_index) * em[e_piece])
-    place = _stretch_bins if k_ is None else k_.stretch_bins
-    gap_bin, faint = place(t, e_piece, p_start, p_len, p_flo, p_fhi, b, mean, float(noise))
+    gap_bin, faint = _stretch_bins(t, e_piece, p_start, p_len, p_flo, p_fhi, b, mean,
+                                   float(noise))
     gap_label = np.zeros(len(t), np.int64)
     lit = np.flatnonzero(faint >= 0)
     if len(lit):
         f = faint[lit]
         gap_label[lit] = uniforms(draws.FAINT_LABEL, e_sample[lit], e_index[lit]) < (
             mean[f] / (mean[f] + noise))
-    gap_cell = cell_of_piece[e_piece]
-    gaps = (_histogram(gap_cell, gap_bin, n_bins, gap_label) if k_ is None
-            else Peaks(*k_.histogram_top(gap_cell, gap_bin, gap_label, n_bins)))
-    if k_ is not None:
-        top = Peaks(*k_.merge_top(sig_top.cell, sig_top.bin, sig_top.count,
-                                  sig_top.signal_count, gaps.cell, gaps.bin, gaps.count,
-                                  gaps.signal_count, n_bins))
-        return Peaks(cell[new_cell][top.cell], top.bin, top.count, top.signal_count)
+    gaps = _histogram(cell_of_piece[e_piece], gap_bin, n_bins, gap_label)
     # each cell's peak: its signal bins' or its stretches' (sorted by cell, one of each)
     both = np.concatenate([sig_top.cell, gaps.cell])
     order = np.argsort(both, kind="stable")

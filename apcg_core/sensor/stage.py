@@ -128,20 +128,22 @@ def signal_bins(cell: np.ndarray, range_m: np.ndarray, mean: np.ndarray, first_b
     sigma in bins) and add them up per (cell, bin); bins outside the gate are lost.
     ``first_bin``: the gate's first bin, one for all or one per return. ``compiled``: the
     spread and the sums in one compiled loop (``kernels.spread_sum``, the same bytes)."""
-    u = range_m / r_r - first_bin  # position in the gate, in bins
     if sigma_bins > 0 and compiled:
+        k_ = kernels.require()
         half, weights = spread_table(sigma_bins)
-        start = u - half
-        lo = np.floor(start)
-        row = np.rint((start - lo) * (len(weights) - 1)).astype(np.int64)
-        lo = lo.astype(np.int64)
         cell = np.asarray(cell, np.int64)
-        if len(cell) and (np.diff(cell) < 0).any():  # as below: a stable order by cell
+        first_bin = np.broadcast_to(np.asarray(first_bin, np.int64), cell.shape)
+        range_m = np.asarray(range_m, np.float64)
+        if not k_.ascending(cell):  # as below: a stable order by cell
             order = np.argsort(cell, kind="stable")
-            cell, lo, row, mean = cell[order], lo[order], row[order], mean[order]
-        c, b, total = kernels.require().spread_sum(
-            cell, lo, row, np.ascontiguousarray(mean, np.float64), weights, int(n_bins))
+            cell, range_m, first_bin, mean = cell[order], range_m[order], first_bin[order], \
+                mean[order]
+        lo, row = k_.spread_start(range_m, np.ascontiguousarray(first_bin), float(r_r),
+                                  float(half), float(len(weights) - 1))
+        c, b, total = k_.spread_sum(cell, lo, row, np.ascontiguousarray(mean, np.float64),
+                                    weights, int(n_bins))
         return SignalBins(c, b, total)
+    u = range_m / r_r - first_bin  # position in the gate, in bins
     if sigma_bins > 0:
         half, weights = spread_table(sigma_bins)
         # Bins lo .. lo + nb - 1 with lo = floor(u - half): their weights depend only on the
