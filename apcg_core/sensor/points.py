@@ -7,13 +7,14 @@ Cells are numbered across the batch (sample * W * H + cell). Every draw is a cou
 uniform of (seed, sample id, stream, index within the sample) (``draws``), so a sample's
 points do not depend on its batch.
 
-* Loud cells (those the signal reaches): the gate is cut into pieces, each signal bin and each
-  stretch of noise alone between them. A pulse that has not fired before a piece fires in it
-  with chance 1 - exp(-mu) (mu the piece's mean), so the pulses firing in each piece are a
-  chain of binomials in time order: exactly the multinomial histogram of first events. A
-  signal bin's count is kept; its signal part is binomial with the signal's share of the bin.
-  Events in a stretch of noise are placed in it one by one (the first-arrival law truncated to
-  the stretch).
+* Loud cells (those the signal reaches): the gate is cut into pieces, each bright signal bin
+  (``BRIGHT_COUNTS``) and each stretch between them (noise and the faint signal bins there).
+  A pulse that has not fired before a piece fires in it with chance 1 - exp(-mu) (mu the
+  piece's mean), so the pulses firing in each piece are a chain of binomials in time order:
+  exactly the multinomial histogram of first events. A bright bin's count is kept; its signal
+  part is binomial with the signal's share of the bin. Events in a stretch are placed in it
+  one by one (the first-arrival law truncated to the stretch), an event in a faint bin
+  signal with that bin's share.
 * Quiet cells (noise alone): arrivals of a pulse in a (cell, bin) are Poisson(noise), and a
   bin's count of first events is at most Z, the pulses with an arrival there, which is
   Binomial(pulses, 1 - exp(-noise)) independently over (cell, bin). Only (cell, bin) with
