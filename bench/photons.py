@@ -2,7 +2,7 @@
 of the same clouds, in one run.
 
     .venv/bin/python bench/photons.py [--samples-per-type 40] [--rounds 3]
-        [--sensors 1550nm-day,1550nm-night] [--json out.json]
+        [--sensors 1550nm-day,1550nm-night] [--json out.json] [--bright-counts 3]
 
 Random Table-1 conditions for the demo config's six types (four aircraft at 3-18 km, two drones
 at 100-600 m), the same for every row. Each round times, per type batch:
@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from apcg_core.catalog.catalog import default_catalog  # noqa: E402
 from apcg_core.depth import DEFAULT_LIDAR  # noqa: E402
-from apcg_core.sensor import load_sensor, photon_cloud, reflectivity_of  # noqa: E402
+from apcg_core.sensor import load_sensor, photon_cloud, points, reflectivity_of  # noqa: E402
 from dataset_builder.simulate import Simulator  # noqa: E402
 
 # CPU seconds of this process (every thread): on a shared machine the ratios of CPU time hold
@@ -61,7 +61,7 @@ def conditions(catalog, per_type: int, seed: int = 0) -> dict:
 def one_round(catalog, conds: dict, sensors: dict, sims: dict) -> dict:
     times = {"ideal_k1": 0.0, "ideal_k4": 0.0, "hits_k4": 0.0,
              **{f"stage[{s}]": 0.0 for s in sensors}}
-    points = {s: 0 for s in sensors}
+    n_points = {s: 0 for s in sensors}
     for name, table in conds.items():
         t = catalog.get(name)
         mesh = catalog.mesh(t)
@@ -78,8 +78,8 @@ def one_round(catalog, conds: dict, sensors: dict, sims: dict) -> dict:
             t0 = CLOCK()
             pc = photon_cloud(hits, table[:, 1], rho, sensor, DEFAULT_LIDAR, seed=1)
             times[f"stage[{s}]"] += CLOCK() - t0
-            points[s] += len(pc.range_m)
-    return {"seconds": times, "points": points}
+            n_points[s] += len(pc.range_m)
+    return {"seconds": times, "points": n_points}
 
 
 def main() -> int:
@@ -92,7 +92,12 @@ def main() -> int:
     ap.add_argument("--clock", choices=("cpu", "wall"), default="cpu",
                     help="what is timed: this process's CPU seconds (default) or wall clock")
     ap.add_argument("--json", help="write the result here too")
+    ap.add_argument("--bright-counts", type=float,
+                    help="points.BRIGHT_COUNTS for this run (how the stage's cost moves with "
+                         "the split of a loud cell into pieces; the output's law is the same)")
     args = ap.parse_args()
+    if args.bright_counts is not None:
+        points.BRIGHT_COUNTS = args.bright_counts
     global CLOCK
     CLOCK = time.process_time if args.clock == "cpu" else time.perf_counter
     catalog = default_catalog()
@@ -113,7 +118,8 @@ def main() -> int:
     n = args.samples_per_type * len(TYPES)
     emit({"command": "python bench/photons.py " + " ".join(sys.argv[1:]),
           "machine": {"cpus": os.cpu_count()}, "clock": args.clock, "samples": n, "types": TYPES,
-          "rounds": args.rounds, "median_seconds": {k: round(v, 4) for k, v in med.items()},
+          "rounds": args.rounds, "bright_counts": points.BRIGHT_COUNTS,
+          "median_seconds": {k: round(v, 4) for k, v in med.items()},
           "ms_per_sample": {k: round(1e3 * v / n, 3) for k, v in med.items()},
           "ratios": ratios, "points_per_sample": {s: round(rounds[0]["points"][s] / n, 1)
                                                   for s in sensors}}, args.json)

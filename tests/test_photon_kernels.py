@@ -21,8 +21,14 @@ pytest.importorskip("numba")
 
 from apcg_core.catalog.catalog import Catalog  # noqa: E402
 from apcg_core.depth import DEFAULT_LIDAR  # noqa: E402
-from apcg_core.sensor import draws, kernels, load_sensor, photon_cloud, reflectivity_of  # noqa: E402
-from apcg_core.sensor import points  # noqa: E402
+from apcg_core.sensor import (  # noqa: E402
+    draws,
+    kernels,
+    load_sensor,
+    photon_cloud,
+    points,  # noqa: E402
+    reflectivity_of,
+)
 from apcg_core.sensor.points import BRIGHT_COUNTS, _loud_peaks  # noqa: E402
 from dataset_builder.simulate import Simulator  # noqa: E402
 
@@ -163,9 +169,9 @@ def test_the_comparisons_reach_every_route_of_the_loud_cells(monkeypatch, hits):
         seen["big_start"] += int((chain & (mean >= 16) & (start > 30)).sum())
         calls = []
 
-        def spy(*args, _placed=points._stretch_bins):
+        def spy(*args, _placed=points._stretch_bins, _calls=calls):
             out = _placed(*args)
-            calls.append(out[1])
+            _calls.append(out[1])
             return out
 
         monkeypatch.setattr(points, "_stretch_bins", spy)

@@ -5,8 +5,9 @@ few loops that numpy runs as many passes over large arrays: spreading every sub-
 over the bins its Gaussian reaches and adding them up per (cell, bin), the sums of a cell's
 earlier pieces, the walk of the binomial sampler's inverse CDF and the bisection that places
 each fired pulse in its cell's pieces, the placing of a stretch's events in its bins, and the
-histograms and peaks of a cell's bins. Here each is one pass. Every float64 operation is the numpy code's, operand for operand and in the same
-order: products, quotients and sums of two operands only, each rounded (numba contracts nothing
+histograms and peaks of a cell's bins. Here each is one pass. Every float64 operation is the
+numpy code's, operand for operand and in the same order: products, quotients and sums of two
+operands only, each rounded (numba contracts nothing
 into a fused multiply-add without ``fastmath``, which is never set here), and every exp, log,
 expm1 or log1p stays in numpy, computed before or between the loops on the same values (a
 compiled ``exp`` need not be the one numpy calls). ``tests/test_photon_kernels.py`` checks that
