@@ -5,13 +5,15 @@ z-buffer and embree 2x2 at that lidar) with the model generating at the lidar's 
 
     .venv/bin/python bench/lidar_heldout.py -o docs/evaluation/lidars [--samples-per-type 8]
         [--lidars paper,half-cells,...] [--pairs 0] [--work /tmp/lidar_heldout]
+        [--types all|drones|aircraft|NAME,NAME] [--name heldout]
 
 Each lidar is the same as these commands (CFG: the config below, written to WORK/cfg.toml):
 
     apcg dataset build --config CFG --lidar LIDAR -o WORK/LIDAR
     apcg evaluate --data WORK/LIDAR --lidar LIDAR --pairs 0 -o WORK/LIDAR-report
 
-Writes OUT/heldout.json (every band's numbers) and OUT/heldout.md (the table).
+Writes OUT/NAME.json (every band's numbers) and OUT/NAME.md (the table); ``--types drones``
+(or ``aircraft``) measures one kind alone with more conditions a band for the same time.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from apcg_core.cli import main as apcg  # noqa: E402
 
 LIDARS = ("paper", "half-cells", "double-cells", "bin-0.05m", "bin-0.6m", "anisotropic")
-CONFIG = """description = "issue 33: every built-in type at random Table 1 conditions"
+CONFIG = """description = "issue 33: built-in types at random Table 1 conditions"
 seed = 33
 backend = "embree"
 shard_size = 500
@@ -36,8 +38,23 @@ quantize = true
 supersample = 1
 sampling = "random"
 samples_per_type = {n}
-types = "all"
+types = {types}
 """
+
+
+def types_value(spec: str) -> str:
+    """The config's ``types``: "all", every drone or every aircraft of the built-in catalog, or
+    the names given."""
+    if spec == "all":
+        return '"all"'
+    from apcg_core.catalog.catalog import Catalog
+    catalog = Catalog(include_user=False)
+    if spec in ("drones", "aircraft"):
+        names = [t.name for t in catalog.types
+                 if (t.range_band == "near") == (spec == "drones")]
+    else:
+        names = [n.strip() for n in spec.split(",") if n.strip()]
+    return json.dumps(names)
 
 
 def main() -> int:
@@ -47,19 +64,23 @@ def main() -> int:
     ap.add_argument("--samples-per-type", type=int, default=8)
     ap.add_argument("--pairs", type=int, default=0, help="0: the whole test half")
     ap.add_argument("--lidars", default=",".join(LIDARS))
+    ap.add_argument("--types", default="all",
+                    help="all (default), drones, aircraft, or type names separated by commas")
+    ap.add_argument("--name", default="heldout", help="the output files' name (NAME.json, .md)")
     ap.add_argument("--render", action="store_true",
-                    help="only write OUT/heldout.md again from OUT/heldout.json")
+                    help="only write OUT/NAME.md again from OUT/NAME.json")
     args = ap.parse_args()
     work, out = Path(args.work), Path(args.output)
     if args.render:
-        record = json.loads((out / "heldout.json").read_text())
-        (out / "heldout.md").write_text(markdown(record))
+        record = json.loads((out / f"{args.name}.json").read_text())
+        (out / f"{args.name}.md").write_text(markdown(record))
         print(markdown(record))
         return 0
     work.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     cfg = work / "cfg.toml"
-    cfg.write_text(CONFIG.format(n=args.samples_per_type))
+    config = CONFIG.format(n=args.samples_per_type, types=types_value(args.types))
+    cfg.write_text(config)
     rows = {}
     for lidar in args.lidars.split(","):
         t0 = time.perf_counter()
@@ -77,9 +98,9 @@ def main() -> int:
         m["seconds_evaluate"] = round(time.perf_counter() - t1, 1)
         rows[lidar] = m
     record = {"command": "python bench/lidar_heldout.py " + " ".join(sys.argv[1:]),
-              "config": CONFIG.format(n=args.samples_per_type), "lidars": rows}
-    (out / "heldout.json").write_text(json.dumps(record, indent=1) + "\n")
-    (out / "heldout.md").write_text(markdown(record))
+              "config": config, "lidars": rows}
+    (out / f"{args.name}.json").write_text(json.dumps(record, indent=1) + "\n")
+    (out / f"{args.name}.md").write_text(markdown(record))
     print(markdown(record))
     return 0
 
