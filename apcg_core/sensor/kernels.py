@@ -429,15 +429,18 @@ def _compile() -> _Kernels:
         return np.int64(count) * (n_bins + 1) + (n_bins - b)
 
     @jit
+    def peak_arrays(n):
+        """Room for n peaks: cell, bin, count, signal count."""
+        return (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64),
+                np.empty(n, np.int64))
+
+    @jit
     def top(cell, b, count, sig, n_bins):
         """points._top: per run of equal ``cell`` (sorted; a (cell, bin) at most once), the
         entry of the highest count * (n_bins + 1) + n_bins - bin: the most counts, then the
         nearest bin. Returns the chosen entries' (cell, bin, count, signal count)."""
         n = cell.shape[0]
-        oc = np.empty(n, np.int64)
-        ob = np.empty(n, np.int64)
-        on = np.empty(n, np.int64)
-        os_ = np.empty(n, np.int64)
+        oc, ob, on, os_ = peak_arrays(n)
         m = 0
         i = 0
         while i < n:
@@ -460,10 +463,7 @@ def _compile() -> _Kernels:
         (cell, bin) (``cell`` sorted, bins in any order), reduced to each cell's peak as
         points._top reduces them (the most counts, then the nearest bin)."""
         n = cell.shape[0]
-        oc = np.empty(n, np.int64)
-        ob = np.empty(n, np.int64)
-        on = np.empty(n, np.int64)
-        os_ = np.empty(n, np.int64)
+        oc, ob, on, os_ = peak_arrays(n)
         hist = np.zeros(n_bins, np.int64)
         hsig = np.zeros(n_bins, np.int64)
         m = 0
@@ -589,10 +589,7 @@ def _compile() -> _Kernels:
         """points._top of two peak lists (each sorted by cell, one entry a cell, no bin in
         both) concatenated and stably sorted by cell: per cell, the better of its entries."""
         n = c1.shape[0] + c2.shape[0]
-        oc = np.empty(n, np.int64)
-        ob = np.empty(n, np.int64)
-        on = np.empty(n, np.int64)
-        os_ = np.empty(n, np.int64)
+        oc, ob, on, os_ = peak_arrays(n)
         i = 0
         j = 0
         m = 0
