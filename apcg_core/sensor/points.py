@@ -109,7 +109,9 @@ def _chain_compiled(k_, chain, em, rest, heads, counts, cell_of_piece, remaining
     log q, lgamma) in numpy, the walk compiled. The same bytes."""
     at = np.flatnonzero(chain)
     n = len(em)
-    p = np.clip(np.minimum(em[at] / -np.expm1(-rest[at]), 1.0), 0.0, 1.0)
+    p = np.zeros(len(at))  # a piece with nothing after its start (no noise, no signal): 0
+    going = rest[at] > 0
+    p[going] = np.clip(np.minimum(em[at][going] / -np.expm1(-rest[at][going]), 1.0), 0.0, 1.0)
     flip = np.zeros(n, bool)
     flip[at] = p > 0.5
     qa = np.where(flip[at], 1.0 - p, p)
