@@ -135,9 +135,22 @@ def _compile() -> _Kernels:
         slot: a sum of positive terms), by cell then bin."""
         n = cell.shape[0]
         nb = weights.shape[1]
-        out_cell = np.empty(n * nb, np.int64)
-        out_bin = np.empty(n * nb, np.int64)
-        out_total = np.empty(n * nb)
+        cap = 0  # per cell, the gate's bins its hits' windows span: the output's bound
+        i = 0
+        while i < n:
+            base = lo[i]
+            top = lo[i]
+            j = i
+            while j < n and cell[j] == cell[i]:
+                base = min(base, lo[j])
+                top = max(top, lo[j])
+                j += 1
+            span = min(top + nb, n_bins) - max(base, 0)
+            cap += max(span, 0)
+            i = j
+        out_cell = np.empty(cap, np.int64)
+        out_bin = np.empty(cap, np.int64)
+        out_total = np.empty(cap)
         buf = np.zeros(64)
         m_out = 0
         i = 0
@@ -271,7 +284,20 @@ def _compile() -> _Kernels:
         loud cell index, and the sum of the cell's earlier pieces' means; per loud cell:
         first piece, pieces, and the whole gate's mean."""
         n = cell.shape[0]
-        cap = 2 * n + 1  # at most a bright piece and the run before it per bin, and a tail
+        cap = 0  # the pieces and the cells, counted first: no array longer than it must be
+        n_loud = 0
+        i = 0
+        while i < n:
+            x = 0
+            j = i
+            while j < n and cell[j] == cell[i]:
+                if mean[j] >= bright_min:
+                    cap += 1 + (b[j] > x)
+                    x = b[j] + 1
+                j += 1
+            cap += x < n_bins
+            n_loud += 1
+            i = j
         p_start = np.empty(cap, np.int64)
         p_len = np.empty(cap, np.int64)
         p_sig = np.empty(cap, np.int64)
@@ -282,9 +308,9 @@ def _compile() -> _Kernels:
         p_index = np.empty(cap, np.int64)
         cell_of_piece = np.empty(cap, np.int64)
         before = np.empty(cap)
-        heads = np.empty(n, np.int64)
-        counts = np.empty(n, np.int64)
-        total = np.empty(n)
+        heads = np.empty(n_loud, np.int64)
+        counts = np.empty(n_loud, np.int64)
+        total = np.empty(n_loud)
         m = 0
         nc = 0
         prev_sample = -1
