@@ -147,7 +147,7 @@ def _sequential_sums(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.n
 
 
 def _stretch_bins(t, e_piece, p_start, p_len, p_flo, p_fhi, b, mean, noise: float) -> tuple:
-    """Where each event of a stretch lands (numpy; ``kernels.stretch_bins`` compiled, the same
+    """Where each event of a stretch lands (numpy; ``kernels.stretch_peaks`` compiled, the same
     bytes): ``t`` the mean its first arrival took from the piece's start (the first-arrival
     law: -log(1 - u (1 - exp(-M)))), walked through the piece's noise runs and faint signal
     bins in order (A_f, B_f: the mean up to faint bin f's start and end). Returns the bin
