@@ -3,6 +3,7 @@ slant-range band, for every way this project makes clouds, measured in one run.
 
     .venv/bin/python bench/speed_error.py --data data/cpu [--per-band 24] [--model DIR ...]
         [--json bench/results/speed_error.json] [--plot docs/speed_error.png]
+        [--recognize recognize.json] [--markdown table.md]
 
 The reference is the standard cloud of each held-out condition (the dataset's test split: one
 ray through each cell centre, embree, quantized ranges). Methods:
@@ -15,12 +16,18 @@ ray through each cell centre, embree, quantized ranges). Methods:
   cloud moved along the line of sight to the query's range (a lookup, no model).
 
 Time is wall time per cloud in one process, batched per type where the method allows, meshes
-and models loaded beforehand. Every row carries its point counts; JSD carries its bins.
+and models loaded beforehand. Every row carries its point counts; JSD carries its bins. Per
+band also each method's faithfulness (training/faithfulness.py: closer to its own standard
+cloud than to both decoys, the decoys simulated once for every method). ``--recognize`` takes a
+report of `apcg benchmark recognize` and puts each source's TSTR ratio beside its method (exact
+-> embree, points, embree-2x2 -> embree 2x2, a model directory -> its row): the usefulness of
+the clouds for training a recognizer, measured by that run.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -32,7 +39,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from apcg_core.frames import cartesian_to_spherical, spherical_to_cartesian  # noqa: E402
 from training import protocol  # noqa: E402
 from training.data import DepthDataset  # noqa: E402
-from training.faithfulness import simulated  # noqa: E402  (one backend's clouds, timed)
+
+# simulated: one backend's clouds, timed; decoys and judge: faithfulness
+from training.faithfulness import decoys, judge, mean_shares, simulated  # noqa: E402
+from training.faithfulness import summarise as faithful_share  # noqa: E402
 
 
 def generated(model, ds, idx, seed: int = 0):
@@ -58,12 +68,36 @@ def nearest_sample(ds_train, ds, idx):
     return out, (time.perf_counter() - t0) / len(idx)
 
 
-def score(refs, clouds, bands, seed: int = 0) -> dict:
-    """Per band, the evaluation protocol's scores (training/protocol.py)."""
+def score(refs, clouds, bands, dec, seed: int = 0) -> dict:
+    """Per band, the evaluation protocol's scores (training/protocol.py) and faithfulness
+    against the pairs' decoys ``dec``."""
     per: dict = {}
+    verdicts: dict = {}
     for k, (ref, c) in enumerate(zip(refs, clouds, strict=True)):
-        per.setdefault(bands[k], []).append(protocol.score_pair(ref, c, seed + k))
-    return {name: protocol.summarise(per[name]) for name in sorted(per, key=protocol.band_order)}
+        row = protocol.score_pair(ref, c, seed + k)
+        per.setdefault(bands[k], []).append(row)
+        verdicts.setdefault(bands[k], []).append(
+            judge(ref, c, dec.yaw[k], dec.other[k], seed + k, row["mmd"]))
+    return {name: {**protocol.summarise(per[name]),
+                   "faithfulness": faithful_share(verdicts[name])}
+            for name in sorted(per, key=protocol.band_order)}
+
+
+# `apcg benchmark recognize` source names of the methods here (a model: its directory)
+RECOGNIZE_SOURCE = {"embree": "exact", "points": "points", "embree 2x2": "embree-2x2"}
+
+
+def tstr_of(recognize: dict, name: str, directory: str | None) -> dict | None:
+    """The TSTR ratio (overall, with its interval) of this method in a recognize report."""
+    if name == "embree":
+        return {"ratio": 1.0, "ci": [1.0, 1.0], "reference": True}
+    want = RECOGNIZE_SOURCE.get(name, directory)
+    for s in recognize.get("sources", []):
+        src = s["source"]["source"] if isinstance(s["source"], dict) else s["source"]
+        same_dir = want is not None and Path(str(src)).resolve() == Path(str(want)).resolve()
+        if same_dir or src == want:
+            return dict(s["tstr"]["overall"])
+    return None
 
 
 def main() -> int:
@@ -79,6 +113,9 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json")
     ap.add_argument("--plot")
+    ap.add_argument("--recognize", help="recognize.json of `apcg benchmark recognize`: its "
+                                        "TSTR ratios beside the methods")
+    ap.add_argument("--markdown", help="write the summary and per-band tables here too")
     args = ap.parse_args()
     from apcg_core.families import load_model
     models = [load_model(m) for m in (args.model or [None])]
@@ -86,26 +123,60 @@ def main() -> int:
     pairs = protocol.draw_pairs(args.data, args.per_band * n_bands, args.seed, half="test")
     ds, idx, bands = pairs.ds, pairs.idx, pairs.bands
     refs = [ds.standard_cloud(int(i)) for i in idx]
+    dec = decoys(ds, idx, args.seed + np.arange(len(idx)))  # the protocol's pair seeds
     methods = {}
+    directories = {}
     for b in args.backends.split(","):
         methods[b] = simulated(b, ds, idx)
     for k in (int(x) for x in args.supersample.split(",") if x):
         methods[f"embree {k}x{k}"] = simulated("embree", ds, idx, supersample=k)
     for m in models:
         methods[f"{m.family} {Path(m.directory).name}"] = generated(m, ds, idx, args.seed)
+        directories[f"{m.family} {Path(m.directory).name}"] = str(m.directory)
     methods["nearest sample"] = nearest_sample(DepthDataset(args.data, "train"), ds, idx)
     report = {"command": "python bench/speed_error.py " + " ".join(sys.argv[1:]),
               **pairs.record(), "protocol": protocol.constants(),
               "jsd_bins": protocol.JSD_BINS, "methods": {}}
+    recognize = json.loads(Path(args.recognize).read_text()) if args.recognize else None
+    if recognize is not None:
+        report["recognize"] = recognize.get("command")
     for name, (clouds, sec) in methods.items():
-        report["methods"][name] = {"ms_per_cloud": round(1e3 * sec, 3),
-                                   "bands": score(refs, clouds, bands, args.seed)}
+        b = score(refs, clouds, bands, dec, args.seed)
+        report["methods"][name] = {
+            "ms_per_cloud": round(1e3 * sec, 3), "bands": b,
+            "mean": {"mmd": _mean(b, "mmd"), "jsd": _mean(b, "jsd"),
+                     "faithfulness": mean_shares(b)},
+            "tstr": None if recognize is None else tstr_of(recognize, name,
+                                                           directories.get(name))}
         print(name, report["methods"][name]["ms_per_cloud"], "ms/cloud", flush=True)
     emit(report, args.json, show=False)
-    print(markdown(report))
+    text = summary(report) + "\n\n" + markdown(report)
+    print(text)
+    if args.markdown:
+        Path(args.markdown).write_text(text + "\n")
     if args.plot:
         plot(report, Path(args.plot))
     return 0
+
+
+def _mean(bands: dict, key: str):
+    vals = [b[key] for b in bands.values() if b[key] is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def summary(report: dict) -> str:
+    """One row per method: time, the means over bands (each band alike) and usefulness."""
+    lines = ["| method | ms / cloud | mean MMD | mean JSD | faithful: aircraft / drones "
+             "| recognition (TSTR) [95%] |", "|---|---|---|---|---|---|"]
+    for name, m in report["methods"].items():
+        f = m["mean"]["faithfulness"]
+        t = m.get("tstr")
+        tstr = "-" if t is None else (f"{t['ratio']:.3f}" + ("" if t.get("reference")
+                                      else f" [{t['ci'][0]:.3f}, {t['ci'][1]:.3f}]"))
+        pct = ["-" if f[k] is None else f"{f[k]:.0%}" for k in ("aircraft", "drone")]
+        lines.append(f"| {name} | {m['ms_per_cloud']:.2f} | {m['mean']['mmd']:.4f} | "
+                     f"{m['mean']['jsd']:.2f} | {pct[0]} / {pct[1]} | {tstr} |")
+    return "\n".join(lines)
 
 
 def markdown(report: dict) -> str:
