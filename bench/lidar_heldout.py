@@ -5,14 +5,15 @@ z-buffer and embree 2x2 at that lidar) with the model generating at the lidar's 
 
     .venv/bin/python bench/lidar_heldout.py -o docs/evaluation/lidars [--samples-per-type 8]
         [--lidars paper,half-cells,...] [--pairs 0] [--work /tmp/lidar_heldout]
-        [--types all|drones|aircraft|NAME,NAME] [--name heldout]
+        [--types all|drones|aircraft|NAME,NAME] [--name heldout] [--force]
 
 Each lidar is the same as these commands (CFG: the config below, written to WORK/cfg.toml):
 
     apcg dataset build --config CFG --lidar LIDAR -o WORK/LIDAR
     apcg evaluate --data WORK/LIDAR --lidar LIDAR --pairs 0 -o WORK/LIDAR-report
 
-Writes OUT/NAME.json (every band's numbers) and OUT/NAME.md (the table); ``--types drones``
+Writes OUT/NAME.json (every band's numbers) and OUT/NAME.md (the table), kept when they exist
+unless ``--force`` (``bench_output.refuse``, checked before any work); ``--types drones``
 (or ``aircraft``) measures one kind alone with more conditions a band for the same time.
 """
 
@@ -69,18 +70,23 @@ def main() -> int:
     ap.add_argument("--name", default="heldout", help="the output files' name (NAME.json, .md)")
     ap.add_argument("--render", action="store_true",
                     help="only write OUT/NAME.md again from OUT/NAME.json")
+    ap.add_argument("--force", action="store_true",
+                    help="replace OUT/NAME.json and OUT/NAME.md when they exist")
     args = ap.parse_args()
+    from bench_output import refuse, write_text
     work, out = Path(args.work), Path(args.output)
     if args.render:
+        refuse([out / f"{args.name}.md"], args.force, [out / f"{args.name}.json"])
         record = json.loads((out / f"{args.name}.json").read_text())
-        (out / f"{args.name}.md").write_text(markdown(record))
+        write_text(out / f"{args.name}.md", markdown(record))
         print(markdown(record))
         return 0
+    refuse([out / f"{args.name}.json", out / f"{args.name}.md"], args.force)
     work.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     cfg = work / "cfg.toml"
     config = CONFIG.format(n=args.samples_per_type, types=types_value(args.types))
-    cfg.write_text(config)
+    write_text(cfg, config)  # the bench's own work directory: its config of this run
     rows = {}
     for lidar in args.lidars.split(","):
         t0 = time.perf_counter()
@@ -99,8 +105,8 @@ def main() -> int:
         rows[lidar] = m
     record = {"command": "python bench/lidar_heldout.py " + " ".join(sys.argv[1:]),
               "config": config, "lidars": rows}
-    (out / f"{args.name}.json").write_text(json.dumps(record, indent=1) + "\n")
-    (out / f"{args.name}.md").write_text(markdown(record))
+    write_text(out / f"{args.name}.json", json.dumps(record, indent=1) + "\n")
+    write_text(out / f"{args.name}.md", markdown(record))
     print(markdown(record))
     return 0
 

@@ -3,7 +3,7 @@ slant-range band, for every way this project makes clouds, measured in one run.
 
     .venv/bin/python bench/speed_error.py --data data/cpu [--per-band 24] [--model DIR ...]
         [--json bench/results/speed_error.json] [--plot docs/speed_error.png]
-        [--recognize recognize.json] [--markdown table.md]
+        [--recognize recognize.json] [--markdown table.md] [--force]
 
 The reference is the standard cloud of each held-out condition (the dataset's test split: one
 ray through each cell centre, embree, quantized ranges). Methods:
@@ -101,8 +101,6 @@ def tstr_of(recognize: dict, name: str, directory: str | None) -> dict | None:
 
 
 def main() -> int:
-    from bench_output import emit
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True)
     ap.add_argument("--per-band", type=int, default=24)
@@ -116,7 +114,13 @@ def main() -> int:
     ap.add_argument("--recognize", help="recognize.json of `apcg benchmark recognize`: its "
                                         "TSTR ratios beside the methods")
     ap.add_argument("--markdown", help="write the summary and per-band tables here too")
+    ap.add_argument("--force", action="store_true", help="replace the --markdown file")
     args = ap.parse_args()
+    from bench_output import emit, refuse, write_text
+    if args.markdown and any(o and Path(o).resolve() == Path(args.markdown).resolve()
+                             for o in (args.json, args.plot)):
+        ap.error(f"--markdown {args.markdown} is also the --json or --plot file")
+    refuse([args.markdown], args.force, [args.recognize])
     from apcg_core.families import load_model
     models = [load_model(m) for m in (args.model or [None])]
     n_bands = 9
@@ -153,7 +157,7 @@ def main() -> int:
     text = summary(report) + "\n\n" + markdown(report)
     print(text)
     if args.markdown:
-        Path(args.markdown).write_text(text + "\n")
+        write_text(args.markdown, text + "\n")
     if args.plot:
         plot(report, Path(args.plot))
     return 0
