@@ -86,12 +86,13 @@ def timed(cmd: list[str], cwd: Path, rss: list | None = None) -> float:
 
 def workloads(args) -> dict:
     """Each workload's report: build and generate timed in turn, ``--repeats`` times."""
+    from bench_output import write_text
     out = {}
     for name, config in ISSUE34.items():
         work = Path(tempfile.mkdtemp(prefix="apcg-gen-vs-build-"))
         try:
             cfg = work / "bench.toml"
-            cfg.write_text(config)
+            write_text(cfg, config)  # a fresh temporary directory of this run's own
             build = [*APCG, "dataset", "build", "--config", str(cfg), "-o", str(work / "ds"),
                      "--workers", str(args.workers)]
             timed(build, ROOT)  # fixes the conditions (and warms the file cache)
@@ -118,7 +119,7 @@ def workloads(args) -> dict:
 
 
 def main() -> int:
-    from bench_output import emit
+    from bench_output import emit, write_text
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True, help="model directory to generate with")
@@ -138,7 +139,7 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="apcg-gen-vs-build-"))
     try:
         cfg = work / "bench.toml"
-        cfg.write_text(random_config(f"every type x {args.per_type} random Table-1 conditions",
+        write_text(cfg, random_config(f"every type x {args.per_type} random Table-1 conditions",
                                      '"all"', args.per_type, shard=500))
         build = [*APCG, "dataset", "build", "--config", str(cfg), "-o", str(work / "ds"),
                  "--workers", str(args.workers)]
