@@ -256,12 +256,11 @@ def _pieces(cell, b, mean, n_bins: int, noise: float, n_cells: int, bright_min: 
     p_mean[sig_slot] += mean[bi]
     comp = np.flatnonzero(p_sig < 0)
     p_mean[comp] = p_mean[comp] + _sequential_sums(mean, p_flo[comp], p_fhi[comp])
-    p_cell = np.empty(n_pieces, np.int64)
-    p_cell[sig_slot] = bc
-    p_cell[g] = bc[gap]
-    p_cell[t] = bc[tail]
-    p_cell[d] = dark
-    cell_of_piece = p_cell  # loud cell index, ascending
+    cell_of_piece = np.empty(n_pieces, np.int64)  # loud cell index, ascending
+    cell_of_piece[sig_slot] = bc
+    cell_of_piece[g] = bc[gap]
+    cell_of_piece[t] = bc[tail]
+    cell_of_piece[d] = dark
     heads = np.flatnonzero(_first_of_groups(cell_of_piece))
     counts = np.diff(np.append(heads, n_pieces))
     sample = cell[cs][cell_of_piece] // n_cells
