@@ -21,13 +21,18 @@ from ..errors import InputError
 
 POSE_DIM = 5  # nu without its type column
 BASE_CHANNELS = (512, 256, 128, 64, 32, 16, 8)
+HEADS = ("conv", "upconv")  # PlusConfig.head
 
 
 @dataclass(frozen=True)
 class PlusConfig:
     """Architecture of one APCG+ network. ``width`` scales every channel count; ``sheet`` is
     the side of the square sheet (4 x 2^k); ``film`` False feeds c to the first layer only
-    (the ablation of per-block conditioning)."""
+    (the ablation of per-block conditioning). ``head`` is how the sheet is drawn from the last
+    features: ``conv``, a 3 x 3 convolution over features at the sheet's own resolution (the
+    trained default); ``upconv``, the last upsampling step draws the sheet itself, so no
+    features are ever held at full resolution (about half the cost a condition on a CPU,
+    docs/SCALE.md; what ``apcg distill`` makes)."""
 
     n_types: int
     width: float = 1.0
@@ -36,6 +41,7 @@ class PlusConfig:
     fourier: int = 6
     hidden: int = 256
     film: bool = True
+    head: str = "conv"
     family: str = "apcg-plus"
 
     def __post_init__(self) -> None:
@@ -47,13 +53,19 @@ class PlusConfig:
         if k != int(k) or not 1 <= k <= len(BASE_CHANNELS) - 1:
             raise InputError(f"sheet must be 4 x 2^k with 1 <= k <= {len(BASE_CHANNELS) - 1} "
                              f"(8, 16, ... 512), got {self.sheet}")
+        if self.head not in HEADS:
+            raise InputError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
 
     @property
     def stages(self) -> int:
         return int(math.log2(self.sheet // 4))
 
     def channels(self) -> list[int]:
+        """Feature channels from the 4 x 4 stem up to the last features (the sheet's
+        resolution with the ``conv`` head, half of it with ``upconv``)."""
         base = BASE_CHANNELS[len(BASE_CHANNELS) - 1 - self.stages:]
+        if self.head == "upconv":
+            base = base[:-1]
         return [max(4, int(round(c * self.width))) for c in base]
 
     def to_dict(self) -> dict:
@@ -98,7 +110,8 @@ class PlusNet(nn.Module):
                 nn.init.zeros_(f.weight)
                 nn.init.zeros_(f.bias)
         self.act = nn.SiLU()
-        self.head = nn.Conv2d(ch[-1], 2, 3, padding=1)
+        self.head = (nn.Conv2d(ch[-1], 2, 3, padding=1) if cfg.head == "conv"
+                     else nn.ConvTranspose2d(ch[-1], 2, 4, 2, 1))
 
     def forward(self, type_code: torch.Tensor, pose: torch.Tensor,
                 embedding: torch.Tensor | None = None,
@@ -197,4 +210,4 @@ def read_clouds(sheets: torch.Tensor, range_m, elevation, radius_m, box, lidar, 
     return tuple(torch.cat([o[i] for o in out]) for i in range(5))
 
 
-__all__ = ["POSE_DIM", "PlusConfig", "PlusNet", "fourier_features", "read_clouds"]
+__all__ = ["HEADS", "POSE_DIM", "PlusConfig", "PlusNet", "fourier_features", "read_clouds"]

@@ -34,6 +34,14 @@ from .base import Family
 QUERIES = 1024
 EDGE_CELLS = 3
 DEPTH_WEIGHT = 4.0
+# Distillation (`apcg distill`). The hit logit matters to generation only near tau, where a
+# cell is kept or dropped; 8 leaves the tanh within 1 % of linear for |logit| < 1.4. The range
+# offset is in bounding radii: an aircraft's 20-40 m radius puts the 0.15 m range bin at
+# 0.004-0.008, so its error is weighted 10 against the logit's (a 0.04 offset error costs what
+# 0.4 of logit does); a cell is a possible return when the teacher's logit is above tau - 3.
+LOGIT_CLIP = 8.0
+DISTILL_DEPTH_WEIGHT = 10.0
+DEPTH_MARGIN = 3.0
 
 
 class HitLookup:
@@ -207,6 +215,53 @@ class PlusFamily(Family):
         (out / "model.json").write_text(json.dumps(model.meta))
         return PlusModel(out, runtime="onnx")
 
+
+    # --- distillation (training/distill.py, `apcg distill`) ------------------------------
+    def distill_networks(self, model, width: float, head: str):
+        """(teacher, student): the model's own network (its exported weights) and a fresh one
+        of ``width`` and ``head`` for the same types and sheet, whose type embedding, type
+        offset and condition MLP start as the teacher's (the same shapes: only the drawing
+        is new)."""
+        from apcg_core.nn.apcg_plus import PlusConfig, PlusNet
+        teacher = model._open("torch").net
+        cfg = PlusConfig.from_dict({**model.meta["net"], "width": float(width),
+                                    "head": head})
+        student = PlusNet(cfg)
+        own = teacher.state_dict()
+        start = {k: v for k, v in own.items()
+                 if k.split(".")[0] in ("type_embedding", "type_offset", "cond")}
+        student.load_state_dict(start, strict=False)
+        return teacher, student
+
+    @staticmethod
+    def distill_loss(out, target, tau: float):
+        """(logit loss, depth loss) of a student's sheets ``out`` against the teacher's
+        ``target``, every cell. The hit logit is compared through LOGIT_CLIP * tanh(. /
+        LOGIT_CLIP): linear where the threshold tau is read, flat far from it, so cells
+        certain either way cost nothing once the student agrees. The range offset counts
+        where the teacher's cell is within DEPTH_MARGIN of tau (a cell generation may read),
+        weighted DISTILL_DEPTH_WEIGHT."""
+        import torch
+        c = LOGIT_CLIP
+        l_logit = torch.abs(c * torch.tanh(out[:, 0] / c) - c * torch.tanh(target[:, 0] / c))
+        near = (target[:, 0] > tau - DEPTH_MARGIN).float()
+        l_depth = (torch.abs(out[:, 1] - target[:, 1]) * near).sum() / near.sum().clamp(min=1.0)
+        return l_logit.mean(), DISTILL_DEPTH_WEIGHT * l_depth
+
+    def export_distilled(self, net, model, out_dir, extra: dict) -> Path:
+        """The student as a model directory: the teacher's model.json (types, condition space,
+        lidar, tau) with the student's network, and what the distillation was. The teacher's
+        measurements (its held-out lidars, its tau sweep) are not the student's: dropped."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        export_sheets_onnx(net, out / "sheets.onnx")
+        meta = {k: v for k, v in model.meta.items()
+                if k not in ("measured_lidars", "tau_choice", "log", "train", "trained_steps",
+                             "trained_epochs", "taught")}
+        meta.update({"net": net.cfg.to_dict(), **extra,
+                     "generator_weights": "moving average of the student's weights"})
+        (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
+        return out
 
     def teach(self, model, data_dir, out_dir, minutes: float = 10.0, steps: int | None = None,
               seed: int = 0, progress: bool = True) -> dict:
