@@ -36,6 +36,7 @@ from ..cloud import PointCloud
 from ..errors import InputError, check_int
 from ..frames import spherical_to_cartesian
 from ..lidar import LidarParams
+from . import plus_kernels
 from .base import RUNTIMES, ModelTypes, onnx_session, onnx_weights
 
 FAMILY = "apcg-plus"
@@ -100,6 +101,21 @@ def sample_sheets(sheets: np.ndarray, sample, u, v) -> np.ndarray:
     # rows first, then columns: the order PlusModel's reader uses, so both round alike
     return ((at(y0, x0) * (1 - fy) + at(y0 + 1, x0) * fy) * (1 - fx)
             + (at(y0, x0 + 1) * (1 - fy) + at(y0 + 1, x0 + 1) * fy) * fx)
+
+
+def _row_interval(r0, b0, radius_m, n, first, last, w_lo, w_hi, s, lidar: LidarParams):
+    """The cells [start, stop] of box rows of conditions ``n`` whose interpolated hit channel
+    is above tau in sheet columns first .. last only: the cells whose sheet x lies within one
+    column of them, plus one cell each side (one definition for both readers)."""
+    # sheet x of cell w is ((a tan(w Ra) + 1) s - 1) / 2, a = r0 cos(b0) / R: invert it
+    a = r0[n] * np.cos(b0[n]) / radius_m[n]
+
+    def w_at(x):
+        return np.arctan(((2.0 * x + 1.0) / s - 1.0) / a) / lidar.r_alpha
+
+    start = np.maximum(np.ceil(w_at(first - 1.0)).astype(np.int64) - 1, w_lo[n])
+    stop = np.minimum(np.floor(w_at(last + 1.0)).astype(np.int64) + 1, w_hi[n])
+    return start, stop
 
 
 # --- the model ---------------------------------------------------------------------------------
@@ -199,14 +215,24 @@ class PlusModel(ModelTypes):
                for s in range(0, len(table), CHUNK)]
         return np.concatenate(out) if out else np.zeros((0, 2, 1, 1), np.float32)
 
-    def clouds_of(self, table: np.ndarray, sheets: np.ndarray) -> PointCloud:
+    def clouds_of(self, table: np.ndarray, sheets: np.ndarray,
+                  compiled: bool | None = None) -> PointCloud:
         """Read the clouds of conditions ``table`` off their ``sheets`` (one stacked cloud):
         the same returns as reading every box cell with :func:`sample_sheets`, found faster.
 
         The bilinear read is separable (u depends on w alone, v on h alone), so each box row
         h is first interpolated between two sheet rows; a cell can then exceed tau only where
         one of the two sheet columns it lies between does, which bounds each row's cells to
-        one interval of w. Only those cells are read (a few more than the returns)."""
+        one interval of w. Only those cells are read (a few more than the returns).
+
+        ``compiled`` (default: :func:`plus_kernels.use_for` these clouds) reads them in the
+        compiled loops of :mod:`apcg_core.families.plus_kernels`, the same bytes; float32 or
+        float64 sheets and a float64 table (the others: numpy)."""
+        if compiled is None:
+            compiled = plus_kernels.use_for(len(table))
+        if (compiled and table.dtype == np.float64
+                and sheets.dtype in (np.float32, np.float64)):
+            return self._clouds_compiled(table, sheets)
         lidar = self.lidar
         codes = table[:, 0].astype(np.int64)
         r0, b0, rad = table[:, 1], table[:, 2], self.radius[codes]
@@ -225,15 +251,8 @@ class PlusModel(ModelTypes):
         live = np.flatnonzero(active.any(axis=1))
         first = np.argmax(active[live], axis=1)
         last = s - 1 - np.argmax(active[live, ::-1], axis=1)
-        # sheet x of cell w is ((a tan(w Ra) + 1) s - 1) / 2, a = r0 cos(b0) / R: invert it
         n = row_n[live]
-        a = r0[n] * np.cos(b0[n]) / rad[n]
-
-        def w_at(x):
-            return np.arctan(((2.0 * x + 1.0) / s - 1.0) / a) / lidar.r_alpha
-
-        start = np.maximum(np.ceil(w_at(first - 1.0)).astype(np.int64) - 1, w_lo[n])
-        stop = np.minimum(np.floor(w_at(last + 1.0)).astype(np.int64) + 1, w_hi[n])
+        start, stop = _row_interval(r0, b0, rad, n, first, last, w_lo, w_hi, s, lidar)
         count = np.maximum(stop - start + 1, 0)
         cell_row = np.repeat(live, count)
         w = np.repeat(start, count) + np.arange(count.sum()) - np.repeat(
@@ -252,6 +271,32 @@ class PlusModel(ModelTypes):
         alpha, beta = self.lidar.cell_centre_angles(w, h, b0[sample])
         return PointCloud(spherical_to_cartesian(alpha, beta, r), r, w, h, sample)
 
+    def _clouds_compiled(self, table: np.ndarray, sheets: np.ndarray) -> PointCloud:
+        """:meth:`clouds_of` in two compiled passes (plus_kernels.row_spans: the box rows'
+        places and the columns above tau; plus_kernels.read_rows: the cells, ranges and
+        points), every tan, arctan, sin and cos in numpy on the numpy reader's arguments
+        (tables of the window's angles; the live rows' intervals and elevations)."""
+        k = plus_kernels.require()
+        lidar = self.lidar
+        codes = table[:, 0].astype(np.int64)
+        rad = self.radius[codes]
+        w_half, h_half = box_half_cells(table[:, 1], table[:, 2], rad, lidar)  # as numpy's
+        w_lo, w_hi, h_lo, h_hi = lidar.clip_box(w_half, h_half)
+        r0 = np.ascontiguousarray(table[:, 1])
+        b0 = np.ascontiguousarray(table[:, 2])
+        sheets = np.ascontiguousarray(sheets)
+        s = sheets.shape[-1]
+        tan_a, sin_a, cos_a, tan_b = plus_kernels.angle_tables(lidar)
+        n, h, y0, fy, first, last = k.row_spans(sheets, h_lo, h_hi - h_lo + 1, r0, rad, tan_b,
+                                                lidar.h_min, self.tau)
+        start, stop = _row_interval(r0, b0, rad, n, first, last, w_lo, w_hi, s, lidar)
+        beta = h.astype(np.float64) * lidar.r_beta + b0[n]  # cell_centre_angles' beta
+        xyz, r, w, h, sample = k.read_rows(
+            sheets, n, h, y0, fy, start, stop, np.cos(beta), np.sin(beta), r0, rad,
+            r0 * np.cos(b0), tan_a, sin_a, cos_a, lidar.w_min, self.tau, self.quantize,
+            lidar.r_r)
+        return PointCloud(xyz, r, w, h, sample)
+
     def generate(self, conditions, count: int = 1, seed: int = 0):
         """Point clouds for ``conditions`` (mapped by type name into this model's types),
         ``count`` per condition. The standard data are a function of the condition, and so is
@@ -267,7 +312,8 @@ class PlusModel(ModelTypes):
         starts = range(0, len(table), CHUNK)
         if self.workers > 1 and len(starts) > 1:
             # onnxruntime gains little from a second thread on this small network, and the
-            # reader is numpy: chunks side by side keep every core busy (both release the GIL)
+            # reader is numpy or plus_kernels: chunks side by side keep every core busy (all
+            # release the GIL)
             from concurrent.futures import ThreadPoolExecutor
             with ThreadPoolExecutor(self.workers) as pool:
                 clouds = list(pool.map(chunk, starts))

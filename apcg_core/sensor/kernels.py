@@ -14,22 +14,22 @@ compiled ``exp`` need not be the one numpy calls). ``tests/test_photon_kernels.p
 both paths give the same bytes.
 
 The core imports with numpy alone (the add-on runs in Blender's Python, which has no numba):
-numba is imported only inside :func:`_load`, when it is installed and allowed, and the numpy
-code runs otherwise, same bytes, slower. ``APCG_KERNELS`` in the environment is read as for
-the build's ray kernels (``dataset_builder/kernels.py``): ``numpy`` never loads them,
-``compiled`` loads them at the first call; otherwise a process starts on numpy and loads them
-once it has put :data:`SWITCH_HITS` sub-ray hits through the stage. Compiled code is cached
+numba is imported only when the kernels load (``apcg_core/kernel_loader.py``, the one loader
+of the core's compiled loops), when it is installed and allowed, and the numpy code runs
+otherwise, same bytes, slower. ``APCG_KERNELS`` in the environment is read as for the build's
+ray kernels (``dataset_builder/kernels.py``): ``numpy`` never loads them, ``compiled`` loads
+them at the first call; otherwise a process starts on numpy and loads them once it has put
+:data:`SWITCH_HITS` sub-ray hits through the stage. Compiled code is cached
 beside this file (``__pycache__``; numba's per-user cache where that is read-only).
 """
 
 from __future__ import annotations
 
-import importlib.util
-import os
-
 import numpy as np
 
-ENV = "APCG_KERNELS"  # "numpy": never use the compiled kernels; "compiled": from the start
+from ..kernel_loader import ENV, KernelSet, Loader
+
+__all__ = ["ENV", "SWITCH_HITS", "enabled", "loaded", "require", "use_for"]
 # Sub-ray hits a process puts through the stage on the numpy path before it loads the
 # kernels: loading numba and reading the cache costs about 0.5 s (dataset_builder/kernels.py),
 # and the numpy path's extra cost over the kernels is about 2.5 us a hit (bench/photons.py,
@@ -37,68 +37,28 @@ ENV = "APCG_KERNELS"  # "numpy": never use the compiled kernels; "compiled": fro
 # loading costs (rent, then buy). One `apcg simulate` of a few conditions never loads them.
 SWITCH_HITS = 200_000
 
-_kernels = None  # the compiled functions, once loaded; False when numba is missing
-_numpy_hits = 0  # hits this process put through the numpy path while the kernels were not loaded
-
-
-def _mode() -> str:
-    return os.environ.get(ENV, "").strip().lower()
-
 
 def enabled() -> bool:
     """Whether this process may use the compiled kernels (numba installed, not turned off)."""
-    if _mode() == "numpy":
-        return False
-    if _kernels is None:
-        return importlib.util.find_spec("numba") is not None
-    return _kernels is not False
+    return _loader.enabled()
 
 
 def loaded() -> bool:
-    return _kernels is not None and _kernels is not False
+    return _loader.loaded()
 
 
 def use_for(n_hits: int) -> bool:
     """Whether a stage call on ``n_hits`` sub-ray hits should take the compiled path (loading
     the kernels if it is time to); counts the hits toward :data:`SWITCH_HITS` when not."""
-    global _numpy_hits
-    if not enabled():
-        return False
-    if loaded():
-        return True
-    if _mode() == "compiled" or _numpy_hits + n_hits >= SWITCH_HITS:
-        return _load() is not False
-    _numpy_hits += n_hits
-    return False
+    return _loader.use_for(n_hits, SWITCH_HITS)
 
 
-def _load():
-    global _kernels
-    if _kernels is None:
-        try:
-            import numba  # noqa: F401
-        except ImportError:
-            _kernels = False
-        else:
-            _kernels = _compile()
-    return _kernels
-
-
-def require():
+def require() -> KernelSet:
     """The compiled kernels, loaded (numba must be importable)."""
-    k = _load()
-    if k is False:
-        raise ImportError("the photon stage's compiled kernels need numba: "
-                          "pip install 'apcg[sim]'")
-    return k
+    return _loader.require()
 
 
-class _Kernels:
-    def __init__(self, **fns) -> None:
-        self.__dict__.update(fns)
-
-
-def _compile() -> _Kernels:
+def _compile() -> KernelSet:
     from numba import njit
 
     jit = njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
@@ -632,11 +592,14 @@ def _compile() -> _Kernels:
             m += 1
         return oc[:m], ob[:m], on[:m], os_[:m]
 
-    return _Kernels(place_fired=place_fired, masked_uniforms=masked_uniforms, top=top,
-                    histogram_top=histogram_top, merge_top=merge_top, pieces=pieces,
-                    stretch_events=stretch_events,
-                    stretch_peaks=stretch_peaks,
-                    uniforms=uniforms, spread_sum=spread_sum, ascending=ascending,
-                    spread_start=spread_start,
-                    binomial_walk=binomial_walk,
-                    chain_prepare=chain_prepare, chain_finish=chain_finish)
+    return KernelSet(place_fired=place_fired, masked_uniforms=masked_uniforms, top=top,
+                     histogram_top=histogram_top, merge_top=merge_top, pieces=pieces,
+                     stretch_events=stretch_events,
+                     stretch_peaks=stretch_peaks,
+                     uniforms=uniforms, spread_sum=spread_sum, ascending=ascending,
+                     spread_start=spread_start,
+                     binomial_walk=binomial_walk,
+                     chain_prepare=chain_prepare, chain_finish=chain_finish)
+
+
+_loader = Loader(_compile, "the photon stage's compiled kernels")

@@ -1,0 +1,91 @@
+"""When the core's compiled loops (numba) are loaded: one mechanism for every set of them.
+
+A set of compiled kernels (``apcg_core/sensor/kernels.py`` for the photon stage,
+``apcg_core/families/plus_kernels.py`` for the APCG+ reader) sits beside the numpy code it
+replaces and gives the same bytes. The core imports with numpy alone (the add-on runs in
+Blender's Python, which has no numba): numba is imported only inside :meth:`Loader.load`, when
+it is installed and allowed, and the numpy code runs otherwise, same bytes, slower.
+
+``APCG_KERNELS`` in the environment is read as for the build's ray kernels
+(``dataset_builder/kernels.py``): ``numpy`` never loads them, ``compiled`` loads them at the
+first call; otherwise a process starts on numpy and loads them once it has put a set's own
+amount of work (its switch: hits, clouds, ...) through the numpy path: loading costs about
+0.5 s, so a short run never pays it and a long one pays it once (rent, then buy).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import threading
+
+ENV = "APCG_KERNELS"  # "numpy": never use the compiled kernels; "compiled": from the start
+
+
+def mode() -> str:
+    return os.environ.get(ENV, "").strip().lower()
+
+
+class KernelSet:
+    """The compiled functions of one set, as attributes."""
+
+    def __init__(self, **fns) -> None:
+        self.__dict__.update(fns)
+
+
+class Loader:
+    """One set of kernels: ``compile`` (imports numba, returns a :class:`KernelSet`) is run
+    once, at the first call that should take the compiled path; ``what`` names the set in the
+    message when numba is missing."""
+
+    def __init__(self, compile, what: str) -> None:
+        self._compile = compile
+        self.what = what
+        self._kernels = None  # the compiled functions, once loaded; False when numba is missing
+        self._numpy_work = 0  # work this process put through the numpy path before loading
+        self._lock = threading.Lock()  # readers run in threads: compiled once
+
+    def enabled(self) -> bool:
+        """Whether this process may use the compiled kernels (numba installed, not turned
+        off)."""
+        if mode() == "numpy":
+            return False
+        if self._kernels is None:
+            return importlib.util.find_spec("numba") is not None
+        return self._kernels is not False
+
+    def loaded(self) -> bool:
+        return self._kernels is not None and self._kernels is not False
+
+    def use_for(self, n: int, switch: int) -> bool:
+        """Whether a call doing ``n`` units of work should take the compiled path (loading the
+        kernels if it is time to: ``switch`` units on the numpy path, or ``compiled`` in the
+        environment); counts the work toward ``switch`` when not."""
+        if not self.enabled():
+            return False
+        if self.loaded():
+            return True
+        if mode() == "compiled" or self._numpy_work + n >= switch:
+            return self.load() is not False
+        self._numpy_work += n
+        return False
+
+    def load(self):
+        """The kernels, loaded if numba is importable; False when it is not."""
+        if self._kernels is None:
+            with self._lock:
+                if self._kernels is None:
+                    try:
+                        import numba  # noqa: F401
+                    except ImportError:
+                        self._kernels = False
+                    else:
+                        self._kernels = self._compile()
+        return self._kernels
+
+    def require(self) -> KernelSet:
+        """The compiled kernels, loaded (numba must be importable)."""
+        k = self.load()
+        if k is False:
+            raise ImportError(f"{self.what} need numba: pip install 'apcg[sim]'")
+        return k
