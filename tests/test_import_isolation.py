@@ -43,3 +43,28 @@ def test_the_block_really_blocks():
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode != 0 and "blocked for this test: torch" in out.stderr
+
+
+# The heavy packages a command may need, loaded by the command's run, never by the parser:
+# building `apcg`'s parser (every installed subcommand registered) must load none of them,
+# or every command, `apcg --help` included, pays their start-up (torch alone ~1.3 s here).
+HEAVY = ["torch", "onnxruntime", "trimesh", "embreex", "bpy", "scipy", "matplotlib", "numba",
+         "dask", "onnx", "tensorboard"]
+
+PARSER_SCRIPT = r"""
+import sys
+from apcg_core.cli import build_parser
+parser = build_parser()
+names = sorted(parser._subparsers._group_actions[0].choices)
+loaded = sorted({n.split(".")[0] for n in sys.modules} & set(%r))
+print(len(names), " ".join(loaded))
+"""
+
+
+def test_building_the_command_line_loads_no_heavy_package():
+    out = subprocess.run([sys.executable, "-c", PARSER_SCRIPT % HEAVY], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    n, _, loaded = out.stdout.strip().partition(" ")
+    assert int(n) >= 15  # the installed subcommands were registered
+    assert loaded == "", f"building the parser loaded {loaded}"

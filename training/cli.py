@@ -49,6 +49,15 @@ def register_train(sub) -> None:
                    help="steps of the DDPM schedule (default 200)")
     p.add_argument("--sheet", type=int, metavar="S",
                    help="apcg-plus: side of the sheet the network draws (4 x 2^k; default 64)")
+    from apcg_core.families.apcg_plus import HEADS
+    p.add_argument("--head", choices=HEADS,
+                   help="apcg-plus: how the network draws its sheet: conv (a 3 x 3 convolution "
+                        "at the sheet's resolution, default) or upconv (the last upsampling "
+                        "step draws it; about half the CPU cost)")
+    p.add_argument("--init", metavar="MODEL",
+                   help="start the network from this model's weights (the same family, types "
+                        "and network; e.g. one made by `apcg distill`) and fine-tune it on "
+                        "--data")
     p.add_argument("--no-norm", action="store_true",
                    help="train on depth images without Norm (the paper's 'APCG w/o Norm.')")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
@@ -85,7 +94,8 @@ def _train(args) -> int:
             "checkpoint_every": args.checkpoint_every, "threads": args.threads,
             "keep_every": args.keep_every, "diverge_gp": args.diverge_gp, "ema": args.ema,
             "hours": args.hours, "n_points": args.n_points, "voxel_res": args.voxel_res,
-            "diffusion_steps": args.diffusion_steps, "sheet": args.sheet}
+            "diffusion_steps": args.diffusion_steps, "sheet": args.sheet, "head": args.head,
+            "init": args.init}
     if args.no_conv:
         over["conv"] = False
     if args.no_attention:

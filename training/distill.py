@@ -216,7 +216,7 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
 
 
 def register_distill(sub) -> None:
-    from apcg_core.nn.apcg_plus import HEADS
+    from apcg_core.families.apcg_plus import HEADS
     d = DistillConfig(teacher="")
     p = sub.add_parser("distill", help="fit a cheaper network to a trained model (no dataset)",
                        description="Distils a model of the apcg-plus family into a smaller "

@@ -63,6 +63,7 @@ class TrainConfig:
     voxel_res: int = 32  # occupancy grid resolution
     diffusion_steps: int = 200  # T of the DDPM schedule
     sheet: int = 64  # side of an APCG+ sheet (4 x 2^k)
+    head: str = "conv"  # how an APCG+ network draws its sheet (apcg_core.families.apcg_plus.HEADS)
     keep_every: int = 0  # also keep checkpoints/step-NNNNNN.pt every this many steps (0: never)
     diverge_gp: float = 50.0  # stop when the gradient penalty's mean over 50 steps exceeds it
     ema: float = 0.0  # decay of an exponential moving average of the generator (0: none)
@@ -70,6 +71,7 @@ class TrainConfig:
     # reaches it (equal-hours comparisons of model families; steps / epochs still cap the run)
     log_every: int = 10
     threads: int | None = None
+    init: str | None = None  # a model directory whose weights start the network (fine-tuning)
 
     @classmethod
     def from_dict(cls, saved: dict) -> TrainConfig:
@@ -106,7 +108,7 @@ PRESETS = {
 def size_defaults() -> dict:
     """The family-specific sizes (name -> default) a family's ``train_options`` draws from."""
     return {f.name: f.default for f in fields(TrainConfig)
-            if f.name in ("n_points", "voxel_res", "diffusion_steps", "sheet")}
+            if f.name in ("n_points", "voxel_res", "diffusion_steps", "sheet", "head")}
 
 
 def gradient_penalty(d, real, fake, nu, eps) -> torch.Tensor:
@@ -153,6 +155,11 @@ class Trainer:
         torch.manual_seed(cfg.seed)  # initial weights
         net = self.net_config = self.family.net_config(cfg, self.data)
         self.G, self.D = self.family.networks(net)  # (generator or denoiser, critic or None)
+        if cfg.init is not None and not resume:  # a resumed run has its own weights
+            if not callable(getattr(self.family, "init_from", None)):
+                raise InputError(f"--init: the {cfg.family} family cannot start from a "
+                                 "model's weights; train it from scratch")
+            self.family.init_from(self.G, cfg.init, self.data)
         self.family.prepare(self.data)
         if not 0.0 <= cfg.ema < 1.0:
             raise InputError(f"ema (the generator average's decay) must be in [0, 1), got "

@@ -18,10 +18,10 @@ import torch
 from torch import nn
 
 from ..errors import InputError
+from ..families.apcg_plus import HEADS
 
 POSE_DIM = 5  # nu without its type column
 BASE_CHANNELS = (512, 256, 128, 64, 32, 16, 8)
-HEADS = ("conv", "upconv")  # PlusConfig.head
 
 
 @dataclass(frozen=True)

@@ -128,7 +128,7 @@ class PlusFamily(Family):
     """APCG+: trained by regression on the standard data (no critic), exported to ONNX."""
 
     name = FAMILY
-    sizes = ("sheet",)
+    sizes = ("sheet", "head")
     default_tau = 0.0  # the hit logit's threshold: probability one half
     # The regression trains with Adam's usual betas at a larger rate than a GAN can, one batch
     # per step; the average of the weights (decay 0.999) is what is exported.
@@ -142,7 +142,29 @@ class PlusFamily(Family):
 
     def net_config(self, cfg, dataset):
         from apcg_core.nn.apcg_plus import PlusConfig
-        return PlusConfig(n_types=len(dataset.types), width=cfg.width, sheet=cfg.sheet)
+        return PlusConfig(n_types=len(dataset.types), width=cfg.width, sheet=cfg.sheet,
+                          head=cfg.head)
+
+    def init_from(self, net, model_dir, dataset) -> None:
+        """Start ``net`` from the weights of the APCG+ model in ``model_dir`` (`apcg train
+        --init`): the same types in the same order as the dataset's, the same network."""
+        from apcg_core.families import load_model
+        model = load_model(model_dir)
+        if model.family != FAMILY:
+            raise InputError(f"--init {model_dir}: a {model.family} model; an {FAMILY} run "
+                             f"starts only from an {FAMILY} model")
+        if list(model.types.names) != list(dataset.types.names):
+            raise InputError(f"--init {model_dir}: its types are not the dataset's (the same "
+                             "names in the same order are needed; the dataset has "
+                             f"{len(dataset.types.names)}, the model {len(model.types.names)})")
+        from apcg_core.nn.apcg_plus import PlusConfig
+        theirs, ours = PlusConfig.from_dict(model.meta["net"]).to_dict(), net.cfg.to_dict()
+        if theirs != ours:
+            diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
+            raise InputError(f"--init {model_dir}: its network differs from the run's in "
+                             f"{', '.join(diff)} ({', '.join(f'{k}={theirs.get(k)!r}' for k in diff)}"
+                             "); give the same --width, --sheet and --head")
+        net.load_state_dict(model._open("torch").net.state_dict())
 
     def networks(self, net):
         from apcg_core.nn.apcg_plus import PlusNet
