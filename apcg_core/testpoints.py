@@ -42,6 +42,8 @@ POINTS = {
                               "output's temporary file",
     "generate.part-written": "generate, a resumable request: a part file of its clouds has "
                              "just been written whole into OUT.parts/",
+    "distill.checkpoint-written": "apcg distill: a checkpoint of the run has just been written "
+                                  "whole (RUN/checkpoint.pt)",
     "output.held": "any command (apcg_core.outputs): its first output file is written whole "
                    "under its temporary name and held; nothing is under a final name yet",
     "output.committing": "any command: its held outputs are being renamed to their final "

@@ -54,6 +54,9 @@ def register_train(sub) -> None:
                    help="apcg-plus: how the network draws its sheet: conv (a 3 x 3 convolution "
                         "at the sheet's resolution, default) or upconv (the last upsampling "
                         "step draws it; about half the CPU cost)")
+    p.add_argument("--lr", type=float,
+                   help="learning rate (default: the family's; a fine-tune from --init "
+                        "usually wants a smaller one)")
     p.add_argument("--init", metavar="MODEL",
                    help="start the network from this model's weights (the same family, types "
                         "and network; e.g. one made by `apcg distill`) and fine-tune it on "
@@ -95,7 +98,7 @@ def _train(args) -> int:
             "keep_every": args.keep_every, "diverge_gp": args.diverge_gp, "ema": args.ema,
             "hours": args.hours, "n_points": args.n_points, "voxel_res": args.voxel_res,
             "diffusion_steps": args.diffusion_steps, "sheet": args.sheet, "head": args.head,
-            "init": args.init}
+            "init": args.init, "lr": args.lr}
     if args.no_conv:
         over["conv"] = False
     if args.no_attention:

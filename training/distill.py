@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from apcg_core.errors import InputError, check_int
-from apcg_core.outputs import ANY, DIRECTORY, add_output
+from apcg_core.outputs import DIRECTORY, add_output
 
 
 @dataclass(frozen=True)
@@ -153,10 +153,8 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
                         "opt": opt.state_dict(), "ema": [t.cpu() for t in ema], "step": step,
                         "elapsed_s": elapsed, "net": student.cfg.to_dict()}, tmp)
 
-    t_start = time.perf_counter() - elapsed
-    last_report = 0.0
-    with log_path.open("a", newline="") as log:
-        writer = csv.writer(log)
+    def _steps() -> None:
+        nonlocal step, elapsed, last_report
         while step < cfg.steps:
             elapsed = time.perf_counter() - t_start
             if cfg.minutes is not None and elapsed >= 60.0 * cfg.minutes:
@@ -194,6 +192,23 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
             if step % cfg.checkpoint_every == 0:
                 log.flush()
                 save()
+                wait_point("distill.checkpoint-written")
+
+    t_start = time.perf_counter() - elapsed
+    last_report = 0.0
+    from apcg_core.testpoints import wait_point
+    with log_path.open("a", newline="") as log:
+        writer = csv.writer(log)
+        try:
+            _steps()
+        except KeyboardInterrupt:
+            # Ctrl-C may land inside a step: the last checkpoint, whole and consistent, is
+            # kept, and --resume redoes the steps after it exactly as they were
+            saved = torch.load(ck_path, map_location="cpu", weights_only=False)["step"] \
+                if ck_path.is_file() else 0
+            print(f"distill: interrupted at step {step}; `apcg distill --resume -o {run}` "
+                  f"goes on from the checkpoint at step {saved}", file=sys.stderr, flush=True)
+            raise
     elapsed = time.perf_counter() - t_start
     save()
     with torch.no_grad():
@@ -226,8 +241,8 @@ def register_distill(sub) -> None:
     p.add_argument("--teacher", default=None, metavar="DIR",
                    help="the model to distil (default: the shipped default model)")
     add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="run directory",
-               files=ANY, force_help="reuse a run directory that holds files (they are "
-               "replaced)")
+               files=("distill_config.json", "checkpoint.pt", "log.csv"),
+               record=("distill_config.json",))
     p.add_argument("--resume", action="store_true", help="continue the run in -o")
     p.add_argument("--width", type=float, default=d.width,
                    help=f"the student's channel width (default {d.width})")

@@ -164,6 +164,8 @@ class Trainer:
         if not 0.0 <= cfg.ema < 1.0:
             raise InputError(f"ema (the generator average's decay) must be in [0, 1), got "
                              f"{cfg.ema}")
+        if not (isinstance(cfg.lr, (int, float)) and math.isfinite(cfg.lr) and cfg.lr > 0):
+            raise InputError(f"lr (the learning rate) must be a number > 0, got {cfg.lr!r}")
         if cfg.hours is not None and not cfg.hours > 0:
             raise InputError(f"hours (the training-time budget) must be > 0, got {cfg.hours}")
         self.G_ema = copy.deepcopy(self.G).eval() if cfg.ema > 0 else None

@@ -161,9 +161,10 @@ class PlusFamily(Family):
         theirs, ours = PlusConfig.from_dict(model.meta["net"]).to_dict(), net.cfg.to_dict()
         if theirs != ours:
             diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
+            said = ", ".join(f"{k}={theirs.get(k)!r}" for k in diff)
             raise InputError(f"--init {model_dir}: its network differs from the run's in "
-                             f"{', '.join(diff)} ({', '.join(f'{k}={theirs.get(k)!r}' for k in diff)}"
-                             "); give the same --width, --sheet and --head")
+                             f"{', '.join(diff)} (the model's: {said}); give the same "
+                             "--width, --sheet and --head")
         net.load_state_dict(model._open("torch").net.state_dict())
 
     def networks(self, net):
