@@ -66,6 +66,7 @@ def _blender_blocks() -> int | None:
 
 def measured_run_task(task):
     """build.run_task, logging this process's memory around it (one JSON line per shard)."""
+    from bench_output import append_line
     if os.environ.get(RESET_ENV) == "1":
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")  # VmHWM := VmRSS: the peak below is this shard's own
@@ -79,8 +80,7 @@ def measured_run_task(task):
            "peak_mb": round(after["VmHWM"] / 1024, 1),
            "rss_after_mb": round(after["VmRSS"] / 1024, 1),
            "blender_blocks_after": _blender_blocks()}
-    with open(os.environ[LOG_ENV], "a") as f:
-        f.write(json.dumps(row) + "\n")
+    append_line(os.environ[LOG_ENV], json.dumps(row))  # the run's own temporary directory
     return result
 
 
@@ -146,15 +146,16 @@ def table(res: dict) -> str:
 def _child(mode: str, cfg: Path, work: Path, out_json: Path) -> None:
     """One mode, in a process of its own (so that one mode's memory never shows in the
     other's, and the parent of a per-process build has not imported bpy itself)."""
+    from bench_output import write_text
     if mode == "in-process" and 'backend = "blender"' in cfg.read_text():
         import bpy
         bpy.ops.wm.read_factory_settings(use_empty=True)
     res = run_mode(mode, cfg, work / mode, work / f"{mode}.jsonl")
-    out_json.write_text(json.dumps(res))
+    write_text(out_json, json.dumps(res))  # into the parent's temporary directory
 
 
 def main() -> int:
-    from bench_output import emit
+    from bench_output import emit, write_text
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--samples", type=int, default=100_000)
@@ -181,11 +182,13 @@ def main() -> int:
     results = {"command": "python bench/build_memory.py " + " ".join(sys.argv[1:]),
                "machine": {"cpus": os.cpu_count(), "bpy": version},
                "types": types, "modes": {}}
+    # the config, the children's results and logs: a fresh temporary directory of this run's
+    # own (no refusal); --json, the one file asked for, is replaced in place (bench_output)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         cfg = tmp / "memory.toml"
-        cfg.write_text(config_text(args.samples, args.shard_size, types, args.backend,
-                                   args.sensor))
+        write_text(cfg, config_text(args.samples, args.shard_size, types, args.backend,
+                                    args.sensor))
         results["config"] = cfg.read_text()
         for mode in modes:
             out = tmp / f"{mode}.json"

@@ -5,14 +5,15 @@ share, and MMD between the generated-with-photons cloud and a simulated-with-pho
 against the floor of two simulated draws of the same condition (other seeds).
 
     .venv/bin/python bench/photons_generated.py -o docs/evaluation/lidars \
-        [--sensors 1550nm-night,1550nm-day] [--per-band 6] [--seed 0]
+        [--sensors 1550nm-night,1550nm-day] [--per-band 6] [--seed 0] [--force]
 
 Conditions: per band, --per-band random built-in types of that band at random Table 1
 conditions (seeded). Simulated: embree, 4 x 4 sub-rays per cell (simulate's default with a
 sensor), draws seeded (seed + 1, id) and (seed + 2, id); generated: the shipped default model,
 its photons seeded (seed + 3, id): no two of the three share a draw. MMD by the protocol's
 settings (2,048 points at most).
-Writes OUT/photons_generated.json and OUT/photons_generated.md.
+Writes OUT/photons_generated.json and OUT/photons_generated.md; when either exists the run
+stops before any work unless ``--force`` (``bench_output.refuse``).
 """
 
 from __future__ import annotations
@@ -65,7 +66,13 @@ def main() -> int:
     ap.add_argument("--cell-reads", action="store_true",
                     help="one return per generated point filling its cell (K = 1), not the "
                          "model's 3 x 3 sub-reads")
+    ap.add_argument("--force", action="store_true",
+                    help="replace OUT/photons_generated.json and .md when they exist")
     args = ap.parse_args()
+    from bench_output import refuse, write_text
+    report = [Path(args.output) / "photons_generated.json",
+              Path(args.output) / "photons_generated.md"]
+    refuse(report, args.force)
     model = load_model()
     cat = default_catalog()
     names, table = conditions(model, args.per_band, args.seed)
@@ -113,9 +120,9 @@ def main() -> int:
                    for band, r in sorted(rows.items(), key=lambda kv: band_order(kv[0]))}
         out["sensors"][sname] = {"bands": summary, "seconds": round(time.perf_counter() - t0, 1)}
     Path(args.output).mkdir(parents=True, exist_ok=True)
-    (Path(args.output) / "photons_generated.json").write_text(json.dumps(out, indent=1) + "\n")
+    write_text(report[0], json.dumps(out, indent=1) + "\n")
     text = markdown(out)
-    (Path(args.output) / "photons_generated.md").write_text(text)
+    write_text(report[1], text)
     print(text)
     return 0
 

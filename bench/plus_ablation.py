@@ -4,11 +4,15 @@
 
     .venv/bin/python bench/plus_ablation.py --data data/cpu --steps 3000 --pairs 400 \
         [--variants base,no-film,sheet32,sheet128,narrow] [-o bench/results/plus_ablation]
+        [--force]
 
 Each variant trains from scratch (one process, all threads), is exported, and is scored: mean
 MMD / JSD over bands, the median generated / standard point ratio, seconds per training step
 and milliseconds per cloud (generation alone, batched). Runs and models stay in ``-o``; a
-variant whose run exists is resumed to its step count rather than redone.
+variant whose run exists is resumed to its step count rather than redone. The table,
+``-o``/ablation.json (rewritten after each variant, with this run's variants), is kept when it
+exists: the run stops before any work unless ``--force`` (``bench_output.refuse``), which a
+resumed run into the same ``-o`` therefore needs.
 """
 
 from __future__ import annotations
@@ -78,8 +82,12 @@ def main() -> int:
     ap.add_argument("--pairs", type=int, default=400)
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("-o", "--output", default="bench/results/plus_ablation")
+    ap.add_argument("--force", action="store_true",
+                    help="replace OUT/ablation.json when it exists (a resumed run)")
     args = ap.parse_args()
+    from bench_output import refuse, write_text
     out = Path(args.output)
+    refuse([out / "ablation.json"], args.force, [args.data])
     out.mkdir(parents=True, exist_ok=True)
     pairs = protocol.draw_pairs(args.data, args.pairs, 0, half="validation")
     results = []
@@ -92,7 +100,7 @@ def main() -> int:
         print(f"{name}: {r['steps']} steps, MMD {r['mmd']:.4f}, JSD {r['jsd']:.3f}, "
               f"{r['ms_per_cloud']:.3f} ms/cloud ({time.perf_counter() - t0:.0f} s)",
               flush=True)
-        (out / "ablation.json").write_text(json.dumps(
+        write_text(out / "ablation.json", json.dumps(
             {"command": "python bench/plus_ablation.py " + " ".join(sys.argv[1:]),
              **pairs.record(), "steps_each": args.steps, "results": results}, indent=1))
     print(markdown(results))

@@ -7,14 +7,16 @@ sight, y up, z along it) per type and range group, and a picture of the look-ali
 near condition, exact beside generated.
 
     .venv/bin/python bench/recognize_clouds.py --per-type 40 \
-        --plot docs/evaluation/recognize/clouds.png --json bench/results/recognize_clouds.json
+        --plot docs/evaluation/recognize/clouds.png --json bench/results/recognize_clouds.json \
+        [--force]
+
+An existing --plot file stops the run before any work unless ``--force``
+(``bench_output.refuse``); the --json result is replaced in place, as every bench's is.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 
 import numpy as np
 
@@ -36,7 +38,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=12345)
     ap.add_argument("--plot")
     ap.add_argument("--json")
+    ap.add_argument("--force", action="store_true", help="replace the --plot file")
     a = ap.parse_args()
+    from bench_output import emit, refuse, save_figure
+    refuse([a.plot], a.force)
     types = list(R.DEFAULT_TYPES)
     tab = R.conditions(types, a.per_type, a.seed)
     exact, _ = R.simulated("embree", 1, types, tab, None, DEFAULT_LIDAR, 0)
@@ -57,9 +62,8 @@ def main() -> None:
                       "extent_generated_m": np.round(m[5:8], 2).tolist()}
         print(f"{key} | {len(v)} | {m[0]:.0f} / {m[1]:.0f} | {m[2]:.1f} {m[3]:.1f} {m[4]:.1f} | "
               f"{m[5]:.1f} {m[6]:.1f} {m[7]:.1f}")
-    if a.json:
-        Path(a.json).write_text(json.dumps({"per_type": a.per_type, "seed": a.seed,
-                                            "groups": table}, indent=1) + "\n")
+    if a.json:  # the same bytes as before: indented JSON and a newline
+        emit({"per_type": a.per_type, "seed": a.seed, "groups": table}, a.json, show=False)
     if a.plot:
         import matplotlib
         matplotlib.use("Agg")
@@ -84,7 +88,7 @@ def main() -> None:
                 ax.grid(alpha=0.3)
             axes[1, j].set_xlabel(f"x (m) at {tab[i, 1] / 1000:.1f} km, yaw "
                                   f"{np.degrees(tab[i, 4]):.0f} deg")
-        fig.savefig(a.plot, dpi=90)
+        save_figure(fig, a.plot, dpi=90)
 
 
 if __name__ == "__main__":

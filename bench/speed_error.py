@@ -114,13 +114,14 @@ def main() -> int:
     ap.add_argument("--recognize", help="recognize.json of `apcg benchmark recognize`: its "
                                         "TSTR ratios beside the methods")
     ap.add_argument("--markdown", help="write the summary and per-band tables here too")
-    ap.add_argument("--force", action="store_true", help="replace the --markdown file")
+    ap.add_argument("--force", action="store_true",
+                    help="replace the --markdown and --plot files")
     args = ap.parse_args()
     from bench_output import emit, refuse, write_text
     if args.markdown and any(o and Path(o).resolve() == Path(args.markdown).resolve()
                              for o in (args.json, args.plot)):
         ap.error(f"--markdown {args.markdown} is also the --json or --plot file")
-    refuse([args.markdown], args.force, [args.recognize])
+    refuse([args.markdown, args.plot], args.force, [args.recognize, args.data])
     from apcg_core.families import load_model
     models = [load_model(m) for m in (args.model or [None])]
     n_bands = 9
@@ -196,6 +197,7 @@ def markdown(report: dict) -> str:
 
 def plot(report: dict, path: Path) -> None:
     import matplotlib
+    from bench_output import save_figure
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import matplotlib.ticker
@@ -219,7 +221,7 @@ def plot(report: dict, path: Path) -> None:
     axes[0].legend(fontsize=7)
     fig.suptitle("Speed against error, per slant-range band (dots) and mean (large marks)")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

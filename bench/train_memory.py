@@ -2,10 +2,12 @@
 its own process so the peaks do not mix.
 
     .venv/bin/python bench/train_memory.py --data data/cpu [--steps 20]
-        [--json bench/results/train_memory.json] [--plot docs/fig15.png]
+        [--json bench/results/train_memory.json] [--plot docs/fig15.png] [--force]
 
 Peak memory is the training process's own high-water resident set (VmHWM) on CPU, or torch's
-peak allocated device memory on a GPU; both include the dataset held in memory.
+peak allocated device memory on a GPU; both include the dataset held in memory. An existing
+--plot file stops the run before any work unless ``--force`` (``bench_output.refuse``); the
+--json result is replaced in place, as every bench's is.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ CONFIGS = {
 
 
 def main() -> int:
-    from bench_output import emit
+    from bench_output import emit, refuse, save_figure
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True)
@@ -41,7 +43,9 @@ def main() -> int:
                     help="run only the configurations whose name contains this (repeatable)")
     ap.add_argument("--json")
     ap.add_argument("--plot")
+    ap.add_argument("--force", action="store_true", help="replace the --plot file")
     args = ap.parse_args()
+    refuse([args.plot], args.force, [args.data])
     names = [n for n in CONFIGS if not args.only or any(o in n for o in args.only)]
     if not names:
         ap.error(f"--only {args.only} matches none of: {', '.join(CONFIGS)}")
@@ -63,7 +67,7 @@ def main() -> int:
         ax.barh([r["config"] for r in rows], [r["peak_rss_mb"] for r in rows])
         ax.set_xlabel("peak resident memory while training (MB, CPU)")
         ax.set_title("Training memory per model (paper Fig. 15)")
-        fig.savefig(args.plot, dpi=110)
+        save_figure(fig, args.plot, dpi=110)
     return 0
 
 
