@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
-
 from .cli import add_pose_arguments
 from .io.clouds import FORMATS as CLOUD_FORMATS
 from .lidar_options import add_lidar_argument, model_at_lidar
@@ -139,7 +137,7 @@ def _run_generate(args) -> int:
                 out.write(cloud)
                 wait_point("generate.block-written")
                 points += len(cloud)
-                empty += n - len(np.unique(cloud.sample))
+                empty += n - job.clouds_with_points(cloud.sample)
                 progress.update(n)
         progress.close()
     from .plausibility import empty_clouds_warning

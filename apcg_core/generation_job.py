@@ -42,6 +42,14 @@ ENGINES_GROUP = "apcg.engines"  # entry points: name -> run_tasks(...) context (
 _FIELDS = ("xyz", "range_m", "cell_w", "cell_h", "sample")
 
 
+def clouds_with_points(sample) -> int:
+    """How many distinct clouds the points of one block belong to (``sample``: their cloud
+    numbers, a block's short span). A count, not a sort: np.unique over every point of a
+    100,000-cloud request took 0.9 s of the writing thread."""
+    s = np.asarray(sample, np.int64)
+    return int(np.count_nonzero(np.bincount(s - s.min()))) if s.size else 0
+
+
 def block_seed(seed: int, block: int) -> int:
     """Block 0 keeps the seed (a one-block request is unchanged); later blocks get seeds
     drawn from (seed, block), so no two blocks of any two seeds share their noise."""
@@ -242,7 +250,7 @@ def _write_part(path: Path, held: list, photon_fields, suffix: str) -> None:
         return lambda: np.concatenate([getattr(c, k) for c in clouds])
     members = [(k, field(k)) for k in (*_FIELDS, *photon_fields)]
     members.append(("clouds", np.int64(sum(n for _, n in held))))
-    members.append(("empty", np.int64(sum(n - len(np.unique(c.sample)) for c, n in held))))
+    members.append(("empty", np.int64(sum(n - clouds_with_points(c.sample) for c, n in held))))
     write_npz(path, members, part_suffix=suffix)
 
 

@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 import apcg_core.generation_cli as gen
@@ -93,3 +94,16 @@ def test_address_without_an_engine_is_refused(tmp_path, capsys):
                  str(tmp_path / "x.ply")]) == 2
     assert "--address needs --engine dask" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_clouds_with_points_counts_distinct_clouds():
+    from apcg_core.generation_job import clouds_with_points
+    assert clouds_with_points(np.zeros(0, np.int64)) == 0
+    assert clouds_with_points([7]) == 1
+    assert clouds_with_points([5, 5, 7, 9, 9, 9]) == 3
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        first = int(rng.integers(0, 10**6))
+        s = np.sort(first + rng.integers(0, 300, int(rng.integers(1, 2000))))
+        assert clouds_with_points(s) == len(np.unique(s))
+        assert clouds_with_points(rng.permutation(s)) == len(np.unique(s))  # any order
