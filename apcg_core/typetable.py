@@ -88,7 +88,10 @@ class TypeTable:
         return code
 
     def codes(self, names) -> np.ndarray:
-        return np.array([self.code(n) for n in names], dtype=np.int64)
+        # each distinct name looked up once: a 10^6-row request names a few types
+        known: dict = {}
+        return np.array([known[k] if (k := (type(n), n)) in known
+                         else known.setdefault(k, self.code(n)) for n in names], dtype=np.int64)
 
     def name(self, code) -> str:
         c = int(code)

@@ -127,7 +127,10 @@ class ModelTypes:
         """Conditions for type ``names`` (one per row; names or catalog indices) at ``pose``
         (N, 5) [r0 m, beta0, pitch, yaw, roll rad], in this model's type table."""
         names = [names] if isinstance(names, (str, int, np.integer)) else list(names)
-        return Conditions.from_names(self.types, [self.type_name(n) for n in names], pose)
+        known: dict = {}  # each distinct key resolved once
+        return Conditions.from_names(self.types, [
+            known[k] if (k := (type(n), n)) in known else known.setdefault(k, self.type_name(n))
+            for n in names], pose)
 
     def condition(self, type_key, range_m, elevation, pitch=0.0, yaw=0.0,
                   roll=0.0) -> Conditions:
