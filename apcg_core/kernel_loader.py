@@ -36,11 +36,14 @@ class KernelSet:
 class Loader:
     """One set of kernels: ``compile`` (imports numba, returns a :class:`KernelSet`) is run
     once, at the first call that should take the compiled path; ``what`` names the set in the
-    message when numba is missing."""
+    message when numba is missing; ``switch``: the units of work (hits, clouds, ...) a process
+    puts through the numpy path before it loads them. A set's module exposes the loader's
+    methods as its own functions (``enabled``, ``loaded``, ``use_for``, ``require``)."""
 
-    def __init__(self, compile, what: str) -> None:
+    def __init__(self, compile, what: str, switch: int) -> None:
         self._compile = compile
         self.what = what
+        self.switch = switch
         self._kernels = None  # the compiled functions, once loaded; False when numba is missing
         self._numpy_work = 0  # work this process put through the numpy path before loading
         self._lock = threading.Lock()  # readers run in threads: compiled once
@@ -57,10 +60,11 @@ class Loader:
     def loaded(self) -> bool:
         return self._kernels is not None and self._kernels is not False
 
-    def use_for(self, n: int, switch: int) -> bool:
+    def use_for(self, n: int) -> bool:
         """Whether a call doing ``n`` units of work should take the compiled path (loading the
         kernels if it is time to: ``switch`` units on the numpy path, or ``compiled`` in the
         environment); counts the work toward ``switch`` when not."""
+        switch = self.switch
         if not self.enabled():
             return False
         if self.loaded():

@@ -10,8 +10,6 @@ import dataclasses
 import itertools
 import os
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -209,26 +207,6 @@ def test_the_compiled_uniforms_are_the_numpy_hash():
         got = kernels.require().uniforms(draws.stream_key(seed, stream), ids, sample, index)
         want = draws.uniforms(seed, ids[sample], stream, index)
         assert got.tobytes() == want.tobytes()
-
-
-@pytest.mark.parametrize("mode", ["", "numpy", "compiled"])
-def test_a_process_loads_the_kernels_once_it_has_work_for_them(mode):
-    # a fresh process: numpy until SWITCH_HITS hits, unless the environment says otherwise;
-    # and the core imports without numba
-    code = ("import sys\n"
-            "from apcg_core.sensor import kernels as k\n"
-            "import apcg_core.sensor\n"
-            "print('numba' in sys.modules)\n"
-            "n = k.SWITCH_HITS\n"
-            "print(k.enabled(), k.loaded(), k.use_for(n // 2), k.use_for(0), k.loaded(),\n"
-            "      k.use_for(n // 2), k.loaded(), k.use_for(1))\n")
-    env = {**os.environ, kernels.ENV: mode}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         check=True).stdout.split()
-    want = {"": "False True False False False False True True True",
-            "numpy": "False False False False False False False False False",
-            "compiled": "False True False True True True True True True"}[mode]
-    assert out == want.split()
 
 
 def test_the_kernels_hold_no_fused_multiply_add(monkeypatch, hits):

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import os
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -165,26 +163,6 @@ def test_generate_takes_the_kernels_by_the_environment(model, drawn, monkeypatch
         model.workers = workers
     _same(clouds["compiled"], clouds["numpy"], "generate")
     assert len(clouds["numpy"].range_m) > 10_000
-
-
-@pytest.mark.parametrize("mode", ["", "numpy", "compiled"])
-def test_a_process_loads_the_kernels_once_it_has_work_for_them(mode):
-    # a fresh process: numpy until SWITCH_CLOUDS clouds, unless the environment says
-    # otherwise; and the model's module imports without numba
-    code = ("import sys\n"
-            "from apcg_core.families import plus_kernels as k\n"
-            "import apcg_core.families.apcg_plus\n"
-            "print('numba' in sys.modules)\n"
-            "n = k.SWITCH_CLOUDS\n"
-            "print(k.enabled(), k.loaded(), k.use_for(n // 2), k.use_for(0), k.loaded(),\n"
-            "      k.use_for(n // 2), k.loaded(), k.use_for(1))\n")
-    env = {**os.environ, plus_kernels.ENV: mode}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         check=True).stdout.split()
-    want = {"": "False True False False False False True True True",
-            "numpy": "False False False False False False False False False",
-            "compiled": "False True False True True True True True True"}[mode]
-    assert out == want.split()
 
 
 def test_the_kernels_hold_no_fused_multiply_add(model, drawn):

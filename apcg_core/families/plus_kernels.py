@@ -48,24 +48,10 @@ __all__ = ["ENV", "SWITCH_CLOUDS", "angle_tables", "enabled", "loaded", "require
 SWITCH_CLOUDS = 8_192
 
 
-def enabled() -> bool:
-    """Whether this process may use the compiled kernels (numba installed, not turned off)."""
-    return _loader.enabled()
-
-
-def loaded() -> bool:
-    return _loader.loaded()
-
-
-def use_for(n_clouds: int) -> bool:
-    """Whether a reader call on ``n_clouds`` clouds should take the compiled path (loading
-    the kernels if it is time to); counts the clouds toward :data:`SWITCH_CLOUDS` when not."""
-    return _loader.use_for(n_clouds, SWITCH_CLOUDS)
-
-
-def require() -> KernelSet:
-    """The compiled kernels, loaded (numba must be importable)."""
-    return _loader.require()
+# the one loader of this set (apcg_core/kernel_loader.py); _compile is defined below
+_loader = Loader(lambda: _compile(), "the APCG+ reader's compiled kernels", SWITCH_CLOUDS)
+enabled, loaded, use_for, require = (_loader.enabled, _loader.loaded, _loader.use_for,
+                                     _loader.require)
 
 
 @lru_cache(maxsize=16)
@@ -215,5 +201,3 @@ def _compile() -> KernelSet:
 
     return KernelSet(row_spans=row_spans, read_rows=read_rows)
 
-
-_loader = Loader(_compile, "the APCG+ reader's compiled kernels")

@@ -38,24 +38,10 @@ __all__ = ["ENV", "SWITCH_HITS", "enabled", "loaded", "require", "use_for"]
 SWITCH_HITS = 200_000
 
 
-def enabled() -> bool:
-    """Whether this process may use the compiled kernels (numba installed, not turned off)."""
-    return _loader.enabled()
-
-
-def loaded() -> bool:
-    return _loader.loaded()
-
-
-def use_for(n_hits: int) -> bool:
-    """Whether a stage call on ``n_hits`` sub-ray hits should take the compiled path (loading
-    the kernels if it is time to); counts the hits toward :data:`SWITCH_HITS` when not."""
-    return _loader.use_for(n_hits, SWITCH_HITS)
-
-
-def require() -> KernelSet:
-    """The compiled kernels, loaded (numba must be importable)."""
-    return _loader.require()
+# the one loader of this set (apcg_core/kernel_loader.py); _compile is defined below
+_loader = Loader(lambda: _compile(), "the photon stage's compiled kernels", SWITCH_HITS)
+enabled, loaded, use_for, require = (_loader.enabled, _loader.loaded, _loader.use_for,
+                                     _loader.require)
 
 
 def _compile() -> KernelSet:
@@ -601,5 +587,3 @@ def _compile() -> KernelSet:
                      binomial_walk=binomial_walk,
                      chain_prepare=chain_prepare, chain_finish=chain_finish)
 
-
-_loader = Loader(_compile, "the photon stage's compiled kernels")

@@ -1,0 +1,34 @@
+"""The core's compiled kernels load through one mechanism (apcg_core/kernel_loader.py): a fresh
+process stays on numpy until it has put its set's switch of work through it (rent, then buy),
+unless APCG_KERNELS says otherwise, and the package imports without numba."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+SETS = {  # kernel module -> (its switch, the package that must import without numba)
+    "apcg_core.sensor.kernels": ("SWITCH_HITS", "apcg_core.sensor"),
+    "apcg_core.families.plus_kernels": ("SWITCH_CLOUDS", "apcg_core.families.apcg_plus"),
+}
+
+
+@pytest.mark.parametrize("module", sorted(SETS))
+@pytest.mark.parametrize("mode", ["", "numpy", "compiled"])
+def test_a_process_loads_the_kernels_once_it_has_work_for_them(module, mode):
+    switch, package = SETS[module]
+    code = ("import importlib, sys\n"
+            f"k = importlib.import_module({module!r})\n"
+            f"importlib.import_module({package!r})\n"
+            "print('numba' in sys.modules)\n"
+            f"n = k.{switch}\n"
+            "print(k.enabled(), k.loaded(), k.use_for(n // 2), k.use_for(0), k.loaded(),\n"
+            "      k.use_for(n // 2), k.loaded(), k.use_for(1))\n")
+    env = {**os.environ, "APCG_KERNELS": mode}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.split()
+    want = {"": "False True False False False False True True True",
+            "numpy": "False False False False False False False False False",
+            "compiled": "False True False True True True True True True"}[mode]
+    assert out == want.split()
