@@ -64,6 +64,7 @@ RULES: dict[str, Rule] = {
                   lo_open=True),
     "ema": Rule("a number from 0 to 1, 1 excluded", lo=0, hi=1, hi_open=True),
     "diverge_gp": Rule("a finite number >= 0 (0: never)", lo=0),
+    "lr": Rule("a finite learning rate > 0 and <= 1", lo=0, hi=1, lo_open=True),
     "tau": ANY,  # its range is the model's own (Model.check_tau), checked where it is used
     # geometry
     "range_m": Rule("a finite range in metres > 0 and <= 1e6", lo=0, hi=1e6, lo_open=True),

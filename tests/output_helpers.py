@@ -40,6 +40,7 @@ NOT_OUTPUTS = {
     ("simulate", "type"): VALUE, ("simulate", "sensor"): INPUT,
     ("dataset build", "sensor"): INPUT, ("generate", "sensor"): INPUT,
     ("teach", "model"): INPUT, ("teach", "type"): VALUE,
+    ("distill", "teacher"): INPUT, ("train", "init"): INPUT,
     ("scene scan", "scene"): INPUT, ("scene scan", "sensor"): INPUT,
     ("scene sequence", "scene"): INPUT, ("scene sequence", "sensor"): INPUT,
     ("scene sequence", "engine"): VALUE, ("scene sequence", "address"): VALUE,

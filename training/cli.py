@@ -49,7 +49,7 @@ def register_train(sub) -> None:
                    help="steps of the DDPM schedule (default 200)")
     p.add_argument("--sheet", type=int, metavar="S",
                    help="apcg-plus: side of the sheet the network draws (4 x 2^k; default 64)")
-    from apcg_core.families.apcg_plus import HEADS
+    from apcg_core.families.plus_heads import HEADS
     p.add_argument("--head", choices=HEADS,
                    help="apcg-plus: how the network draws its sheet: conv (a 3 x 3 convolution "
                         "at the sheet's resolution, default) or upconv (the last upsampling "

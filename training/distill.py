@@ -231,7 +231,7 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
 
 
 def register_distill(sub) -> None:
-    from apcg_core.families.apcg_plus import HEADS
+    from apcg_core.families.plus_heads import HEADS
     d = DistillConfig(teacher="")
     p = sub.add_parser("distill", help="fit a cheaper network to a trained model (no dataset)",
                        description="Distils a model of the apcg-plus family into a smaller "
@@ -255,8 +255,8 @@ def register_distill(sub) -> None:
     p.add_argument("--lr", type=float, default=d.lr, help=f"peak learning rate ({d.lr:g})")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every)
-    p.add_argument("--device", default="auto", help="auto (a GPU when torch sees one), cpu "
-                                                     "or cuda")
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+                   help="auto (a GPU when torch sees one, default), cpu or cuda")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_distill)
 

@@ -63,7 +63,7 @@ class TrainConfig:
     voxel_res: int = 32  # occupancy grid resolution
     diffusion_steps: int = 200  # T of the DDPM schedule
     sheet: int = 64  # side of an APCG+ sheet (4 x 2^k)
-    head: str = "conv"  # how an APCG+ network draws its sheet (apcg_core.families.apcg_plus.HEADS)
+    head: str = "conv"  # how an APCG+ network draws its sheet (apcg_core.families.plus_heads.HEADS)
     keep_every: int = 0  # also keep checkpoints/step-NNNNNN.pt every this many steps (0: never)
     diverge_gp: float = 50.0  # stop when the gradient penalty's mean over 50 steps exceeds it
     ema: float = 0.0  # decay of an exponential moving average of the generator (0: none)

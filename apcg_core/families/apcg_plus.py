@@ -40,9 +40,6 @@ from . import plus_kernels
 from .base import RUNTIMES, ModelTypes, onnx_session, onnx_weights
 
 FAMILY = "apcg-plus"
-# How a network draws its sheet from its last features (apcg_core.nn.apcg_plus.PlusConfig.head):
-# here, torch-free, so the command line can offer them without loading torch
-HEADS = ("conv", "upconv")
 CHUNK = 256  # conditions per network call: bounds memory (a sheet is 2 x S x S floats, the
 # activations ~0.1 MB a condition); 256 measured at least as fast as 1024 and 4096 on one
 # thread here (bench/generate_profile.py --chunks), and the sheets are the same bytes

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from ..errors import InputError
-from ..families.apcg_plus import HEADS
+from ..families.plus_heads import HEADS
 
 POSE_DIM = 5  # nu without its type column
 BASE_CHANNELS = (512, 256, 128, 64, 32, 16, 8)
