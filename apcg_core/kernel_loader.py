@@ -1,16 +1,17 @@
 """When the core's compiled loops (numba) are loaded: one mechanism for every set of them.
 
 A set of compiled kernels (``apcg_core/sensor/kernels.py`` for the photon stage,
-``apcg_core/families/plus_kernels.py`` for the APCG+ reader) sits beside the numpy code it
-replaces and gives the same bytes. The core imports with numpy alone (the add-on runs in
-Blender's Python, which has no numba): numba is imported only inside :meth:`Loader.load`, when
-it is installed and allowed, and the numpy code runs otherwise, same bytes, slower.
+``apcg_core/families/plus_kernels.py`` for the APCG+ reader, ``dataset_builder/kernels.py`` for
+the build's rays) sits beside the numpy code it replaces and gives the same bytes. The core
+imports with numpy alone (the add-on runs in Blender's Python, which has no numba): numba is
+imported only inside :meth:`Loader.load`, when it is installed and allowed, and the numpy code
+runs otherwise, same bytes, slower.
 
-``APCG_KERNELS`` in the environment is read as for the build's ray kernels
-(``dataset_builder/kernels.py``): ``numpy`` never loads them, ``compiled`` loads them at the
-first call; otherwise a process starts on numpy and loads them once it has put a set's own
-amount of work (its switch: hits, clouds, ...) through the numpy path: loading costs about
-0.5 s, so a short run never pays it and a long one pays it once (rent, then buy).
+``APCG_KERNELS`` in the environment is read for every set: ``numpy`` never loads them,
+``compiled`` loads them at the first call; otherwise a process starts on numpy and loads them
+once it has put a set's own amount of work (its switch: hits, clouds, ...) through the numpy
+path: loading costs about 0.5 s, so a short run never pays it and a long one pays it once
+(rent, then buy).
 """
 
 from __future__ import annotations

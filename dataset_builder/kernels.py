@@ -22,80 +22,22 @@ machine, or the first after this file changes, compiles for ~2.5 s instead of re
 
 from __future__ import annotations
 
-import importlib.util
-import os
-
 import numpy as np
 
-ENV = "APCG_KERNELS"  # "numpy": never use the compiled kernels; "compiled": from the start
+from apcg_core.kernel_loader import ENV, KernelSet, Loader
+
+__all__ = ["ENV", "SWITCH_RAYS", "enabled", "loaded", "require", "use_for"]
 # Rays a process casts on the numpy path before it loads the kernels: the numpy path's extra
 # cost over them (~75 ns a ray) is then about the ~0.5 s that loading costs (rent, then buy).
 SWITCH_RAYS = 4_000_000
 
-_kernels = None  # the compiled functions, once loaded; False when numba is missing
-_numpy_rays = 0  # rays this process cast on the numpy path while the kernels were not loaded
+# the one loader of the core's compiled sets (apcg_core/kernel_loader.py); _compile is below
+_loader = Loader(lambda: _compile(), "the compiled ray kernels", SWITCH_RAYS)
+enabled, loaded, use_for, require = (_loader.enabled, _loader.loaded, _loader.use_for,
+                                     _loader.require)
 
 
-def _mode() -> str:
-    return os.environ.get(ENV, "").strip().lower()
-
-
-def enabled() -> bool:
-    """Whether this process may use the compiled kernels (numba installed, not turned off)."""
-    if _mode() == "numpy":
-        return False
-    if _kernels is None:
-        return importlib.util.find_spec("numba") is not None
-    return _kernels is not False
-
-
-def loaded() -> bool:
-    return _kernels is not None and _kernels is not False
-
-
-def use_for(n_rays: int) -> bool:
-    """Whether a call casting ``n_rays`` rays should take the compiled path (loading the
-    kernels if it is time to); counts the rays toward :data:`SWITCH_RAYS` when not."""
-    global _numpy_rays
-    if not enabled():
-        return False
-    if loaded():
-        return True
-    if _mode() == "compiled" or _numpy_rays + n_rays >= SWITCH_RAYS:
-        return _load() is not False
-    _numpy_rays += n_rays
-    return False
-
-
-def _load():
-    global _kernels
-    if _kernels is None:
-        try:
-            import numba  # noqa: F401
-        except ImportError:
-            _kernels = False
-        else:
-            _kernels = _compile()
-    return _kernels
-
-
-def require():
-    """The compiled kernels, loaded (numba must be importable)."""
-    k = _load()
-    if k is False:
-        raise ImportError("the compiled ray kernels need numba: pip install 'apcg[sim]'")
-    return k
-
-
-class _Kernels:
-    def __init__(self, row_elevations, rays, hits, screen) -> None:
-        self.row_elevations = row_elevations
-        self.rays = rays
-        self.hits = hits
-        self.screen = screen
-
-
-def _compile() -> _Kernels:
+def _compile() -> KernelSet:
     from numba import njit
 
     jit = njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
@@ -243,4 +185,5 @@ def _compile() -> _Kernels:
                     k += 1
         return k
 
-    return _Kernels(row_elevations, block_rays, block_hits, screen)
+    return KernelSet(row_elevations=row_elevations, rays=block_rays, hits=block_hits,
+                     screen=screen)

@@ -11,6 +11,7 @@ import pytest
 SETS = {  # kernel module -> (its switch, the package that must import without numba)
     "apcg_core.sensor.kernels": ("SWITCH_HITS", "apcg_core.sensor"),
     "apcg_core.families.plus_kernels": ("SWITCH_CLOUDS", "apcg_core.families.apcg_plus"),
+    "dataset_builder.kernels": ("SWITCH_RAYS", "dataset_builder.rays"),
 }
 
 

@@ -4,10 +4,7 @@ conditions covering every catalog type (Table 1 ranges, 18 km, grazing views, at
 their limits, targets that fill and overflow the window, the lidar just outside the bounding
 sphere) and on tiny meshes seen edge-on."""
 
-import os
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -116,23 +113,6 @@ def test_the_kernels_are_there():
     assert kernels.enabled()
     kernels.require()
     assert kernels.loaded() and kernels.use_for(1)
-
-
-@pytest.mark.parametrize("mode", ["", "numpy", "compiled"])
-def test_a_process_loads_the_kernels_once_it_has_work_for_them(mode):
-    # a fresh process: numpy until SWITCH_RAYS rays (loading numba costs ~0.5 s), unless the
-    # environment says otherwise
-    code = ("from dataset_builder import kernels as k\n"
-            "n = k.SWITCH_RAYS\n"
-            "print(k.enabled(), k.loaded(), k.use_for(n // 2), k.use_for(0), k.loaded(),\n"
-            "      k.use_for(n // 2), k.loaded(), k.use_for(1))\n")
-    env = {**os.environ, kernels.ENV: mode}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         check=True).stdout.split()
-    want = {"": "True False False False False True True True",
-            "numpy": "False False False False False False False False",
-            "compiled": "True False True True True True True True"}[mode]
-    assert out == want.split()
 
 
 @pytest.mark.parametrize("block_rays", [32_768, 700])
