@@ -102,6 +102,7 @@ def test_refusals_name_the_value(tmp_path):
         with pytest.raises(InputError, match=word):
             distill(TEACHER, tmp_path / "b", DistillConfig(teacher=str(TEACHER), **bad),
                     device="cpu")
+        assert not (tmp_path / "b").exists()  # refused before anything was written
     with pytest.raises(InputError, match="head must be one of conv, upconv"):
         distill(TEACHER, tmp_path / "c", DistillConfig(teacher=str(TEACHER), head="dense",
                                                        steps=1), device="cpu")
@@ -156,3 +157,18 @@ def test_train_init_starts_from_the_model_and_refuses_another_network(tiny_train
         (other / "model.json").write_text(json.dumps(meta))
         (other / "sheets.onnx").write_bytes((model / "sheets.onnx").read_bytes())
         first_loss("reordered_run", init=str(other))
+
+
+def test_the_command_never_writes_into_its_teacher(tmp_path):
+    """-o the teacher's own directory: refused by the output guard, even with --force, and
+    the teacher's files (its log.csv among them) are as they were."""
+    import shutil
+    teacher = tmp_path / "teacher"
+    shutil.copytree(TEACHER, teacher)
+    before = {p.name: p.read_bytes() for p in teacher.iterdir()}
+    out = subprocess.run([sys.executable, "-m", "apcg_core.cli", "distill", "--teacher",
+                          str(teacher), "-o", str(teacher), "--steps", "2", "--batch-size", "4",
+                          "--device", "cpu", "--force", "--no-progress"],
+                         capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert out.returncode != 0 and "is an input of this command" in out.stderr, out.stderr
+    assert {p.name: p.read_bytes() for p in teacher.iterdir()} == before

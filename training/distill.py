@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from apcg_core.errors import InputError, check_int
+from apcg_core.errors import InputError, check_finite, check_int
 from apcg_core.outputs import DIRECTORY, add_output
 
 
@@ -46,18 +46,18 @@ class DistillConfig:
     log_every: int = 10
 
     def check(self) -> None:
+        """The run's own settings; the student's architecture (width, head) is checked by its
+        network configuration (PlusConfig), before anything is written."""
         check_int("steps", self.steps, 1)
         check_int("batch_size", self.batch_size, 2)
         check_int("seed", self.seed, 0)
         check_int("checkpoint_every", self.checkpoint_every, 1)
         check_int("log_every", self.log_every, 1)
-        for name in ("lr", "width"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise InputError(f"--{name.replace('_', '-')} must be a number > 0, got {v!r}")
-        if not 0 <= self.ema < 1:
+        if not check_finite("--lr", self.lr) > 0:
+            raise InputError(f"--lr must be a number > 0, got {self.lr!r}")
+        if not 0 <= check_finite("--ema", self.ema) < 1:
             raise InputError(f"--ema must be in [0, 1), got {self.ema!r}")
-        if self.minutes is not None and not (math.isfinite(self.minutes) and self.minutes > 0):
+        if self.minutes is not None and not check_finite("--minutes", self.minutes) > 0:
             raise InputError(f"--minutes must be > 0, got {self.minutes!r}")
 
 
@@ -101,6 +101,8 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
 
     from apcg_core.families import get_family, load_model
     from apcg_core.io.atomic import atomic_path
+    from apcg_core.io.dataset import write_atomic
+    from apcg_core.testpoints import wait_point
     cfg.check()
     teacher_model = load_model(teacher_dir)
     family = get_family(teacher_model.family, need="load")
@@ -115,9 +117,9 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
                          "or choose another -o")
     if resume and not ck_path.is_file():
         raise InputError(f"--resume: {ck_path} does not exist; nothing to continue")
-    run.mkdir(parents=True, exist_ok=True)
     dev = pick_device(device)
     torch.manual_seed(cfg.seed)
+    # the student first: a refused width or head leaves nothing on disk
     teacher, student = family.distill_networks(teacher_model, width=cfg.width, head=cfg.head)
     teacher, student = teacher.to(dev).eval(), student.to(dev)
     for p in teacher.parameters():
@@ -135,82 +137,81 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
         opt.load_state_dict(st["opt"])
         ema = [t.to(dev) for t in st["ema"]]
         step, elapsed = st["step"], st["elapsed_s"]
-    (run / "distill_config.json").write_text(json.dumps(
-        {**asdict(cfg), "device": str(dev), "teacher_tau": teacher_model.tau}, indent=1) + "\n")
+    # every file through the running command's guard (an input is never written), whole
+    write_atomic(run / "distill_config.json", (json.dumps(
+        {**asdict(cfg), "device": str(dev), "teacher_tau": teacher_model.tau}, indent=1)
+        + "\n").encode())
     log_path = run / "log.csv"
-    if not resume or not log_path.exists():
-        log_path.write_text("step,loss_logit,loss_depth,lr,seconds\n")
-    else:  # drop rows past the checkpoint: the resumed run writes them again
-        rows = log_path.read_text().splitlines()
-        kept = [rows[0]] + [r for r in rows[1:] if int(r.split(",")[0]) <= step]
-        log_path.write_text("\n".join(kept) + "\n")
+    head = "step,loss_logit,loss_depth,lr,seconds\n"
+    if resume and log_path.exists():  # drop rows past the checkpoint: they are redone
+        from apcg_core.io.csv_table import read_csv
+        table = read_csv(log_path, required=("step",), what="distillation log")
+        head += "".join(table.lines[r.line - 1].rstrip("\r\n") + "\n" for r in table
+                        if r.int("step") <= step)
+    write_atomic(log_path, head.encode())
     tau = float(teacher_model.tau)
     n_types = len(teacher_model.types.names)
 
-    def save() -> None:
+    def save() -> int:
         with atomic_path(ck_path) as tmp:
             torch.save({"config": asdict(cfg), "student": student.state_dict(),
                         "opt": opt.state_dict(), "ema": [t.cpu() for t in ema], "step": step,
                         "elapsed_s": elapsed, "net": student.cfg.to_dict()}, tmp)
+        return step
 
-    def _steps() -> None:
-        nonlocal step, elapsed, last_report
-        while step < cfg.steps:
-            elapsed = time.perf_counter() - t_start
-            if cfg.minutes is not None and elapsed >= 60.0 * cfg.minutes:
-                break
-            lr = schedule(cfg, step, elapsed)
-            for g in opt.param_groups:
-                g["lr"] = lr
-            codes, pose = step_conditions(n_types, cfg.batch_size, cfg.seed, step)
-            codes_t = torch.from_numpy(codes).to(dev)
-            pose_t = torch.from_numpy(pose).to(dev)
-            with torch.no_grad():
-                target = teacher(codes_t, pose_t)
-            out = student(codes_t, pose_t)
-            l_logit, l_depth = family.distill_loss(out, target, tau)
-            loss = l_logit + l_depth
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(student.parameters(), 1.0)
-            opt.step()
-            decay = min(cfg.ema, (1.0 + step) / (10.0 + step))  # short runs average less
-            with torch.no_grad():
-                for e, p in zip(ema, student.parameters(), strict=True):
-                    e.lerp_(p.detach(), 1.0 - decay)
-            step += 1
-            if step % cfg.log_every == 0 or step == cfg.steps:
-                elapsed = time.perf_counter() - t_start
-                writer.writerow([step, f"{l_logit.item():.6g}", f"{l_depth.item():.6g}",
-                                 f"{lr:.4g}", f"{elapsed:.1f}"])
-                if progress and elapsed - last_report >= 10.0:
-                    last_report = elapsed
-                    print(f"distill: step {step}/{cfg.steps}  logit {l_logit.item():.4f}  "
-                          f"depth {l_depth.item():.5f}  lr {lr:.2e}  {elapsed:.0f} s "
-                          f"({step / max(elapsed, 1e-9):.1f} steps/s)", file=sys.stderr,
-                          flush=True)
-            if step % cfg.checkpoint_every == 0:
-                log.flush()
-                save()
-                wait_point("distill.checkpoint-written")
-
+    saved = step  # the step of the checkpoint on disk (a resumed run's, or none yet: 0)
     t_start = time.perf_counter() - elapsed
     last_report = 0.0
-    from apcg_core.testpoints import wait_point
     with log_path.open("a", newline="") as log:
         writer = csv.writer(log)
         try:
-            _steps()
+            while step < cfg.steps:
+                elapsed = time.perf_counter() - t_start
+                if cfg.minutes is not None and elapsed >= 60.0 * cfg.minutes:
+                    break
+                lr = schedule(cfg, step, elapsed)
+                for g in opt.param_groups:
+                    g["lr"] = lr
+                codes, pose = step_conditions(n_types, cfg.batch_size, cfg.seed, step)
+                codes_t = torch.from_numpy(codes).to(dev)
+                pose_t = torch.from_numpy(pose).to(dev)
+                with torch.no_grad():
+                    target = teacher(codes_t, pose_t)
+                out = student(codes_t, pose_t)
+                l_logit, l_depth = family.distill_loss(out, target, tau)
+                loss = l_logit + l_depth
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(student.parameters(), 1.0)
+                opt.step()
+                decay = min(cfg.ema, (1.0 + step) / (10.0 + step))  # short runs average less
+                with torch.no_grad():
+                    for e, p in zip(ema, student.parameters(), strict=True):
+                        e.lerp_(p.detach(), 1.0 - decay)
+                step += 1
+                if step % cfg.log_every == 0 or step == cfg.steps:
+                    elapsed = time.perf_counter() - t_start
+                    writer.writerow([step, f"{l_logit.item():.6g}", f"{l_depth.item():.6g}",
+                                     f"{lr:.4g}", f"{elapsed:.1f}"])
+                    if progress and elapsed - last_report >= 10.0:
+                        last_report = elapsed
+                        print(f"distill: step {step}/{cfg.steps}  logit {l_logit.item():.4f}  "
+                              f"depth {l_depth.item():.5f}  lr {lr:.2e}  {elapsed:.0f} s "
+                              f"({step / max(elapsed, 1e-9):.1f} steps/s)", file=sys.stderr,
+                              flush=True)
+                if step % cfg.checkpoint_every == 0:
+                    log.flush()
+                    saved = save()
+                    wait_point("distill.checkpoint-written")
         except KeyboardInterrupt:
             # Ctrl-C may land inside a step: the last checkpoint, whole and consistent, is
             # kept, and --resume redoes the steps after it exactly as they were
-            saved = torch.load(ck_path, map_location="cpu", weights_only=False)["step"] \
-                if ck_path.is_file() else 0
             print(f"distill: interrupted at step {step}; `apcg distill --resume -o {run}` "
                   f"goes on from the checkpoint at step {saved}", file=sys.stderr, flush=True)
             raise
     elapsed = time.perf_counter() - t_start
-    save()
+    if saved != step or not ck_path.is_file():  # else written at its last step already
+        save()
     with torch.no_grad():
         for e, p in zip(ema, student.parameters(), strict=True):
             p.copy_(e)
