@@ -195,6 +195,11 @@ class PlusModel(ModelTypes):
             opts = ort.SessionOptions()
             opts.intra_op_num_threads = 1 if self.workers > 1 else 0  # 0: onnxruntime's own
             return _Runtime("onnx", session=onnx_session(self.onnx_path, opts))
+        return _Runtime("torch", net=self.torch_net().eval())
+
+    def torch_net(self):
+        """A fresh torch network (apcg_core.nn.apcg_plus.PlusNet) holding this model's
+        weights: what the torch runtime runs, distillation's teacher, fine-tuning's start."""
         import torch
 
         from ..nn.apcg_plus import PlusConfig, PlusNet
@@ -205,7 +210,7 @@ class PlusModel(ModelTypes):
         if missing:
             raise InputError(f"{self.onnx_path} lacks weights {missing[:5]}")
         net.load_state_dict({k: torch.from_numpy(state[k]) for k in own})
-        return _Runtime("torch", net=net.eval())
+        return net
 
     def sheets(self, table: np.ndarray) -> np.ndarray:
         """The network's sheets (N, 2, S, S) for condition rows in this model's types."""

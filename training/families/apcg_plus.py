@@ -165,7 +165,7 @@ class PlusFamily(Family):
             raise InputError(f"--init {model_dir}: its network differs from the run's in "
                              f"{', '.join(diff)} (the model's: {said}); give the same "
                              "--width, --sheet and --head")
-        net.load_state_dict(model._open("torch").net.state_dict())
+        net.load_state_dict(model.torch_net().state_dict())
 
     def networks(self, net):
         from apcg_core.nn.apcg_plus import PlusNet
@@ -246,7 +246,7 @@ class PlusFamily(Family):
         offset and condition MLP start as the teacher's (the same shapes: only the drawing
         is new)."""
         from apcg_core.nn.apcg_plus import PlusConfig, PlusNet
-        teacher = model._open("torch").net
+        teacher = model.torch_net()
         cfg = PlusConfig.from_dict({**model.meta["net"], "width": float(width),
                                     "head": head})
         student = PlusNet(cfg)
