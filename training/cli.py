@@ -53,7 +53,7 @@ def register_train(sub) -> None:
     p.add_argument("--head", choices=HEADS,
                    help="apcg-plus: how the network draws its sheet: conv (a 3 x 3 convolution "
                         "at the sheet's resolution, default) or upconv (the last upsampling "
-                        "step draws it; about half the CPU cost)")
+                        "step draws it; about 0.6 times the CPU cost)")
     p.add_argument("--lr", type=float,
                    help="learning rate (default: the family's; a fine-tune from --init "
                         "usually wants a smaller one)")

@@ -31,7 +31,7 @@ class PlusConfig:
     (the ablation of per-block conditioning). ``head`` is how the sheet is drawn from the last
     features: ``conv``, a 3 x 3 convolution over features at the sheet's own resolution (the
     trained default); ``upconv``, the last upsampling step draws the sheet itself, so no
-    features are ever held at full resolution (about half the cost a condition on a CPU,
+    features are ever held at full resolution (about 0.6 times the cost a condition on a CPU,
     docs/SCALE.md; what ``apcg distill`` makes)."""
 
     n_types: int
