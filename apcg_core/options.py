@@ -46,7 +46,7 @@ RULES: dict[str, Rule] = {
     "threads": Rule("an integer from 1 to 1024", lo=1, hi=1024),
     "columns": Rule("an integer from 1 to 64", lo=1, hi=64), "n_critic": COUNT,
     "n_points": COUNT, "checkpoint_every": COUNT, "keep_every": COUNT, "log_every": COUNT,
-    "train_per_type": COUNT, "test_per_type": COUNT,  # apcg benchmark recognize
+    "train_per_type": COUNT, "test_per_type": COUNT, "networks": COUNT,  # benchmark recognize
     "bootstrap": Rule("an integer >= 0 (0: no interval)", lo=0),
     "sampling_steps": COUNT, "diffusion_steps": COUNT, "max_checkpoints": COUNT,
     "memory_steps": Rule("an integer >= 0 (0: skip)", lo=0), "tasks_per_process": COUNT,

@@ -22,7 +22,7 @@ APCG = str(_SCRIPT) if _SCRIPT.exists() else shutil.which("apcg")
 TYPES = ["777-300ER", "F-16C Fighting Falcon", "UH-60 Black Hawk"]
 # a narrow network on few points: the true labels reach 80-90% in seconds
 SMALL = dict(types=TYPES, train_per_type=30, test_per_type=20, epochs=24, n_boot=200, width=16,
-             n_points=96)
+             n_points=96, networks=1)
 
 
 def _cli(*args):
@@ -43,7 +43,7 @@ def test_the_command_runs_end_to_end_and_is_deterministic(tmp_path):
     model = str(default_model_dir())
     args = ["--source", "exact", "--source", model, "--types", "777-300ER,Mavic 3",
             "--train-per-type", "6", "--test-per-type", "5", "--epochs", "2", "--bootstrap",
-            "50", "--seed", "3", "--lidar", "double-cells"]
+            "50", "--seed", "3", "--lidar", "double-cells", "--networks", "2"]
     a = _cli(*args, "-o", str(tmp_path / "a"))
     assert a.returncode == 0, a.stderr
     for name in recognize.REPORT_FILES:
@@ -51,7 +51,11 @@ def test_the_command_runs_end_to_end_and_is_deterministic(tmp_path):
     rep = json.loads((tmp_path / "a" / "recognize.json").read_text())
     assert rep["sizes"]["train_clouds"] == 12 and rep["sizes"]["test_clouds"] == 10
     assert rep["types"] == ["777-300ER", "Mavic 3"] and rep["chance"] == 0.5
-    assert sum(map(sum, rep["trained_on_exact"]["confusion"])) == 10
+    # two networks per training set: their confusions summed, their top-1s averaged
+    assert sum(map(sum, rep["trained_on_exact"]["confusion"])) == 20
+    assert rep["sizes"]["networks"] == 2 and len(rep["trained_on_exact"]["networks"]) == 2
+    assert rep["trained_on_exact"]["top1"] == pytest.approx(
+        np.mean(rep["trained_on_exact"]["networks"]), abs=1e-6)
     exact, generated = rep["sources"]
     # exact against exact: the same clouds, labels and seed make the same classifier
     assert exact["tstr"]["overall"]["ratio"] in (None, 1.0)
@@ -63,7 +67,7 @@ def test_the_command_runs_end_to_end_and_is_deterministic(tmp_path):
     # the same command in another process: the same scores to the last digit
     assert rep["test"]["lidar"] == load_lidar("double-cells").to_dict()
     again = recognize.run(["exact", model], ["777-300ER", "Mavic 3"], 6, 5, 2, seed=3,
-                          n_boot=50, lidar=load_lidar("double-cells"))
+                          n_boot=50, lidar=load_lidar("double-cells"), networks=2)
     assert _without_cost(json.loads(json.dumps(again))) == _without_cost(rep)
 
 
@@ -128,3 +132,22 @@ def test_tstr_bootstrap_interval_brackets_the_ratio():
     lo, hi = t["overall"]["ci"]
     assert lo < t["overall"]["ratio"] < hi and 0.7 < lo and hi < 0.9
     assert list(t["bands"]) == ["aircraft 3-6 km", "drone 100-225 m"]
+
+
+def test_several_networks_average_their_hits_and_the_first_is_the_one_seed_run():
+    one = recognize.run("noise", seed=6, **SMALL)
+    three = recognize.run("noise", seed=6, **{**SMALL, "networks": 3})
+    e1, e3 = one["trained_on_exact"], three["trained_on_exact"]
+    # the first network is the one-network benchmark's: the same seed, the same classifier
+    assert e3["networks"][0] == e1["top1"] and len(set(recognize.network_seeds(6, 3))) == 3
+    assert e3["top1"] == pytest.approx(np.mean(e3["networks"]), abs=1e-6)
+    assert np.asarray(e3["confusion"]).sum() == 3 * e1["n"]
+    for band, v in e3["bands"].items():  # a band's top-1 lies within its networks' spread
+        assert 0 <= v["top1"] <= 1 and band in e1["bands"]
+    # the ratio is of the averaged hits: pure noise stays near chance whatever the count
+    assert three["sources"][0]["trained_on_source"]["top1"] < three["chance"] + 0.2
+
+
+def test_networks_below_one_is_refused():
+    with pytest.raises(Exception, match="networks"):
+        recognize.run("exact", seed=0, **{**SMALL, "networks": 0})
