@@ -74,6 +74,7 @@ def _run_generate(args) -> int:
         table = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
                                 args.pitch_deg * DEG, args.yaw_deg * DEG, args.roll_deg * DEG)
     total = len(table) * args.count
+    model.expect_clouds(total)
     _warn_window(model, table)
     meta = {"model": str(model.directory), "family": model.family,
             "runtime": getattr(model, "runtime", None), "seed": args.seed,

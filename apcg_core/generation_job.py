@@ -112,6 +112,7 @@ def _worker_model(task: PartTask):
 def run_part(task: PartTask) -> tuple[int, int]:
     """An engine's task: compute a part's blocks and write its file whole. (part, clouds)."""
     model = _worker_model(task)
+    model.expect_clouds(sum(len(part) * count for _, part, count, _ in task.blocks))
     held = [generate_block(model, task.sensor, task.seed, b, part, count, offset)
             for b, part, count, offset in task.blocks]
     _write_part(Path(task.path), held, task.photon_fields, f".{os.getpid()}.part")

@@ -11,7 +11,9 @@ runs otherwise, same bytes, slower.
 ``compiled`` loads them at the first call; otherwise a process starts on numpy and loads them
 once it has put a set's own amount of work (its switch: hits, clouds, ...) through the numpy
 path: loading costs about 0.5 s, so a short run never pays it and a long one pays it once
-(rent, then buy).
+(rent, then buy). A caller that knows how much work is coming says so (:meth:`Loader.expect`):
+when that reaches the switch, the set is loaded at once on a thread of its own, beside the
+first work on the numpy path, instead of stalling the work that reaches the switch.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ class Loader:
         self._kernels = None  # the compiled functions, once loaded; False when numba is missing
         self._numpy_work = 0  # work this process put through the numpy path before loading
         self._lock = threading.Lock()  # readers run in threads: compiled once
+        self._loading: threading.Thread | None = None
 
     def enabled(self) -> bool:
         """Whether this process may use the compiled kernels (numba installed, not turned
@@ -74,6 +77,18 @@ class Loader:
             return self.load() is not False
         self._numpy_work += n
         return False
+
+    def expect(self, n: int) -> None:
+        """``n`` units of work are coming: when they reach the switch (or ``compiled`` is set),
+        start loading the kernels now, on a thread of their own, so that they load while the
+        first work runs on the numpy path (the same bytes) and are there when the switch
+        comes; a call reaching the switch before they are loaded waits for them."""
+        if (self._loading is not None or self.loaded() or not self.enabled()
+                or (n < self.switch and mode() != "compiled")):
+            return
+        self._loading = threading.Thread(target=self.load, name=f"load {self.what}",
+                                         daemon=True)
+        self._loading.start()
 
     def load(self):
         """The kernels, loaded if numba is importable; False when it is not."""

@@ -26,15 +26,16 @@ import numpy as np
 
 from apcg_core.kernel_loader import ENV, KernelSet, Loader
 
-__all__ = ["ENV", "SWITCH_RAYS", "enabled", "loaded", "require", "use_for"]
+__all__ = ["ENV", "SWITCH_RAYS", "enabled", "expect", "loaded", "require",
+           "use_for"]
 # Rays a process casts on the numpy path before it loads the kernels: the numpy path's extra
 # cost over them (~75 ns a ray) is then about the ~0.5 s that loading costs (rent, then buy).
 SWITCH_RAYS = 4_000_000
 
 # the one loader of the core's compiled sets (apcg_core/kernel_loader.py); _compile is below
 _loader = Loader(lambda: _compile(), "the compiled ray kernels", SWITCH_RAYS)
-enabled, loaded, use_for, require = (_loader.enabled, _loader.loaded, _loader.use_for,
-                                     _loader.require)
+enabled, loaded, use_for, require, expect = (_loader.enabled, _loader.loaded,
+                                             _loader.use_for, _loader.require, _loader.expect)
 
 
 def _compile() -> KernelSet:

@@ -33,3 +33,26 @@ def test_a_process_loads_the_kernels_once_it_has_work_for_them(module, mode):
             "numpy": "False False False False False False False False False",
             "compiled": "False True False True True True True True True"}[mode]
     assert out == want.split()
+
+
+@pytest.mark.parametrize("module", sorted(SETS))
+@pytest.mark.parametrize("mode", ["", "numpy"])
+def test_work_said_to_be_coming_loads_the_kernels_beside_it(module, mode):
+    """expect(n): below the switch nothing loads; at the switch they load on a thread of their
+    own while the numpy path goes on, and the first call that reaches the switch finds them."""
+    switch, _ = SETS[module]
+    code = ("import importlib, threading, time\n"
+            f"k = importlib.import_module({module!r})\n"
+            f"n = k.{switch}\n"
+            "k.expect(n - 1)\n"
+            "print(k.loaded(), threading.active_count())\n"
+            "k.expect(n)\n"
+            "t = time.time()\n"
+            "while not k.loaded() and time.time() - t < 120 and k.enabled():\n"
+            "    time.sleep(0.01)\n"
+            "print(k.loaded(), k.use_for(1))\n")
+    env = {**os.environ, "APCG_KERNELS": mode}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out[:2] == ["False", "1"]  # below the switch: no thread, nothing loaded
+    assert out[2:] == (["True", "True"] if mode == "" else ["False", "False"])

@@ -174,6 +174,9 @@ class PlusModel(ModelTypes):
     def lanes(self) -> int:
         return self.workers
 
+    def expect_clouds(self, n: int) -> None:
+        plus_kernels.expect(n)  # enough clouds to switch: the reader loads beside the first
+
     def _run(self, codes: np.ndarray, pose: np.ndarray) -> np.ndarray:
         if self._rt is None:
             with self._opening:  # blocks run in threads: one session, opened once

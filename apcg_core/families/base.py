@@ -152,6 +152,11 @@ class ModelTypes:
         table = self.space.check(conditions.recoded(self.types))
         return np.repeat(table, check_int("count", count, 1), axis=0)
 
+    def expect_clouds(self, n: int) -> None:
+        """``n`` clouds are about to be asked of this model (``apcg generate`` says so once it
+        has read the request): a family whose speed depends on the amount of work prepares for
+        it here (APCG+ loads its compiled reader early). Nothing by default."""
+
     def result(self, cloud: PointCloud, images, table: np.ndarray) -> GenerationResult:
         return GenerationResult(cloud, images, Conditions(self.types, table))
 

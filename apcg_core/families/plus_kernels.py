@@ -35,7 +35,8 @@ import numpy as np
 
 from ..kernel_loader import ENV, KernelSet, Loader
 
-__all__ = ["ENV", "SWITCH_CLOUDS", "angle_tables", "enabled", "loaded", "require", "use_for"]
+__all__ = ["ENV", "SWITCH_CLOUDS", "angle_tables", "enabled", "expect", "loaded", "require",
+           "use_for"]
 # Clouds a process reads on the numpy path before it loads the kernels. Measured here (2 CPUs,
 # bench/generate_profile.py --conditions data/cpu/conditions.csv --n 8192 --chunks 1024, the
 # shipped model, one thread, APCG_KERNELS=numpy then =compiled in one session): the numpy
@@ -50,8 +51,8 @@ SWITCH_CLOUDS = 8_192
 
 # the one loader of this set (apcg_core/kernel_loader.py); _compile is defined below
 _loader = Loader(lambda: _compile(), "the APCG+ reader's compiled kernels", SWITCH_CLOUDS)
-enabled, loaded, use_for, require = (_loader.enabled, _loader.loaded, _loader.use_for,
-                                     _loader.require)
+enabled, loaded, use_for, require, expect = (_loader.enabled, _loader.loaded,
+                                             _loader.use_for, _loader.require, _loader.expect)
 
 
 @lru_cache(maxsize=16)

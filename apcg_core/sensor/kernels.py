@@ -29,7 +29,8 @@ import numpy as np
 
 from ..kernel_loader import ENV, KernelSet, Loader
 
-__all__ = ["ENV", "SWITCH_HITS", "enabled", "loaded", "require", "use_for"]
+__all__ = ["ENV", "SWITCH_HITS", "enabled", "expect", "loaded", "require",
+           "use_for"]
 # Sub-ray hits a process puts through the stage on the numpy path before it loads the
 # kernels: loading numba and reading the cache costs about 0.5 s (dataset_builder/kernels.py),
 # and the numpy path's extra cost over the kernels is about 2.5 us a hit (bench/photons.py,
@@ -40,8 +41,8 @@ SWITCH_HITS = 200_000
 
 # the one loader of this set (apcg_core/kernel_loader.py); _compile is defined below
 _loader = Loader(lambda: _compile(), "the photon stage's compiled kernels", SWITCH_HITS)
-enabled, loaded, use_for, require = (_loader.enabled, _loader.loaded, _loader.use_for,
-                                     _loader.require)
+enabled, loaded, use_for, require, expect = (_loader.enabled, _loader.loaded,
+                                             _loader.use_for, _loader.require, _loader.expect)
 
 
 def _compile() -> KernelSet:
