@@ -73,9 +73,11 @@ def main() -> None:
                                  constrained_layout=True)
         for j, name in enumerate(names):
             code = types.index(name)
-            near = [i for i in range(len(tab)) if int(tab[i, 0]) == code
-                    and bands[i] == "aircraft 3-6 km"]
-            i = near[0]
+            # the type's first condition in the near band; with few conditions a type may have
+            # none there, and then its nearest one is drawn (the panel says its range)
+            own = [i for i in range(len(tab)) if int(tab[i, 0]) == code]
+            near = [i for i in own if bands[i] == "aircraft 3-6 km"]
+            i = near[0] if near else min(own, key=lambda i: tab[i, 1])
             for row, (what, clouds) in enumerate((("exact", exact), ("APCG+ default", gen))):
                 c = clouds[i] - np.median(exact[i], 0)
                 ax = axes[row, j]
