@@ -427,3 +427,61 @@ def test_a_generated_clouds_incidence_comes_from_its_range_slope(tilt_deg):
     hits = hits_of_cloud(cloud, np.array([beta0]), lidar, 1)
     assert hits.sub_rays == 1 and len(hits.range_m) == len(w)
     assert np.allclose(hits.cos, math.cos(math.radians(tilt_deg)), rtol=2e-3)
+
+
+def test_slopes_over_per_sample_strides_read_each_planes_tilt():
+    """hits_of_cloud with a stride per sample (and another up the column): two planes of other
+    tilts, each read over its own baseline, give each its own cos; a stride below one cell is
+    refused."""
+    from apcg_core.cloud import PointCloud
+    from apcg_core.sensor.generated import hits_of_cloud
+    lidar = LidarParams.from_degrees(width=32, height=16)
+    r0, beta0 = 3000.0, math.radians(3.5)
+    w, h = np.meshgrid(np.arange(-12, 12), np.arange(-6, 6))
+    w, h = w.ravel(), h.ravel()
+    dx, dy = r0 * lidar.r_alpha * math.cos(beta0), r0 * lidar.r_beta
+    tilts = [(20.0, 0.0), (0.0, 40.0)]
+    r = np.concatenate([r0 + w * dx * math.tan(math.radians(a)) + h * dy * math.tan(
+        math.radians(b)) for a, b in tilts])
+    s = np.repeat([0, 1], len(w))
+    cloud = PointCloud(np.zeros((len(r), 3)), r, np.tile(w, 2), np.tile(h, 2), s)
+    hits = hits_of_cloud(cloud, np.full(2, beta0), lidar, 2, stride=np.array([1, 5]),
+                         stride_h=np.array([3, 2]))
+    for i, (a, b) in enumerate(tilts):
+        want = 1.0 / math.sqrt(1 + math.tan(math.radians(a))**2 + math.tan(math.radians(b))**2)
+        assert np.allclose(hits.cos[hits.sample == i], want, rtol=2e-3)
+    with pytest.raises(ValueError, match="stride"):
+        hits_of_cloud(cloud, np.full(2, beta0), lidar, 2, stride=np.array([1, 0]))
+
+
+def test_generated_slopes_span_a_share_of_the_models_own_resolution():
+    """The shipped model (APCG+) says its resolution (one sheet pixel, 2R / S); a generated
+    sub-ray's slope spans SLOPE_BASELINE of it, in finer cells at the condition's range (at
+    least one), whatever the lidar; a family that says none keeps one lidar cell."""
+    from apcg_core.families import load_model
+    from apcg_core.lidar import load_lidar
+    from apcg_core.sensor import generated as gen
+    model = load_model()
+    names = ["777-300ER", "F-16C Fighting Falcon", "Mavic 3", "777-300ER"]
+    pose = np.array([[4000, 0.06, 0.03, 0.2, 0], [11000, 0.06, 0.03, 0.2, 0],
+                     [300, 0.06, 0.03, 0.2, 0], [17000, 0.06, 0.03, 0.2, 0]], float)
+    table = model.conditions(names, pose).table
+    res = model.drawn_resolution_m(table)
+    sheet = model.meta["net"]["sheet"]
+    assert np.allclose(res, 2 * model.radius[table[:, 0].astype(int)] / sheet)
+    for preset in ("paper", "half-cells", "anisotropic"):
+        fine = gen.sub_ray_lidar(load_lidar(preset))
+        kw, kh = gen.slope_strides(model, table, fine)
+        cell_w = table[:, 1] * fine.r_alpha * np.cos(table[:, 2])
+        cell_h = table[:, 1] * fine.r_beta
+        base = gen.SLOPE_BASELINE * res
+        assert (kw >= 1).all() and (kh >= 1).all()
+        assert np.all((np.abs(kw * cell_w - base) <= cell_w / 2 + 1e-9) | (kw == 1))
+        assert np.all((np.abs(kh * cell_h - base) <= cell_h / 2 + 1e-9) | (kh == 1))
+        assert kw[0] > kw[3]  # the same type nearer: more finer cells to the same metres
+
+    class Unscaled:
+        def drawn_resolution_m(self, table):
+            return None
+    kw, kh = gen.slope_strides(Unscaled(), table, gen.sub_ray_lidar(model.lidar))
+    assert (kw == gen.SUB_READS).all() and (kh == gen.SUB_READS).all()
