@@ -174,10 +174,6 @@ class PlusModel(ModelTypes):
     def lanes(self) -> int:
         return self.workers
 
-    def drawn_resolution_m(self, table: np.ndarray) -> np.ndarray:
-        """One sheet pixel: the sheet spans 2R of the type's bounding radius in S pixels."""
-        return 2.0 * self.radius[table[:, 0].astype(np.int64)] / self.meta["net"]["sheet"]
-
     def expect_clouds(self, n: int) -> None:
         plus_kernels.expect(n)  # enough clouds to switch: the reader loads beside the first
 

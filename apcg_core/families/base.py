@@ -152,13 +152,6 @@ class ModelTypes:
         table = self.space.check(conditions.recoded(self.types))
         return np.repeat(table, check_int("count", count, 1), axis=0)
 
-    def drawn_resolution_m(self, table: np.ndarray):
-        """Per condition row, the lateral spacing in metres at which this family's drawn
-        surface is resolved (below it its ranges are interpolated), or None when it has no
-        such scale. The photon stage takes a generated cloud's slopes over a share of it
-        (``apcg_core.sensor.generated``). None by default."""
-        return None
-
     def expect_clouds(self, n: int) -> None:
         """``n`` clouds are about to be asked of this model (``apcg generate`` says so once it
         has read the request): a family whose speed depends on the amount of work prepares for

@@ -12,11 +12,7 @@ sub-rays instead (issue 33): it draws the same conditions at the K-times finer l
 (K = :data:`SUB_READS`, odd, so that the finer cells' centres are exactly the K x K centred
 sub-ray grid of SPEC section 4), unquantized; each finer point is one sub-ray of its cell with
 its own range, and its incidence from the slope across finer cells. Partial cells then count as
-partial, and a cell's ranges keep their spread, as the simulator's sub-rays do. The slope is
-taken over a baseline of :data:`SLOPE_BASELINE` of the family's own resolution where it says
-one (``drawn_resolution_m``: APCG+ draws on a sheet of 2R / S metres a pixel), not over one
-lidar cell: below its resolution a generator's ranges are its interpolation, and their slopes
-there are the interpolation's (near a 777-300ER at 3-6 km a cell is a tenth of a sheet pixel).
+partial, and a cell's ranges keep their spread, as the simulator's sub-rays do.
 """
 
 from __future__ import annotations
@@ -48,35 +44,24 @@ def _slope(r: np.ndarray, minus: np.ndarray, plus: np.ndarray) -> np.ndarray:
     return out
 
 
-def _strides(stride, n_samples: int) -> np.ndarray:
-    k = np.broadcast_to(np.asarray(stride, np.int64), (n_samples,))
-    if n_samples and k.min() < 1:
-        raise ValueError(f"slope strides must be >= 1 cell, got {int(k.min())}")
-    return k
-
-
 def hits_of_cloud(cloud: PointCloud, elevation: np.ndarray, lidar: LidarParams,
-                  n_samples: int, stride=1, stride_h=None) -> SubRayHits:
+                  n_samples: int, stride: int = 1) -> SubRayHits:
     """One return per point of ``cloud`` (``cloud.sample`` in 0..n_samples-1, ``elevation``
     per sample for the cell heights), its incidence from the range slope between the cells
-    ``stride`` cells away on either side across the row (``stride_h`` up and down the column;
-    default the same): one number, or one per sample."""
+    ``stride`` cells away on either side."""
     s = (np.zeros(len(cloud), np.int64) if cloud.sample is None
          else np.asarray(cloud.sample, np.int64))
     w = cloud.cell_w.astype(np.int64)
     h = cloud.cell_h.astype(np.int64)
     r = cloud.range_m.astype(np.float64)
-    k_w = _strides(stride, n_samples)
-    k_h = k_w if stride_h is None else _strides(stride_h, n_samples)
-    pad = int(max(k_w.max(), k_h.max())) if n_samples else 1
-    span = lidar.width + 2 * pad  # a row of keys with room for the neighbours of the edge cells
-    key = (s * (lidar.height + 2 * pad) + (h - lidar.h_min + pad)) * span + (w - lidar.w_min + pad)
+    k = int(stride)
+    span = lidar.width + 2 * k  # a row of keys with room for the neighbours of the edge cells
+    key = (s * (lidar.height + 2 * k) + (h - lidar.h_min + k)) * span + (w - lidar.w_min + k)
     order = np.argsort(key, kind="stable")
     key, s, w, h, r = key[order], s[order], w[order], h[order], r[order]
-    kw, kh = k_w[s], k_h[s]
-    dr_w = _slope(r, _neighbour_range(key, key, r, -kw), _neighbour_range(key, key, r, kw)) / kw
-    dr_h = _slope(r, _neighbour_range(key, key, r, -kh * span),
-                  _neighbour_range(key, key, r, kh * span)) / kh
+    dr_w = _slope(r, _neighbour_range(key, key, r, -k), _neighbour_range(key, key, r, k)) / k
+    dr_h = _slope(r, _neighbour_range(key, key, r, -k * span),
+                  _neighbour_range(key, key, r, k * span)) / k
     beta = np.asarray(elevation, np.float64)[s] + h * lidar.r_beta
     dx = r * lidar.r_alpha * np.cos(beta)
     dy = r * lidar.r_beta
@@ -89,13 +74,6 @@ def hits_of_cloud(cloud: PointCloud, elevation: np.ndarray, lidar: LidarParams,
 # are then the centred sub-ray grid), and 3 x 3 = 9 sub-rays a cell, near the simulator's
 # 4 x 4 default with a sensor (SPEC section 8) at 9/16 of its cost.
 SUB_READS = 3
-# The slope's baseline, as a share of the family's drawn resolution (drawn_resolution_m).
-# Measured (bench/photon_incidence.py, bench/results/photon_incidence.json: the sum over
-# sub-rays of cos, the shipped model's 3 x 3 sub-reads against the simulator's 4 x 4 sub-rays,
-# 5 aircraft types at 3-6 and 9-12 km and 3 drones, 10 conditions each): over one lidar cell
-# the ratios spread 0.83-1.67 (mean |log ratio| 0.163); over 0.5 of a sheet pixel 0.79-1.17
-# (0.103); 0.35 and 0.7 of it: 0.137 and 0.109.
-SLOPE_BASELINE = 0.5
 
 
 def sub_ray_lidar(lidar: LidarParams, k: int = SUB_READS) -> LidarParams:
@@ -103,23 +81,6 @@ def sub_ray_lidar(lidar: LidarParams, k: int = SUB_READS) -> LidarParams:
     odd), its window one finer cell wider on each side so every sub-ray of the window fits."""
     return LidarParams(lidar.r_alpha / k, lidar.r_beta / k, lidar.r_r, lidar.width * k + 2,
                        lidar.height * k + 2)
-
-
-def slope_strides(model, table: np.ndarray, fine: LidarParams, k: int = SUB_READS):
-    """Per condition, the strides (finer cells across the row, up the column) of the slope
-    that gives a generated sub-ray its incidence: :data:`SLOPE_BASELINE` of the model's drawn
-    resolution (``model.drawn_resolution_m(table)``) in metres at the condition's range, at
-    least one finer cell; one whole lidar cell (``k`` finer cells) for a family that says
-    none."""
-    res = model.drawn_resolution_m(table)
-    n = len(table)
-    if res is None:
-        return np.full(n, k, np.int64), np.full(n, k, np.int64)
-    base = SLOPE_BASELINE * np.asarray(res, np.float64)
-    r0, b0 = table[:, 1], table[:, 2]
-    k_w = np.maximum(1, np.rint(base / (r0 * fine.r_alpha * np.cos(b0)))).astype(np.int64)
-    k_h = np.maximum(1, np.rint(base / (r0 * fine.r_beta))).astype(np.int64)
-    return k_w, k_h
 
 
 def sub_ray_hits(model, table: np.ndarray, names, lidar: LidarParams,
@@ -134,8 +95,9 @@ def sub_ray_hits(model, table: np.ndarray, names, lidar: LidarParams,
     fine_model.quantize = False
     n = len(table)
     res = fine_model.generate(fine_model.conditions(list(names), table[:, 1:]))
-    k_w, k_h = slope_strides(model, table, fine, k)
-    hits = hits_of_cloud(res.cloud, table[:, 2], fine, n, stride=k_w, stride_h=k_h)
+    # incidence from the slope across one whole cell (K finer cells): the drawn ranges are
+    # smooth at the cells' scale, not below it
+    hits = hits_of_cloud(res.cloud, table[:, 2], fine, n, stride=k)
     half = (k - 1) // 2
     w = np.floor_divide(hits.w.astype(np.int64) + half, k)
     h = np.floor_divide(hits.h.astype(np.int64) + half, k)
