@@ -44,7 +44,8 @@ __all__ = ["ENV", "SWITCH_CLOUDS", "angle_tables", "enabled", "expect", "loaded"
 # cloud; loading in a fresh process (numba's import, 0.35 s, and the cached kernels) 0.44 s
 # of CPU, what the numpy path spends over the kernels in ~9 000 clouds (rent, then buy).
 # 8 192 is 32 of the reader's CHUNK-cloud calls: `apcg generate` of a few thousand conditions
-# never loads numba, a large --conditions run loads it at its 32nd chunk. (Without the cache,
+# never loads numba; a larger request says so up front (expect, through Model.expect_clouds)
+# and loads it on its own thread beside its first chunks. (Without the cache,
 # the first process after this file changes compiles them, ~1.8 s once.)
 SWITCH_CLOUDS = 8_192
 
