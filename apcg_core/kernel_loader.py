@@ -41,7 +41,8 @@ class Loader:
     once, at the first call that should take the compiled path; ``what`` names the set in the
     message when numba is missing; ``switch``: the units of work (hits, clouds, ...) a process
     puts through the numpy path before it loads them. A set's module exposes the loader's
-    methods as its own functions (``enabled``, ``loaded``, ``use_for``, ``require``)."""
+    methods as its own functions (``enabled``, ``loaded``, ``use_for``, ``require``,
+    ``expect``)."""
 
     def __init__(self, compile, what: str, switch: int) -> None:
         self._compile = compile

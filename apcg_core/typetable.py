@@ -25,6 +25,14 @@ def _listing(names, limit: int = 12) -> str:
     return shown + (f" ... ({len(names)} in all)" if len(names) > limit else "")
 
 
+def each_once(keys, resolve) -> list:
+    """``[resolve(k) for k in keys]``, resolving each distinct key once (a 10^6-row request
+    names a few types). Keys are told apart by type and value, so 1.0 is not taken for 1."""
+    known: dict = {}
+    return [known[k] if (k := (type(n), n)) in known else known.setdefault(k, resolve(n))
+            for n in keys]
+
+
 @dataclass(frozen=True)
 class TypeTable:
     """The types of one dataset or model; code i is ``records[i]``. ``owner`` names the holder
@@ -88,10 +96,7 @@ class TypeTable:
         return code
 
     def codes(self, names) -> np.ndarray:
-        # each distinct name looked up once: a 10^6-row request names a few types
-        known: dict = {}
-        return np.array([known[k] if (k := (type(n), n)) in known
-                         else known.setdefault(k, self.code(n)) for n in names], dtype=np.int64)
+        return np.array(each_once(names, self.code), dtype=np.int64)
 
     def name(self, code) -> str:
         c = int(code)
@@ -175,4 +180,4 @@ class Conditions:
         return out
 
 
-__all__ = ["Conditions", "RECORD_KEYS", "TypeTable"]
+__all__ = ["Conditions", "RECORD_KEYS", "TypeTable", "each_once"]

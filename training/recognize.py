@@ -390,12 +390,12 @@ def scores(pred: np.ndarray, truth: np.ndarray, bands: list[str], types: list[st
     k = len(types)
     bands_a = np.array(bands)
     pred = np.atleast_2d(pred)
-    hit = pred == truth[None, :]
+    hits = pred == truth[None, :]  # (networks, n)
     conf = np.zeros((k, k), np.int64)
     np.add.at(conf, (np.broadcast_to(truth, pred.shape), pred), 1)
-    hit = hit.mean(0)  # per test cloud: the share of the networks that got it
+    hit = hits.mean(0)  # per test cloud: the share of the networks that got it
     return {"top1": round(float(hit.mean()), 6), "n": int(len(hit)),
-            "networks": [round(float(h.mean()), 6) for h in pred == truth[None, :]],
+            "networks": [round(float(h.mean()), 6) for h in hits],
             "bands": {b: {"n": int((bands_a == b).sum()),
                           "top1": round(float(hit[bands_a == b].mean()), 6)}
                       for b in sorted(set(bands), key=band_order)},
@@ -441,9 +441,8 @@ def run(sources=("exact",), types=DEFAULT_TYPES, train_per_type: int = TRAIN_PER
     """The benchmark (module docstring) for one or several sources against one exact
     reference (trained once): the report as a dict. Each source, and the reference, trains
     ``networks`` classifiers (:func:`network_seeds`), scored by their averaged hits.
-    ``shuffle_labels`` trains the sources'
-    classifiers on permuted labels and ``train_types`` on those types only (controls: both
-    must score chance or below)."""
+    ``shuffle_labels`` trains the sources' classifiers on permuted labels and ``train_types``
+    on those types only (controls: both must score chance or below)."""
     log = log or (lambda msg: None)
     sources = [sources] if isinstance(sources, str) else list(sources)
     types = check_types(types)
@@ -735,5 +734,5 @@ def _run_recognize(args) -> int:
 
 
 __all__ = ["DEFAULT_TYPES", "LOOK_ALIKE", "SOURCES", "Source", "conditions", "features",
-           "make_pointnet", "markdown", "network_seeds", "predict", "register_benchmark", "run", "scores",
-           "simulated", "train_classifier", "tstr", "write_report"]
+           "make_pointnet", "markdown", "network_seeds", "predict", "register_benchmark", "run",
+           "scores", "simulated", "train_classifier", "tstr", "write_report"]

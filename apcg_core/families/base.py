@@ -15,7 +15,7 @@ from ..cloud import PointCloud
 from ..condition import NOISE_DIM, Condition, ConditionSpace
 from ..errors import InputError, check_int
 from ..lidar import LidarParams, lidar_from_table
-from ..typetable import Conditions, TypeTable
+from ..typetable import Conditions, TypeTable, each_once
 from .registry import family_of, get_family, read_model_meta
 
 DEFAULT_MODEL_DIR = Path(__file__).parent.parent / "models" / "default"
@@ -127,10 +127,7 @@ class ModelTypes:
         """Conditions for type ``names`` (one per row; names or catalog indices) at ``pose``
         (N, 5) [r0 m, beta0, pitch, yaw, roll rad], in this model's type table."""
         names = [names] if isinstance(names, (str, int, np.integer)) else list(names)
-        known: dict = {}  # each distinct key resolved once
-        return Conditions.from_names(self.types, [
-            known[k] if (k := (type(n), n)) in known else known.setdefault(k, self.type_name(n))
-            for n in names], pose)
+        return Conditions.from_names(self.types, each_once(names, self.type_name), pose)
 
     def condition(self, type_key, range_m, elevation, pitch=0.0, yaw=0.0,
                   roll=0.0) -> Conditions:

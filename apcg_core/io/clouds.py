@@ -43,7 +43,6 @@ def _fmt(path) -> str:
     return ext
 
 
-
 def _copy_member(zf, member, spill: Path, spill_crc: int, block: int) -> None:
     """The bytes of ``spill`` appended to the open zip ``member`` (stored, after its .npy
     header). Where the kernel can copy between files (``os.copy_file_range``: Linux) they are
@@ -76,6 +75,7 @@ def _copy_member(zf, member, spill: Path, spill_crc: int, block: int) -> None:
             zf.fp.seek(start)  # what was copied is written over
         while data := src.read(block):
             member.write(data)
+
 
 def _replace(tmp: Path, path: Path, held: bool | None = None) -> None:
     publish(tmp, path, held)
