@@ -14,6 +14,7 @@ import numpy as np
 from .errors import InputError, check_finite, check_range
 from .frames import ATTITUDE
 from .lidar import DEG
+from .typetable import each_once
 
 # Column order of a condition table and of nu. The type column holds a code of the type table
 # that travels with the table (apcg_core.typetable.Conditions), never a bare catalog index.
@@ -299,18 +300,14 @@ def _read_conditions_fast(path, type_name):
     from .io.csv_table import NeedsCare, read_columns
 
     cols = (("type", "type_name"), *CSV_COLUMNS[1:])
-    known: dict = {}
     names: list = []
     parts = []
     try:
         for batch in read_columns(path, cols):
-            for key in batch["type"]:
-                if key not in known:
-                    try:
-                        known[key] = type_name(key)
-                    except InputError:
-                        return None
-            names += [known[k] for k in batch["type"]]
+            try:
+                names += each_once(batch["type"], type_name)
+            except InputError:
+                return None
             part = np.empty((len(batch["type"]), 5))
             for j, c in enumerate(CSV_COLUMNS[1:]):
                 part[:, j] = np.fromiter(map(float, batch[c]), np.float64, len(batch[c]))
