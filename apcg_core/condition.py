@@ -303,16 +303,13 @@ def _read_conditions_fast(path, type_name):
     names: list = []
     parts = []
     try:
-        for batch in read_columns(path, cols):
+        for batch in read_columns(path, cols, numbers=CSV_COLUMNS[1:]):
             try:
                 names += each_once(batch["type"], type_name)
             except InputError:
                 return None
-            part = np.empty((len(batch["type"]), 5))
-            for j, c in enumerate(CSV_COLUMNS[1:]):
-                part[:, j] = np.fromiter(map(float, batch[c]), np.float64, len(batch[c]))
-            parts.append(part)
-    except (NeedsCare, ValueError):
+            parts.append(np.stack([batch[c] for c in CSV_COLUMNS[1:]], axis=1))
+    except NeedsCare:
         return None
     if not parts:
         return None
