@@ -383,9 +383,7 @@ def _plain_block(text: bytes, n: int, at: list, names: list, unnamed: list, numb
     before = np.searchsorted(comma, starts)  # commas before each line
     regular = (not unnamed and len(ends)
                and (np.searchsorted(comma, ends) - before == n - 1).all()
-               and not any(_BLANK[np.frombuffer(text[i:j], np.uint8)].all()  # blank rows
-                           for i, j in zip(starts[_BLANK[a[starts]]].tolist(),
-                                           ends[_BLANK[a[starts]]].tolist())))
+               and not _any_blank(text, a, starts, ends))
     if not regular:
         return _csv_block(text, n, at, names, unnamed, numbers) if len(ends) else None
     out = {}
@@ -409,6 +407,14 @@ def _plain_block(text: bytes, n: int, at: list, names: list, unnamed: list, numb
     return out
 
 
+def _any_blank(text: bytes, a: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> bool:
+    """Whether a line holds only spaces, tabs and commas (looked at only where the first byte
+    is one of them)."""
+    maybe = _BLANK[a[starts]]
+    return any(_BLANK[np.frombuffer(text[i:j], np.uint8)].all()
+               for i, j in zip(starts[maybe].tolist(), ends[maybe].tolist(), strict=True))
+
+
 def _csv_block(text: bytes, n, at, names, unnamed, numbers):
     return _batch(list(csv.reader(io.StringIO(text.decode("ascii")), skipinitialspace=True)),
                   n, at, names, unnamed, numbers)
@@ -423,7 +429,8 @@ def _texts(text: bytes, a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> list:
     size = hi - lo
     width = int(size.max())
     if width > _WIDE:
-        cut = [text[i:j].decode("ascii").strip() for i, j in zip(lo.tolist(), hi.tolist())]
+        cut = [text[i:j].decode("ascii").strip() for i, j in zip(lo.tolist(), hi.tolist(),
+                                                                     strict=True)]
         if not all(cut):
             raise NeedsCare
         return cut
