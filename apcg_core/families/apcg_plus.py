@@ -314,7 +314,8 @@ class PlusModel(ModelTypes):
         def chunk(s):
             part = table[s:s + CHUNK]
             c = self.clouds_of(part, self.sheets(part))
-            c.sample = c.sample + s
+            if s:
+                c.sample += s  # the reader's own array
             return c
 
         starts = range(0, len(table), CHUNK)
@@ -327,9 +328,13 @@ class PlusModel(ModelTypes):
                 clouds = list(pool.map(chunk, starts))
         else:
             clouds = [chunk(s) for s in starts]
-        cloud = (PointCloud(*(np.concatenate([getattr(c, k) for c in clouds])
-                              for k in ("xyz", "range_m", "cell_w", "cell_h", "sample")))
-                 if clouds else PointCloud(np.zeros((0, 3)), [], [], [], np.zeros(0, np.int64)))
+        if len(clouds) == 1:  # a block of one chunk (how `apcg generate` asks): no copy
+            cloud = clouds[0]
+        else:
+            cloud = (PointCloud(*(np.concatenate([getattr(c, k) for c in clouds])
+                                  for k in ("xyz", "range_m", "cell_w", "cell_h", "sample")))
+                     if clouds else PointCloud(np.zeros((0, 3)), [], [], [],
+                                               np.zeros(0, np.int64)))
         return self.result(cloud, np.zeros((0, self.lidar.height, self.lidar.width),
                                            np.float32), table)
 
