@@ -23,6 +23,26 @@ def test_version_and_help():
     assert h.returncode == 0 and "condition" in h.stdout
 
 
+def test_a_command_loads_its_own_entry_point_alone():
+    """Each installed command's entry point registers the command it is named after, so `apcg
+    NAME` loads that one alone; anything else (no command, an option, an unknown name) loads
+    all of them, and argparse lists every command."""
+    from importlib.metadata import entry_points
+
+    from apcg_core.cli import build_parser
+    installed = sorted(ep.name for ep in entry_points(group="apcg.commands"))
+    assert len(installed) >= 15
+
+    def commands(parser):
+        return set(next(a for a in parser._actions if a.dest == "command").choices)
+    for name in installed:
+        assert commands(build_parser(command=name)) == {name}
+    for other in (None, "--help", "no-such-command"):
+        assert commands(build_parser(command=other)) == set(installed)
+    bad = run("no-such-command")
+    assert bad.returncode == 2 and "generate" in bad.stderr and "dataset" in bad.stderr
+
+
 def test_condition_json_codes_the_type_in_the_model_table():
     from apcg_core.families import load_model
     last = load_model(runtime="onnx").types.names[-1]  # the default model's last type
