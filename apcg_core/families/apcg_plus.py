@@ -40,9 +40,12 @@ from . import plus_kernels
 from .base import RUNTIMES, ModelTypes, onnx_session, onnx_weights
 
 FAMILY = "apcg-plus"
-CHUNK = 256  # conditions per network call: bounds memory (a sheet is 2 x S x S floats, the
-# activations ~0.1 MB a condition); 256 measured at least as fast as 1024 and 4096 on one
-# thread here (bench/generate_profile.py --chunks), and the sheets are the same bytes
+CHUNK = 256  # conditions read at a time (a block of `apcg generate`): bounds memory (a sheet
+# is 2 x S x S floats); 256 measured at least as fast as 1024 and 4096 on one thread here
+# (bench/generate_profile.py --chunks)
+NET_ROWS = 32  # conditions per network call: the activations (~32 KB a condition) stay in a
+# core's cache; 4-5 % less network time than 256 on one thread here, the same sheets byte for
+# byte at any count (tests/test_plus.py)
 
 
 # --- sheet geometry (shared by training and generation: one definition) -------------------------
@@ -219,8 +222,8 @@ class PlusModel(ModelTypes):
         """The network's sheets (N, 2, S, S) for condition rows in this model's types."""
         nu = self.space.encode(table).astype(np.float32)
         codes = table[:, 0].astype(np.int64)
-        out = [self._run(codes[s:s + CHUNK], np.ascontiguousarray(nu[s:s + CHUNK, 1:]))
-               for s in range(0, len(table), CHUNK)]
+        out = [self._run(codes[s:s + NET_ROWS], np.ascontiguousarray(nu[s:s + NET_ROWS, 1:]))
+               for s in range(0, len(table), NET_ROWS)]
         return np.concatenate(out) if out else np.zeros((0, 2, 1, 1), np.float32)
 
     def clouds_of(self, table: np.ndarray, sheets: np.ndarray,
