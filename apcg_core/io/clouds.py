@@ -9,6 +9,7 @@ binary, LAS / LAZ of any point format) are read too, with all their per-point at
 from __future__ import annotations
 
 import copy
+import io
 import json
 import zlib
 from pathlib import Path
@@ -75,6 +76,54 @@ def _copy_member(zf, member, spill: Path, spill_crc: int, block: int) -> None:
             zf.fp.seek(start)  # what was copied is written over
         while data := src.read(block):
             member.write(data)
+
+
+def _npy_header(dtype, shape) -> bytes:
+    """The version 1.0 .npy header np.save writes for a C-order array (128 bytes for any
+    shape of this module's arrays: the dict is padded to 64-byte alignment)."""
+    fmt = np.lib.format
+    out = io.BytesIO()
+    fmt.write_array_header_1_0(out, {"descr": fmt.dtype_to_descr(np.dtype(dtype)),
+                                     "fortran_order": False, "shape": shape})
+    return out.getvalue()
+
+
+class _DirectMember:
+    """A stored zip member whose bytes are written in place as they come, its .npy header
+    (which holds the final shape) written over a placeholder of the same length at the end:
+    the member np.savez writes, without a copy of its bytes. Its CRC is taken as the bytes
+    pass and combined with the header's (:func:`apcg_core.io.crc.crc32_combine`), as
+    :func:`_copy_member` does for a spilled one."""
+
+    HEADER = 128  # bytes of every .npy header this writer makes (_npy_header)
+
+    def __init__(self, zf, name: str) -> None:
+        self.zf = zf
+        self.member = zf.open(name, "w", force_zip64=True)  # its local header written now
+        self.member.write(b"\0" * self.HEADER)  # where the header goes
+        zf.fp.flush()
+        self.start = zf.fp.tell() - self.HEADER
+        self.crc = 0
+        self.size = 0
+
+    def write(self, data) -> None:
+        self.member._fileobj.write(data)
+        self.crc = zlib.crc32(data, self.crc)
+        self.size += data.nbytes if isinstance(data, memoryview) else len(data)
+
+    def close(self, header: bytes) -> None:
+        from .crc import crc32_combine
+        if len(header) != self.HEADER:
+            raise AssertionError(f"a .npy header of {len(header)} bytes, not {self.HEADER}")
+        fp, m = self.zf.fp, self.member
+        end = fp.tell()
+        fp.seek(self.start)
+        fp.write(header)
+        fp.seek(end)
+        m._crc = crc32_combine(zlib.crc32(header), self.crc, self.size)
+        m._file_size += self.size
+        m._compress_size += self.size
+        m.close()  # the local header rewritten with the CRC and sizes
 
 
 def _replace(tmp: Path, path: Path, held: bool | None = None) -> None:
@@ -177,6 +226,7 @@ class CloudWriter:
         self._las = None
         self._spill: dict = {}  # NPZ: field -> (open spill file, path, dtype, row shape)
         self._crc: dict = {}  # NPZ: field -> CRC-32 of its spilled bytes
+        self._zip = self._direct = None  # NPZ: the zip, its first member written in place
         if self.ext == ".npz":
             self._open_spill()
         if self.ext == ".ply":
@@ -193,7 +243,10 @@ class CloudWriter:
             for k, (f, _, dtype, _) in self._spill.items():
                 a = _sample_of(cloud) if k == "sample" else getattr(cloud, k)
                 data = np.ascontiguousarray(a, dtype=dtype).data
-                f.write(data)
+                if f is None:  # the first member: straight into the zip
+                    self._direct.write(data)
+                else:
+                    f.write(data)
                 # the member's CRC, taken while the bytes are at hand: the zip at the end
                 # then copies them in the kernel without reading them back
                 self._crc[k] = zlib.crc32(data, self._crc.get(k, 0))
@@ -231,6 +284,8 @@ class CloudWriter:
 
     def abort(self) -> None:
         """Drop what was written: nothing is left under either name."""
+        if self._zip is not None:
+            self._zip.fp.close()  # the zip is dropped whole: no central directory written
         for handle in (self._file, self._las, *(v[0] for v in self._spill.values())):
             try:
                 if handle is not None:
@@ -247,32 +302,46 @@ class CloudWriter:
     _COPY_BYTES = 1 << 24  # spill bytes copied into the zip per read
 
     def _open_spill(self) -> None:
+        """The first member (xyz, half the bytes) is written in place in the zip as blocks
+        come (:class:`_DirectMember`); the others spill to files of their own, copied in after
+        it at the end."""
+        import zipfile
+
         from ..cloud import PHOTON_FIELDS
         fields = dict(self._NPZ_FIELDS)
         fields.update({k: (PHOTON_FIELDS[k], ()) for k in self.photon_fields})
+        first = next(iter(fields))
+        self._zip = zipfile.ZipFile(self.tmp, mode="w", compression=zipfile.ZIP_STORED,
+                                    allowZip64=True)
+        self._direct = _DirectMember(self._zip, first + ".npy")
         for k, (dtype, row) in fields.items():
             spill = self.path.with_name(f"{self.path.name}.{k}.part")
-            self._spill[k] = (open(spill, "wb"), spill, np.dtype(dtype), row)  # noqa: SIM115
+            handle = None if k == first else open(spill, "wb")  # noqa: SIM115
+            self._spill[k] = (handle, spill, np.dtype(dtype), row)
 
     def _write_npz(self) -> None:
-        """The zip np.savez writes (stored members, zip64, a version 1.0 .npy header each),
-        its arrays copied from the spill files (:func:`_copy_member`)."""
-        import zipfile
+        """The zip np.savez writes (stored members, zip64, a version 1.0 .npy header each):
+        the first member closed with its header, the others' arrays copied from the spill
+        files (:func:`_copy_member`)."""
         fmt = np.lib.format
         names = [*self._NPZ_FIELDS, "meta", *self.photon_fields]
-        with zipfile.ZipFile(self.tmp, mode="w", compression=zipfile.ZIP_STORED,
-                             allowZip64=True) as zf:
-            for k in names:
-                with zf.open(k + ".npy", "w", force_zip64=True) as member:
-                    if k == "meta":
-                        fmt.write_array(member, np.array(json.dumps(self.meta)))
-                        continue
-                    f, spill, dtype, row = self._spill[k]
-                    f.close()
-                    fmt.write_array_header_1_0(member, {
-                        "descr": fmt.dtype_to_descr(dtype), "fortran_order": False,
-                        "shape": (int(self.n), *row)})
-                    _copy_member(zf, member, spill, self._crc.get(k, 0), self._COPY_BYTES)
+        zf = self._zip
+        for k in names:  # on a failure, abort() drops the zip (no central directory)
+            if k == "meta":
+                with zf.open("meta.npy", "w", force_zip64=True) as member:
+                    fmt.write_array(member, np.array(json.dumps(self.meta)))
+                continue
+            f, spill, dtype, row = self._spill[k]
+            header = _npy_header(dtype, (int(self.n), *row))
+            if f is None:
+                self._direct.close(header)
+                continue
+            f.close()
+            with zf.open(k + ".npy", "w", force_zip64=True) as member:
+                member.write(header)
+                _copy_member(zf, member, spill, self._crc.get(k, 0), self._COPY_BYTES)
+        zf.close()
+        self._zip = None
         self._drop_spill()
 
     def _drop_spill(self) -> None:
