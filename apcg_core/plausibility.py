@@ -92,6 +92,27 @@ def lidar_mismatch_warning(data_lidar: dict, data_name, model_lidar: dict,
 # Conditions a command checks against the window (the first ones, in order): enough for any
 # request a person types, and bounded for 10^6-cloud requests (issue 33).
 WINDOW_CHECK_ROWS = 1024
+WINDOW_CHECK_POINTS = 1 << 20  # (row, vertex) pairs transformed at once: ~25 MB
+
+
+def _angle_extremes(obs):
+    """(min, max) azimuth and (min, max) elevation of each row's points ``obs`` (N, V, 3), in
+    the observation frame: found on tan alpha = x / z and tan beta = y / hypot(x, z), which the
+    angles follow where z > 0 (a target in front), the arctangents taken of those four points
+    alone; arctangents of every point otherwise."""
+    import numpy as np
+
+    x, y, z = obs[..., 0], obs[..., 1], obs[..., 2]
+    h = np.hypot(x, z)
+    if not (z > 0).all():
+        alpha, beta = np.arctan2(x, z), np.arctan2(y, h)
+        return np.stack([alpha.min(1), alpha.max(1), beta.min(1), beta.max(1)], axis=1)
+    n = np.arange(len(obs))[:, None]
+    ta, tb = x / z, y / h
+    ia = np.stack([ta.argmin(1), ta.argmax(1)], axis=1)
+    ib = np.stack([tb.argmin(1), tb.argmax(1)], axis=1)
+    return np.concatenate([np.arctan2(x[n, ia], z[n, ia]), np.arctan2(y[n, ib], h[n, ib])],
+                          axis=1)
 
 
 def window_fit(lidar, vertices_of, names, table) -> tuple[int, int, int, int]:
@@ -113,10 +134,11 @@ def window_fit(lidar, vertices_of, names, table) -> tuple[int, int, int, int]:
     for name in dict.fromkeys(names):
         rows = np.flatnonzero(np.array(names) == name)
         v = np.asarray(vertices_of(name), np.float64)
-        obs = np.einsum("nij,vj->nvi", m[rows], v) + c[rows, None, :]
-        alpha = np.arctan2(obs[..., 0], obs[..., 2])
-        beta = np.arctan2(obs[..., 1], np.hypot(obs[..., 0], obs[..., 2]))
-        ext[rows] = np.stack([alpha.min(1), alpha.max(1), beta.min(1), beta.max(1)], axis=1)
+        step = max(1, WINDOW_CHECK_POINTS // max(len(v), 1))  # rows a pass: bounded memory
+        for at in range(0, len(rows), step):
+            part = rows[at:at + step]
+            ext[part] = _angle_extremes(np.matmul(v, m[part].transpose(0, 2, 1))
+                                        + c[part, None, :])
     w_lo, h_lo = lidar.cell_of_angles(ext[:, 0], ext[:, 2], table[:, 2])
     w_hi, h_hi = lidar.cell_of_angles(ext[:, 1], ext[:, 3], table[:, 2])
     cut = ~(lidar.inside(w_lo, h_lo) & lidar.inside(w_hi, h_hi))

@@ -58,3 +58,33 @@ def test_generated_empty_clouds_are_counted_and_said(tmp_path, capsys):
     out, err = capsys.readouterr()
     assert rc == 0 and json.loads(out)["empty_clouds"] == 3
     assert "3 of 3 clouds are empty" in err
+
+
+def test_the_window_check_finds_the_angles_of_every_vertex_in_bounded_passes(monkeypatch):
+    """window_fit's extremes (found on the tangents, the arctangents taken of four points a
+    row) are those of arctan2 over every vertex, to the last bits of a radian, also when the
+    rows go through in many small passes (a mesh of many vertices) and for a point behind."""
+    import numpy as np
+
+    from apcg_core import plausibility
+    from apcg_core.frames import body_to_observation_matrices, target_centres
+    rng = np.random.default_rng(4)
+    v = rng.normal(size=(500, 3)) * [20.0, 5.0, 18.0]
+    table = np.column_stack([np.zeros(300), rng.uniform(150, 18000, 300),
+                             rng.uniform(0.05, 0.07, 300), rng.uniform(-0.1, 0.1, (300, 3))])
+    m = body_to_observation_matrices(table[:, 3], table[:, 4], table[:, 5])
+    obs = np.einsum("nij,vj->nvi", m, v) + target_centres(table[:, 1], table[:, 2])[:, None]
+    alpha = np.arctan2(obs[..., 0], obs[..., 2])
+    beta = np.arctan2(obs[..., 1], np.hypot(obs[..., 0], obs[..., 2]))
+    want = np.stack([alpha.min(1), alpha.max(1), beta.min(1), beta.max(1)], axis=1)
+    got = plausibility._angle_extremes(obs)
+    assert np.abs(got - want).max() < 1e-15
+    behind = obs.copy()
+    behind[0, 0] = [1.0, 0.0, -1.0]  # behind the sensor, to the right: 3 pi / 4
+    a0 = np.arctan2(behind[0, :, 0], behind[0, :, 2])
+    assert plausibility._angle_extremes(behind)[0, 1] == a0.max() > 2.0  # past pi / 2
+    from apcg_core.lidar import LidarParams
+    lidar = LidarParams()
+    whole = plausibility.window_fit(lidar, lambda n: v, ["x"] * 300, table)
+    monkeypatch.setattr(plausibility, "WINDOW_CHECK_POINTS", 1700)  # 3 rows a pass
+    assert plausibility.window_fit(lidar, lambda n: v, ["x"] * 300, table) == whole
