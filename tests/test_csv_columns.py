@@ -5,6 +5,8 @@ module, at any block size (a block boundary inside a line, a CRLF, a header)."""
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from apcg_core.errors import InputError
 from apcg_core.io import csv_table
@@ -126,3 +128,41 @@ def test_the_plain_way_is_the_one_a_plain_file_takes(tmp_path):
             with open(f, "rb") as handle:
                 assert csv_table._printable_unquoted(handle, block) == plain, (text, block)
                 assert handle.tell() == 0
+
+
+_PLAIN_CELLS = ["A320neo", "Mavic 3", " G650ER ", "", " ", "\t", "4500", "-20", " 3.4 ",
+                "1e3", "1_0", "nan", "x", "1e400", "+.5", "0x10", "1 2", "7.", "-0"]
+_CELLS = st.sampled_from(_PLAIN_CELLS + ['"A320neo"', '"1,5"', "é", '"a""b"'])
+_ENDS = st.sampled_from(["\n", "\r\n", "\r"])
+
+
+@settings(max_examples=300, deadline=None)
+@given(header=st.sampled_from([HEAD.rstrip("\n"), "range_m,TYPE_NAME,yaw_deg,x",
+                               "type,,range_m,yaw_deg", "type,range_m,yaw_deg,,"]),
+       rows=st.one_of(st.lists(st.lists(_CELLS, min_size=0, max_size=7), max_size=12),
+                      st.lists(st.lists(st.sampled_from(_PLAIN_CELLS), min_size=3, max_size=5),
+                               max_size=12)),
+       ends=st.lists(_ENDS, min_size=1, max_size=3), bom=st.booleans(),
+       last_end=st.booleans())
+def test_any_file_reads_as_read_csv_reads_it_or_goes_to_it(tmp_path_factory, header, rows,
+                                                           ends, bom, last_end):
+    """Generated files (cells of every kind, short and long rows, blank ones, quotes, CR, LF and
+    CRLF, a BOM): read_columns gives read_csv's rows and values or hands the file over."""
+    lines = [header] + [",".join(r) for r in rows]
+    text = "".join(line + ends[i % len(ends)] for i, line in enumerate(lines))
+    if not last_end:
+        text = text.rstrip("\r\n")
+    f = tmp_path_factory.mktemp("fuzz") / "c.csv"
+    f.write_bytes((("\ufeff" if bom else "") + text).encode())
+    agree(f)
+
+
+def test_the_generated_files_take_both_ways(tmp_path):
+    """The fuzz above reaches the plain way: a file of plain cells and LF or CRLF ends is plain
+    (read there, or handed over where a cell needs care)."""
+    f = tmp_path / "c.csv"
+    f.write_bytes(b"range_m,TYPE_NAME,yaw_deg,x\r\n 4500,A320neo, -20 ,1_0\r\n"
+                   b"1e3,Mavic 3,+.5,\r\n")
+    with open(f, "rb") as handle:
+        assert csv_table._printable_unquoted(handle, 4)
+    assert agree(f)
