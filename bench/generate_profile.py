@@ -5,8 +5,9 @@
 
 One process, one thread, in the order the command runs them (start-up is timed as whole
 processes): start-up (`apcg generate` of one condition, a fresh process, minus nothing: what
-every run pays once), reading the CSV (the whole file), the network (``model.sheets``, the ONNX
-session on one thread, at each chunk size of ``--chunks``), reading the clouds off its output
+every run pays once), reading the CSV (the whole file), the window check, the network
+(``model.sheets``, the ONNX session, at each network batch size of ``--chunks``; one thread
+with ``APCG_THREADS=2``, onnxruntime's own pool with 1), reading the clouds off its output
 (``model.clouds_of``; its compiled kernels loaded first unless ``APCG_KERNELS=numpy``, as
 a long run has them) and writing them (``CloudWriter``, NPZ and PLY, into a temporary
 directory). CPU seconds of this process (``time.process_time``) are the figure: the machine is
@@ -63,6 +64,7 @@ def start_up(model, repeats: int = 3) -> dict:
 def main() -> int:
     from bench_output import emit
 
+    from apcg_core.catalog.catalog import default_catalog
     from apcg_core.families import conditions_from_csv, load_model
     from apcg_core.io.clouds import CloudWriter
 
@@ -79,13 +81,19 @@ def main() -> int:
     c = Clock()
     conditions = conditions_from_csv(args.conditions, model)
     rows["csv"] = c.read(len(conditions)) | {"rows": len(conditions)}
+    from apcg_core.generation_cli import _warn_window
+    from apcg_core.plausibility import WINDOW_CHECK_ROWS
+    default_catalog().mesh(conditions.names[0])  # the catalog's modules and first mesh loaded
+    c = Clock()
+    _warn_window(model, conditions)  # what every request pays once: its first rows' window
+    rows["window_check"] = c.read(1) | {"rows": min(len(conditions), WINDOW_CHECK_ROWS)}
     table = model.repeated_conditions(conditions[:args.n], 1)
     n = len(table)
     model.sheets(table[:64])  # the session opened, its arena warmed
     sheets = None
     for chunk in (int(x) for x in args.chunks.split(",")):
         c = Clock()
-        parts = [model.sheets(table[s:s + chunk]) for s in range(0, n, chunk)]
+        parts = [model.sheets(table[s:s + chunk], rows=chunk) for s in range(0, n, chunk)]
         rows[f"network_chunk_{chunk}"] = c.read(n)
         sheets = np.concatenate(parts)
     from apcg_core.families import plus_kernels

@@ -292,3 +292,27 @@ def test_device_reader_equals_the_package_reader(monkeypatch, kind):
         np.testing.assert_array_equal(h, want.cell_h)
         np.testing.assert_allclose(r, want.range_m, rtol=0, atol=1e-9)
         np.testing.assert_allclose(xyz, want.xyz, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_the_sheets_are_the_same_bytes_at_any_network_batch(threads, monkeypatch):
+    """The network runs NET_ROWS conditions a call within a block: the shipped default's sheets
+    are byte for byte those of one call per condition, of odd and even batches or of the whole
+    block in one call (onnxruntime on its own threads, or one thread a lane), so the batch is a
+    speed setting and a condition's cloud is the same alone or among others."""
+    monkeypatch.setenv("APCG_THREADS", threads)
+    from apcg_core.families.apcg_plus import NET_ROWS
+    model = load_model()
+    rng = np.random.default_rng(8)
+    names = [model.types.records[i]["name"] for i in rng.integers(0, 83, 70)]
+    pose = np.column_stack([rng.uniform(3000, 18000, 70), np.radians(rng.uniform(3, 4, 70)),
+                            np.radians(rng.uniform(1, 5, 70)), np.radians(rng.uniform(-60, 60, 70)),
+                            np.radians(rng.uniform(-5, 5, 70))])
+    table = model.repeated_conditions(model.conditions(names, pose), 1)
+    want = model.sheets(table)
+    assert want.shape == (70, 2, 32, 32) and NET_ROWS < 70
+    for rows in (1, 3, 7, 31, 64, 69, 70):
+        assert model.sheets(table, rows=rows).tobytes() == want.tobytes(), rows
+    one = model.generate(model.conditions(names[5:6], pose[5:6])).cloud
+    among = model.generate(model.conditions(names, pose)).cloud
+    assert one.xyz.tobytes() == among.xyz[among.sample == 5].tobytes()

@@ -44,8 +44,9 @@ CHUNK = 256  # conditions read at a time (a block of `apcg generate`): bounds me
 # is 2 x S x S floats); 256 measured at least as fast as 1024 and 4096 on one thread here
 # (bench/generate_profile.py --chunks)
 NET_ROWS = 32  # conditions per network call: the activations (~32 KB a condition) stay in a
-# core's cache; 4-5 % less network time than 256 on one thread here, the same sheets byte for
-# byte at any count (tests/test_plus.py)
+# core's cache; the same network time as 256 a call within the runs' spread here
+# (bench/generate_profile.py --chunks 32,256), 30 MiB less peak memory in a 2-lane generate,
+# and the same sheets byte for byte at any count (tests/test_plus.py)
 
 
 # --- sheet geometry (shared by training and generation: one definition) -------------------------
@@ -191,6 +192,17 @@ class PlusModel(ModelTypes):
         with torch.no_grad():
             return self._rt.net(torch.from_numpy(codes), torch.from_numpy(pose)).numpy()
 
+    def _even_run(self, codes: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """The network on an even number of rows (an odd batch gets a copy of its last row,
+        whose sheet is dropped): onnxruntime's matrix products take a lone last row another
+        way, so an odd batch's sheets differ in the last bits from the same conditions' in an
+        even one; even, a condition's sheet is the same bytes in any batch (one condition
+        alone, a block, a CSV of 10^6), so its cloud is too (tests/test_plus.py)."""
+        n = len(codes)
+        if n % 2:
+            codes, pose = np.append(codes, codes[-1:]), np.concatenate([pose, pose[-1:]])
+        return self._run(codes, np.ascontiguousarray(pose))[:n]
+
     def _open(self, runtime: str) -> _Runtime:
         if runtime == "onnx":
             try:
@@ -218,12 +230,13 @@ class PlusModel(ModelTypes):
         net.load_state_dict({k: torch.from_numpy(state[k]) for k in own})
         return net
 
-    def sheets(self, table: np.ndarray) -> np.ndarray:
-        """The network's sheets (N, 2, S, S) for condition rows in this model's types."""
+    def sheets(self, table: np.ndarray, rows: int = NET_ROWS) -> np.ndarray:
+        """The network's sheets (N, 2, S, S) for condition rows in this model's types,
+        ``rows`` conditions a network call (the same sheets at any count)."""
         nu = self.space.encode(table).astype(np.float32)
         codes = table[:, 0].astype(np.int64)
-        out = [self._run(codes[s:s + NET_ROWS], np.ascontiguousarray(nu[s:s + NET_ROWS, 1:]))
-               for s in range(0, len(table), NET_ROWS)]
+        out = [self._even_run(codes[s:s + rows], nu[s:s + rows, 1:])
+               for s in range(0, len(table), rows)]
         return np.concatenate(out) if out else np.zeros((0, 2, 1, 1), np.float32)
 
     def clouds_of(self, table: np.ndarray, sheets: np.ndarray,
