@@ -147,3 +147,27 @@ def test_crc32_combine_is_the_crc_of_the_concatenation(la, lb):
     assert crc32_combine(zlib.crc32(a), zlib.crc32(b), lb) == zlib.crc32(a + b)
     with pytest.raises(ValueError, match="len_b"):
         crc32_combine(0, 0, -1)
+
+
+def test_npz_writer_spills_every_member_where_zipfile_is_another(tmp_path, monkeypatch):
+    """Where this Python's zipfile keeps a member's size and CRC elsewhere, the first member is
+    spilled and copied like the others: the same arrays either way."""
+    from apcg_core.cloud import PointCloud
+    from apcg_core.io import clouds
+    rng = np.random.default_rng(2)
+    parts = [PointCloud(rng.normal(size=(n, 3)), rng.uniform(1, 9, n), rng.integers(0, 9, n),
+                        rng.integers(0, 9, n), np.full(n, k)) for k, n in enumerate((5, 0, 7))]
+    assert clouds._DirectMember.supported()  # this Python: xyz written in place
+    got = {}
+    for inplace in (True, False):
+        monkeypatch.setattr(clouds._DirectMember, "supported", staticmethod(lambda v=inplace: v))
+        with clouds.CloudWriter(tmp_path / f"{inplace}.npz", {"n": 3}) as w:
+            for p in parts:
+                w.write(p)
+            spilled = sorted(x.name for x in tmp_path.iterdir() if x.name.startswith(str(inplace)))
+        assert (f"{inplace}.npz.xyz.part" in spilled) == (not inplace)
+        with np.load(tmp_path / f"{inplace}.npz") as z:
+            got[inplace] = {k: z[k] for k in ("xyz", "range_m", "cell_w", "cell_h", "sample")}
+    for k, a in got[True].items():
+        assert a.tobytes() == got[False][k].tobytes(), k
+    assert len(got[True]["xyz"]) == 12

@@ -9,6 +9,7 @@ binary, LAS / LAZ of any point format) are read too, with all their per-point at
 from __future__ import annotations
 
 import copy
+import functools
 import io
 import json
 import zlib
@@ -96,6 +97,16 @@ class _DirectMember:
     :func:`_copy_member` does for a spilled one."""
 
     HEADER = 128  # bytes of every .npy header this writer makes (_npy_header)
+    _PARTS = ("_fileobj", "_crc", "_file_size", "_compress_size")  # zipfile's, 3.11-3.13
+
+    @staticmethod
+    @functools.lru_cache(maxsize=1)
+    def supported() -> bool:
+        """Whether this Python's zipfile keeps a member's size and CRC where this class sets
+        them (else every member is spilled and copied, as before)."""
+        import zipfile
+        with zipfile.ZipFile(io.BytesIO(), "w") as zf, zf.open("probe", "w") as member:
+            return all(hasattr(member, k) for k in _DirectMember._PARTS)
 
     def __init__(self, zf, name: str) -> None:
         self.zf = zf
@@ -310,10 +321,11 @@ class CloudWriter:
         from ..cloud import PHOTON_FIELDS
         fields = dict(self._NPZ_FIELDS)
         fields.update({k: (PHOTON_FIELDS[k], ()) for k in self.photon_fields})
-        first = next(iter(fields))
-        self._zip = zipfile.ZipFile(self.tmp, mode="w", compression=zipfile.ZIP_STORED,
-                                    allowZip64=True)
-        self._direct = _DirectMember(self._zip, first + ".npy")
+        first = next(iter(fields)) if _DirectMember.supported() else None
+        if first is not None:
+            self._zip = zipfile.ZipFile(self.tmp, mode="w", compression=zipfile.ZIP_STORED,
+                                        allowZip64=True)
+            self._direct = _DirectMember(self._zip, first + ".npy")
         for k, (dtype, row) in fields.items():
             spill = self.path.with_name(f"{self.path.name}.{k}.part")
             handle = None if k == first else open(spill, "wb")  # noqa: SIM115
@@ -325,6 +337,10 @@ class CloudWriter:
         files (:func:`_copy_member`)."""
         fmt = np.lib.format
         names = [*self._NPZ_FIELDS, "meta", *self.photon_fields]
+        import zipfile
+        if self._zip is None:  # every member spilled (_DirectMember.supported() is False)
+            self._zip = zipfile.ZipFile(self.tmp, mode="w", compression=zipfile.ZIP_STORED,
+                                        allowZip64=True)
         zf = self._zip
         for k in names:  # on a failure, abort() drops the zip (no central directory)
             if k == "meta":
