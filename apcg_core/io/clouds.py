@@ -79,6 +79,34 @@ def _copy_member(zf, member, spill: Path, spill_crc: int, block: int) -> None:
             member.write(data)
 
 
+def _append_range(dst, src_fd: int, offset: int, count: int, block: int = 1 << 24) -> None:
+    """``count`` bytes of the open file ``src_fd`` from ``offset`` appended at the current
+    position of the open binary file ``dst``: copied by the kernel where it can
+    (``os.copy_file_range``), else (or after a refusal part way, which is written over) read
+    and written block by block."""
+    import os
+    dst.flush()
+    start, done = dst.tell(), 0
+    if count and hasattr(os, "copy_file_range"):
+        try:
+            while done < count and (k := os.copy_file_range(
+                    src_fd, dst.fileno(), count - done, offset + done, start + done)):
+                done += k
+        except OSError:  # a file system that cannot
+            done = 0
+    if done == count:
+        dst.seek(start + count)
+        return
+    dst.seek(start)
+    done = 0
+    while done < count:
+        data = os.pread(src_fd, min(block, count - done), offset + done)
+        if not data:
+            raise OSError(f"the file ended {count - done} bytes early")
+        dst.write(data)
+        done += len(data)
+
+
 def _npy_header(dtype, shape) -> bytes:
     """The version 1.0 .npy header np.save writes for a C-order array (128 bytes for any
     shape of this module's arrays: the dict is padded to 64-byte alignment)."""
@@ -121,6 +149,13 @@ class _DirectMember:
         self.member._fileobj.write(data)
         self.crc = zlib.crc32(data, self.crc)
         self.size += data.nbytes if isinstance(data, memoryview) else len(data)
+
+    def append_range(self, src_fd: int, offset: int, count: int, crc: int) -> None:
+        """``count`` bytes of ``src_fd`` from ``offset`` (their CRC ``crc``) appended."""
+        from .crc import crc32_combine
+        _append_range(self.zf.fp, src_fd, offset, count)
+        self.crc = crc32_combine(self.crc, crc, count)
+        self.size += count
 
     def close(self, header: bytes) -> None:
         from .crc import crc32_combine
@@ -274,6 +309,29 @@ class CloudWriter:
             las = _fill_las(laspy.LasData(copy.deepcopy(self._template)), cloud)
             self._las.write_points(las.points)
         self.n += len(cloud)
+
+    def write_ranges(self, src_fd: int, ranges: dict, n: int) -> None:
+        """Append ``n`` points whose arrays lie as raw bytes in the open file ``src_fd``:
+        ``ranges`` maps every field this writer stores to (offset, bytes, CRC-32 of those
+        bytes), in the field's stored dtype (a part file's members, checked by the caller).
+        NPZ only: the bytes go into the spill files and the zip's first member by the kernel,
+        never through Python; the same file as :meth:`write` of those arrays makes."""
+        from .crc import crc32_combine
+        if self.ext != ".npz":
+            raise ValueError("write_ranges writes NPZ files; use write() for other formats")
+        if set(ranges) != set(self._spill):
+            raise ValueError(f"write_ranges needs the fields {sorted(self._spill)}, got "
+                             f"{sorted(ranges)}")
+        for k, (f, _, dtype, row) in self._spill.items():
+            offset, count, crc = ranges[k]
+            if count != n * dtype.itemsize * int(np.prod(row, dtype=np.int64)):
+                raise ValueError(f"{k}: {count} bytes are not {n} points of {dtype}{row}")
+            if f is None:
+                self._direct.append_range(src_fd, offset, count, crc)
+            else:
+                _append_range(f, src_fd, offset, count)
+                self._crc[k] = crc32_combine(self._crc.get(k, 0), crc, count)
+        self.n += n
 
     def close(self) -> Path:
         if self.ext == ".npz":

@@ -4,11 +4,15 @@ A streamed NPZ (``apcg_core.io.clouds.CloudWriter``) knows the CRC of each array
 are written, long before it knows the .npy header that goes in front of them in the zip member
 (the header holds the final shape). CRC-32 is linear over GF(2): appending n zero bytes to a
 message multiplies its CRC register by a fixed 32 x 32 bit matrix, so crc(A + B) is crc(A)
-advanced over len(B) zero bytes, xor crc(B); the matrix for len(B) bytes is built by repeated
-squaring (about 2 log2(len(B)) products of 32 x 32 bit matrices: microseconds).
+advanced over len(B) zero bytes, xor crc(B); the matrix for len(B) bytes is the product of
+those of the powers of two in len(B), each made by squaring once per process and kept (a
+combine then costs one matrix-vector product per set bit of len(B): ~30 us in Python; squaring
+anew on every call took 2.6 ms, 2.5 s of a 200,000-cloud job's final copy).
 """
 
 from __future__ import annotations
+
+import functools
 
 POLY = 0xEDB88320  # CRC-32 (IEEE 802.3, zlib), bit-reflected
 
@@ -32,19 +36,24 @@ def crc32_combine(crc_a: int, crc_b: int, len_b: int) -> int:
     """zlib.crc32(a + b) from crc_a = zlib.crc32(a), crc_b = zlib.crc32(b) and len(b)."""
     if len_b < 0:
         raise ValueError(f"len_b must be >= 0, got {len_b}")
-    if len_b == 0:
-        return crc_a
-    # the operator of one zero bit: shift right, folding the polynomial in on a carry
-    one_bit = [POLY] + [1 << (i - 1) for i in range(1, 32)]
-    op = _square(_square(_square(one_bit)))  # one zero byte (8 bits)
-    while True:
+    k = 0
+    while len_b:
         if len_b & 1:
-            crc_a = _times(op, crc_a)
+            crc_a = _times(_zero_bytes(k), crc_a)
         len_b >>= 1
-        if not len_b:
-            break
-        op = _square(op)  # twice as many zero bytes
+        k += 1
     return crc_a ^ crc_b
+
+
+@functools.cache
+def _zero_bytes(k: int) -> tuple:
+    """The operator of 2^k zero bytes, each squared once per process (a combine is then at
+    most 64 matrix-vector products: tens of microseconds, not milliseconds)."""
+    if k == 0:
+        # the operator of one zero bit: shift right, folding the polynomial in on a carry
+        one_bit = [POLY] + [1 << (i - 1) for i in range(1, 32)]
+        return tuple(_square(_square(_square(one_bit))))  # one zero byte (8 bits)
+    return tuple(_square(list(_zero_bytes(k - 1))))  # twice as many zero bytes
 
 
 __all__ = ["crc32_combine"]
