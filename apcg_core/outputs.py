@@ -231,6 +231,14 @@ class Guard:
         self.written.add(r)
         return self.defers(r)
 
+    def scratch(self, path) -> None:
+        """Before a temporary file is written at ``path`` (renamed or removed by the command):
+        an input of the command is refused; anything else there is written over."""
+        if self.is_input(real(path)):
+            raise InputError(f"{path} is an input of this command, and this command writes a "
+                             "temporary file of that name beside its output; it is never "
+                             "replaced: choose another output name")
+
     def allow_update(self, path) -> None:
         """A file the command changes in place by design (``choose-tau --apply``: model.json)."""
         self.allowed.add(real(path))

@@ -247,6 +247,38 @@ def test_an_input_is_never_replaced_even_with_force(tmp_path):
     assert (model / "model.json").read_bytes() == MINE
 
 
+@pytest.mark.parametrize("output, scratch", [
+    ("g.npz", "g.npz.part"), ("g.npz", "g.npz.range_m.part"), ("g.npz", "g.npz.xyz.part"),
+    ("g.ply", "g.ply.part"), ("g.las", "g.las.part")])
+def test_an_input_under_a_temporary_name_of_the_output_is_never_written_over(tmp_path, capsys,
+                                                                             output, scratch):
+    """Every temporary name a command writes (atomic_path's NAME.part, the NPZ writer's zip and
+    spill files) goes through the guard: an input of the command under that name is refused
+    before any work, with --force too, and left as it was; nothing else is left behind."""
+    conditions = tmp_path / scratch
+    conditions.write_bytes(b"type,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg\n"
+                           b"A320neo,4500,3.4,2.3,13.2,0.13\n")
+    kept = conditions.read_bytes()
+    rc = main(["generate", "--conditions", str(conditions), "--force", "-o",
+               str(tmp_path / output)])
+    assert rc == 2 and "is an input of this command" in capsys.readouterr().err
+    assert conditions.read_bytes() == kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == [scratch]
+
+
+def test_atomic_writes_refuse_an_input_under_their_temporary_name(tmp_path):
+    target = tmp_path / "r.json"
+    held = tmp_path / "r.json.part"
+    held.write_bytes(MINE)
+    ns = argparse.Namespace(command="x", given=str(held), force=True, _outputs=())
+    with pytest.raises(InputError, match="is an input"), guarding(ns):
+        write_atomic(target, b"{}")
+    assert held.read_bytes() == MINE and not target.exists()
+    with guarding(argparse.Namespace(command="x", force=False, _outputs=())):
+        write_atomic(target, b"{}")  # a leftover temporary file, no input: written over
+    assert target.read_bytes() == b"{}" and not held.exists()
+
+
 def test_a_commands_outputs_appear_together_when_it_ends_and_none_when_it_fails(tmp_path):
     args = _args(tmp_path)
     with guarding(args):

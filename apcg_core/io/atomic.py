@@ -25,6 +25,17 @@ def claim(path) -> bool:
     return guard.claim(path) if guard is not None else False
 
 
+def scratch(path) -> Path:
+    """``path``, a temporary name the command writes and then renames or removes (``NAME.part``,
+    a spill file beside an output), once the running command's guard has seen it: an input
+    of the command is refused (InputError), whatever the name; a leftover one of a killed run
+    is written over. Every temporary name goes through here (atomic_path, CloudWriter)."""
+    guard = active()
+    if guard is not None:
+        guard.scratch(path)
+    return Path(path)
+
+
 def publish(tmp, path, held: bool | None = None) -> None:
     """``tmp`` (complete) becomes ``path``: renamed now, or, for a command's own result, moved
     beside ``path`` and renamed when the command ends (``apcg_core.outputs.Guard.commit``)."""
@@ -36,7 +47,7 @@ def publish(tmp, path, held: bool | None = None) -> None:
     if held and guard is not None:
         waiting = path.with_name(path.name + ".part")
         if Path(tmp) != waiting:
-            os.replace(tmp, waiting)
+            os.replace(tmp, scratch(waiting))
         guard.hold(waiting, path)
     else:
         os.replace(tmp, path)
@@ -52,7 +63,7 @@ def atomic_path(path, suffix: str = ".part"):
     path = Path(path)
     held = claim(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + suffix)
+    tmp = scratch(path.with_name(path.name + suffix))
     try:
         yield tmp
     except BaseException as exc:

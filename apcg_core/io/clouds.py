@@ -19,7 +19,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import InputError
-from .atomic import atomic_path, claim, name_the_file, publish
+from .atomic import atomic_path, claim, name_the_file, publish, scratch
 
 FORMATS = (".ply", ".npz", ".las", ".laz")
 _OWN = ("range_m", "cell_w", "cell_h", "sample")
@@ -266,7 +266,7 @@ class CloudWriter:
         self.photon_fields = tuple(photon_fields)
         self._held_output = claim(self.path)  # the guard first: a refusal costs no work
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = self.path.with_name(self.path.name + ".part")
+        self.tmp = scratch(self.path.with_name(self.path.name + ".part"))
         self.n = 0
         self._file = None
         self._las = None
@@ -380,14 +380,18 @@ class CloudWriter:
         fields = dict(self._NPZ_FIELDS)
         fields.update({k: (PHOTON_FIELDS[k], ()) for k in self.photon_fields})
         first = next(iter(fields)) if _DirectMember.supported() else None
-        if first is not None:
-            self._zip = zipfile.ZipFile(self.tmp, mode="w", compression=zipfile.ZIP_STORED,
-                                        allowZip64=True)
-            self._direct = _DirectMember(self._zip, first + ".npy")
-        for k, (dtype, row) in fields.items():
-            spill = self.path.with_name(f"{self.path.name}.{k}.part")
-            handle = None if k == first else open(spill, "wb")  # noqa: SIM115
-            self._spill[k] = (handle, spill, np.dtype(dtype), row)
+        names = {k: scratch(self.path.with_name(f"{self.path.name}.{k}.part")) for k in fields}
+        try:  # every name seen by the guard before any file is made; none left on a failure
+            if first is not None:
+                self._zip = zipfile.ZipFile(self.tmp, mode="w",
+                                            compression=zipfile.ZIP_STORED, allowZip64=True)
+                self._direct = _DirectMember(self._zip, first + ".npy")
+            for k, (dtype, row) in fields.items():
+                handle = None if k == first else open(names[k], "wb")  # noqa: SIM115
+                self._spill[k] = (handle, names[k], np.dtype(dtype), row)
+        except BaseException:
+            self.abort()
+            raise
 
     def _write_npz(self) -> None:
         """The zip np.savez writes (stored members, zip64, a version 1.0 .npy header each):
