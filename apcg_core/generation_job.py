@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -184,11 +185,8 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
         done = {i for i in range(n_parts) if (parts / _part_name(i)).exists()}
         before = 0
         for i in sorted(done):
-            try:
-                with np.load(parts / _part_name(i)) as z:
-                    before += int(z["clouds"])
-            except _UNREADABLE as exc:
-                raise _damaged(parts / _part_name(i), exc) from None
+            with _reading(parts / _part_name(i)), np.load(parts / _part_name(i)) as z:
+                before += int(z["clouds"])
         progress = progress_from(before)
         todo = ((k, item) for k, item in enumerate(subs) if k // per_part not in done)
 
@@ -268,23 +266,19 @@ def _write_output(output, meta, photon_fields, parts: Path, n_parts: int) -> tup
     from .io.clouds import CloudWriter
     points = empty = 0
     with CloudWriter(output, meta, photon_fields=photon_fields) as out:
-        fields = tuple(out._spill) if out.ext == ".npz" else None
         for i in range(n_parts):
             path = parts / _part_name(i)
-            if fields is not None:
-                with open(path, "rb") as src:
-                    ranges, n, part_empty = _part_ranges(path, src, fields)
+            if out.ext == ".npz":
+                with _reading(path), open(path, "rb") as src:
+                    ranges, n, part_empty = _part_ranges(src, out.fields)
                     out.write_ranges(src.fileno(), ranges, n)
                 points += n
                 empty += part_empty
                 continue
-            try:
-                with np.load(path) as z:
-                    cloud = PointCloud(*(z[k] for k in _FIELDS),
-                                       **{k: z[k] for k in photon_fields if k in PHOTON_FIELDS})
-                    empty += int(z["empty"])
-            except _UNREADABLE as exc:
-                raise _damaged(path, exc) from None
+            with _reading(path), np.load(path) as z:
+                cloud = PointCloud(*(z[k] for k in _FIELDS),
+                                   **{k: z[k] for k in photon_fields if k in PHOTON_FIELDS})
+                empty += int(z["empty"])
             out.write(cloud)
             points += len(cloud)
     return points, empty
@@ -294,69 +288,68 @@ def _write_output(output, meta, photon_fields, parts: Path, n_parts: int) -> tup
 _UNREADABLE = (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile)
 
 
-def _damaged(path: Path, why) -> InputError:
-    if isinstance(why, zipfile.BadZipFile | zipfile.LargeZipFile):
-        why = f"not a readable zip: {why}"
-    return InputError(f"{path} is damaged ({why}); delete it and run the same command again: "
-                      "that part is computed again, the others are kept")
+@contextmanager
+def _reading(path: Path):
+    """Around every read of a part file: what a damaged one raises becomes one InputError
+    naming it, with what to do."""
+    try:
+        yield
+    except _UNREADABLE as why:
+        if isinstance(why, zipfile.BadZipFile):
+            why = f"not a readable zip: {why}"
+        raise InputError(f"{path} is damaged ({why}); delete it and run the same command "
+                         "again: that part is computed again, the others are kept") from None
 
 
-def _part_ranges(path: Path, src, fields) -> tuple[dict, int, int]:
+def _part_ranges(src, fields: dict) -> tuple[dict, int, int]:
     """(field -> (offset, bytes, CRC-32 of the array's bytes), points, empty clouds) of the
-    part file ``path`` (open as ``src``), every member read once to check its CRC against the
-    zip's; a part that is not what :func:`_write_part` writes raises :func:`_damaged`."""
+    open part file ``src``, for the output's ``fields`` (name -> (dtype, row shape):
+    ``CloudWriter.fields``), every member read once to check its CRC against the zip's. A part
+    that is not what :func:`_write_part` writes raises ValueError (:func:`_reading` names it)."""
     import zlib
 
-    from .cloud import PHOTON_FIELDS as KINDS
     from .io.crc import crc32_combine
-    dtypes = {"xyz": (np.float64, (3,)), "range_m": (np.float64, ()), "cell_w": (np.int32, ()),
-              "cell_h": (np.int32, ()), "sample": (np.int64, ())}
-    dtypes.update({k: (KINDS[k], ()) for k in KINDS})
     fmt = np.lib.format
-    try:
-        with zipfile.ZipFile(src) as z:
-            infos = {i.filename: i for i in z.infolist()}
-            scalars = [int(np.load(z.open(f"{k}.npy"))) for k in ("clouds", "empty")]
-        ranges, n = {}, None
-        for k in fields:
-            info = infos.get(f"{k}.npy")
-            if info is None or info.compress_type != zipfile.ZIP_STORED:
-                raise ValueError(f"no stored member {k}.npy")
-            local = os.pread(src.fileno(), 30, info.header_offset)
-            if len(local) < 30 or local[:4] != b"PK\x03\x04":
-                raise ValueError(f"{k}.npy: no local header where the zip says")
-            start = (info.header_offset + 30 + int.from_bytes(local[26:28], "little")
-                     + int.from_bytes(local[28:30], "little"))
-            src.seek(start)
-            version = fmt.read_magic(src)
-            if version not in ((1, 0), (2, 0)):
-                raise ValueError(f"{k}.npy: .npy format {version}")
-            read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
-            shape, fortran, dtype = read(src)
-            head = src.tell() - start
-            want, row = dtypes[k]
-            if dtype != np.dtype(want) or fortran or tuple(shape[1:]) != row or \
-                    (n is not None and shape[0] != n):
-                raise ValueError(f"{k}.npy holds {dtype}{shape}, not {np.dtype(want)}"
-                                 f"{('N', *row)} of {n if n is not None else 'N'} points")
-            n = shape[0]
-            count = info.file_size - head
-            if count != n * np.dtype(want).itemsize * int(np.prod(row, dtype=np.int64)):
-                raise ValueError(f"{k}.npy has {count} bytes for {shape}")
-            crc, done = 0, 0
-            while done < count:
-                data = os.pread(src.fileno(), min(1 << 24, count - done), start + head + done)
-                if not data:
-                    raise ValueError(f"{k}.npy ends {count - done} bytes early")
-                crc = zlib.crc32(data, crc)
-                done += len(data)
-            src.seek(start)
-            if crc32_combine(zlib.crc32(src.read(head)), crc, count) != info.CRC:
-                raise ValueError(f"{k}.npy: its bytes do not match its CRC")
-            ranges[k] = (start + head, count, crc)
-    except _UNREADABLE as exc:
-        raise _damaged(path, exc) from None
-    return ranges, int(n or 0), scalars[1]
+    with zipfile.ZipFile(src) as z:
+        infos = {i.filename: i for i in z.infolist()}
+        empty = int(np.load(z.open("empty.npy")))
+    ranges, n = {}, None
+    for k, (want, row) in fields.items():
+        info = infos.get(f"{k}.npy")
+        if info is None or info.compress_type != zipfile.ZIP_STORED:
+            raise ValueError(f"no stored member {k}.npy")
+        local = os.pread(src.fileno(), 30, info.header_offset)
+        if len(local) < 30 or local[:4] != b"PK\x03\x04":
+            raise ValueError(f"{k}.npy: no local header where the zip says")
+        start = (info.header_offset + 30 + int.from_bytes(local[26:28], "little")
+                 + int.from_bytes(local[28:30], "little"))
+        src.seek(start)
+        version = fmt.read_magic(src)
+        if version not in ((1, 0), (2, 0)):
+            raise ValueError(f"{k}.npy: .npy format {version}")
+        read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, fortran, dtype = read(src)
+        head = src.tell() - start
+        if dtype != want or fortran or tuple(shape[1:]) != row or \
+                (n is not None and shape[0] != n):
+            raise ValueError(f"{k}.npy holds {dtype}{shape}, not {want}"
+                             f"{('N', *row)} of {n if n is not None else 'N'} points")
+        n = shape[0]
+        count = info.file_size - head
+        if count != n * want.itemsize * int(np.prod(row, dtype=np.int64)):
+            raise ValueError(f"{k}.npy has {count} bytes for {shape}")
+        crc, done = 0, 0
+        while done < count:
+            data = os.pread(src.fileno(), min(1 << 24, count - done), start + head + done)
+            if not data:
+                raise ValueError(f"{k}.npy ends {count - done} bytes early")
+            crc = zlib.crc32(data, crc)
+            done += len(data)
+        src.seek(start)
+        if crc32_combine(zlib.crc32(src.read(head)), crc, count) != info.CRC:
+            raise ValueError(f"{k}.npy: its bytes do not match its CRC")
+        ranges[k] = (start + head, count, crc)
+    return ranges, int(n or 0), empty
 
 
 def _remove_empty(parts: Path) -> None:

@@ -129,8 +129,15 @@ def test_npz_kernel_copy_writes_the_zip_of_the_plain_copy(tmp_path, monkeypatch)
     plain = write("plain.npz")
     assert fast == plain
     assert cut == plain  # the partial copy cut off, the member written again in full
-    with zipfile.ZipFile(tmp_path / "fast.npz") as z:
+    from apcg_core.io import clouds
+    monkeypatch.setattr(clouds._DirectMember, "supported", staticmethod(lambda: False))
+    write("zipfile.npz")  # every member through zipfile's own writes and CRCs
+    with zipfile.ZipFile(tmp_path / "fast.npz") as z, \
+            zipfile.ZipFile(tmp_path / "zipfile.npz") as y:
         assert z.testzip() is None  # every member's CRC checks
+        assert [(i.filename, i.CRC, i.file_size) for i in z.infolist()] == \
+            [(i.filename, i.CRC, i.file_size) for i in y.infolist()]
+        assert all(z.read(n) == y.read(n) for n in z.namelist())
     got = np.load(tmp_path / "fast.npz")
     assert np.array_equal(got["xyz"], np.concatenate([p.xyz for p in parts]))
     assert np.array_equal(got["sample"], np.concatenate([p.sample for p in parts]))

@@ -47,36 +47,30 @@ def _fmt(path) -> str:
 
 def _copy_member(zf, member, spill: Path, spill_crc: int, block: int) -> None:
     """The bytes of ``spill`` appended to the open zip ``member`` (stored, after its .npy
-    header). Where the kernel can copy between files (``os.copy_file_range``: Linux) they are
-    copied there, at the zip's current end, and the member's size and CRC (``spill_crc``,
-    taken as they were spilled, combined with the header's) are set as its own writes would
-    have set them: the same zip, byte for byte (tests/test_generate_stream.py), without
-    reading the bytes back into Python. Elsewhere, or if the kernel refuses part way (the
-    partial copy is cut off), they go through ``member.write`` block by block."""
-    import os
-
+    header). Where zipfile keeps a member's size and CRC where :func:`_count_in` sets them
+    (:meth:`_DirectMember.supported`), they are appended by :func:`_append_range` (the kernel's
+    copy where it can) and the member's CRC (``spill_crc``, taken as they were spilled,
+    combined with the header's) and size are set as its own writes would have set them: the
+    same zip, byte for byte (tests/test_generate_stream.py), without reading the bytes back
+    into Python. Elsewhere they go through ``member.write`` block by block."""
     from .crc import crc32_combine
     size = spill.stat().st_size
     with open(spill, "rb") as src:
-        if (size and hasattr(os, "copy_file_range") and hasattr(member, "_crc")
-                and getattr(member, "_compressor", 1) is None):
-            zf.fp.flush()
-            start, done = zf.fp.tell(), 0
-            try:
-                while done < size and (k := os.copy_file_range(
-                        src.fileno(), zf.fp.fileno(), size - done, done, start + done)):
-                    done += k
-            except OSError:  # a file system that cannot
-                pass
-            if done == size:
-                zf.fp.seek(start + size)
-                member._crc = crc32_combine(member._crc, spill_crc, size)
-                member._file_size += size
-                member._compress_size += size
-                return
-            zf.fp.seek(start)  # what was copied is written over
+        if _DirectMember.supported():
+            _append_range(zf.fp, src.fileno(), 0, size, block)
+            _count_in(member, crc32_combine(member._crc, spill_crc, size), size)
+            return
         while data := src.read(block):
             member.write(data)
+
+
+def _count_in(member, crc: int, added: int) -> None:
+    """A zip member's CRC set to ``crc`` and ``added`` bytes written past it counted in its
+    size, as zipfile's own writes would have done (its local header is rewritten from them
+    when the member closes)."""
+    member._crc = crc
+    member._file_size += added
+    member._compress_size += added
 
 
 def _append_range(dst, src_fd: int, offset: int, count: int, block: int = 1 << 24) -> None:
@@ -130,8 +124,8 @@ class _DirectMember:
     @staticmethod
     @functools.lru_cache(maxsize=1)
     def supported() -> bool:
-        """Whether this Python's zipfile keeps a member's size and CRC where this class sets
-        them (else every member is spilled and copied, as before)."""
+        """Whether this Python's zipfile keeps a member's size and CRC where :func:`_count_in`
+        sets them (else every member is spilled and written through zipfile)."""
         import zipfile
         with zipfile.ZipFile(io.BytesIO(), "w") as zf, zf.open("probe", "w") as member:
             return all(hasattr(member, k) for k in _DirectMember._PARTS)
@@ -166,9 +160,7 @@ class _DirectMember:
         fp.seek(self.start)
         fp.write(header)
         fp.seek(end)
-        m._crc = crc32_combine(zlib.crc32(header), self.crc, self.size)
-        m._file_size += self.size
-        m._compress_size += self.size
+        _count_in(m, crc32_combine(zlib.crc32(header), self.crc, self.size), self.size)
         m.close()  # the local header rewritten with the CRC and sizes
 
 
@@ -244,11 +236,12 @@ def _fill_las(las, cloud: PointCloud):
 class CloudWriter:
     """Write a stacked cloud block by block, in bounded memory, into any format: PLY and
     LAS/LAZ stream to disk (the PLY vertex count is patched in at the end; laspy counts LAS
-    points itself); an NPZ's arrays each stream to a spill file beside the output
-    (``NAME.FIELD.part``), copied into the zip's members at the end in blocks (the same
-    members, headers and bytes as ``np.savez`` writes for the whole cloud; memory flat in the
-    number of clouds, the data written twice). As with :func:`write_cloud`, the file appears
-    under its final name only when complete, and no spill file is left.
+    points itself); an NPZ's first array (xyz) is written in place in the zip as blocks come,
+    the others stream to spill files beside the output (``NAME.FIELD.part``), copied into the
+    zip's members at the end (the same members, headers and bytes as ``np.savez`` writes for
+    the whole cloud; memory flat in the number of clouds, half the data written twice). As
+    with :func:`write_cloud`, the file appears under its final name only when complete, and no
+    spill file is left.
 
         with CloudWriter("clouds.ply", meta) as w:
             for cloud in blocks:
@@ -309,6 +302,11 @@ class CloudWriter:
             las = _fill_las(laspy.LasData(copy.deepcopy(self._template)), cloud)
             self._las.write_points(las.points)
         self.n += len(cloud)
+
+    @property
+    def fields(self) -> dict:
+        """NPZ: each stored array's name -> (dtype, shape of one point's row)."""
+        return {k: (dtype, row) for k, (_, _, dtype, row) in self._spill.items()}
 
     def write_ranges(self, src_fd: int, ranges: dict, n: int) -> None:
         """Append ``n`` points whose arrays lie as raw bytes in the open file ``src_fd``:

@@ -321,7 +321,8 @@ def _printable_unquoted(f, block: int) -> bool:
             if data.translate(None, _PLAIN_BYTES):
                 return False
             cr += data.count(b"\r")
-            crlf += (prev + data).count(b"\r\n")
+            # CR-LF pairs: within this piece, and the last piece's CR with this one's LF
+            crlf += data.count(b"\r\n") + (prev == b"\r" and data[:1] == b"\n")
             prev = data[-1:]
         return cr == crlf
     finally:
