@@ -41,8 +41,8 @@ from .base import RUNTIMES, ModelTypes, onnx_session, onnx_weights
 
 FAMILY = "apcg-plus"
 CHUNK = 256  # conditions read at a time (a block of `apcg generate`): bounds memory (a sheet
-# is 2 x S x S floats); 256 measured at least as fast as 1024 and 4096 on one thread here
-# (bench/generate_profile.py --chunks)
+# is 2 x S x S floats); blocks of 1024 made the 102,400-cloud generate slower (paired 1.05,
+# docs/SCALE.md)
 NET_ROWS = 32  # conditions per network call: the activations (~32 KB a condition) stay in a
 # core's cache; the same network time as 256 a call within the runs' spread here
 # (bench/generate_profile.py --chunks 32,256), 30 MiB less peak memory in a 2-lane generate,

@@ -215,7 +215,8 @@ class NeedsCare(Exception):
 def read_columns(path, columns: Iterable[str], batch: int = 65536, numbers: Iterable[str] = (),
                  block: int = 1 << 23):
     """The fast path of :func:`read_csv` for long files (a conditions CSV of 10^6 rows):
-    yields, about ``batch`` data rows at a time, a dict of the wanted ``columns`` (header names,
+    yields, a piece at a time (``block`` bytes of whole lines the plain way, ``batch`` rows
+    through the csv module), a dict of the wanted ``columns`` (header names,
     lower case; a tuple of names: the first the header has, under the tuple's first name):
     lists of their stripped texts, except the columns named in ``numbers`` (by their first
     names), which come as float64 arrays of ``float()``'s values. Memory holds one batch.
