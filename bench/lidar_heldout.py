@@ -1,16 +1,17 @@
-"""The shipped default model on held-out lidars (issue 33), with no retraining: for each lidar
-preset, a small dataset of every built-in type at Table 1 conditions built at that lidar, and
-the one evaluation protocol (`apcg evaluate`: MMD, JSD, faithfulness per band, beside the point
-z-buffer and embree 2x2 at that lidar) with the model generating at the lidar's cells.
+"""A model (the shipped default unless ``--model``) on held-out lidars (issue 33), with no
+retraining: for each lidar preset, a small dataset of every built-in type at Table 1 conditions
+built at that lidar, and the one evaluation protocol (`apcg evaluate`: MMD, JSD, faithfulness
+per band, beside the point z-buffer and embree 2x2 at that lidar) with the model generating at
+the lidar's cells.
 
     .venv/bin/python bench/lidar_heldout.py -o docs/evaluation/lidars [--samples-per-type 8]
         [--lidars paper,half-cells,...] [--pairs 0] [--work /tmp/lidar_heldout]
-        [--types all|drones|aircraft|NAME,NAME] [--name heldout] [--force]
+        [--types all|drones|aircraft|NAME,NAME] [--name heldout] [--model DIR] [--force]
 
 Each lidar is the same as these commands (CFG: the config below, written to WORK/cfg.toml):
 
     apcg dataset build --config CFG --lidar LIDAR -o WORK/LIDAR
-    apcg evaluate --data WORK/LIDAR --lidar LIDAR --pairs 0 -o WORK/LIDAR-report
+    apcg evaluate --data WORK/LIDAR --lidar LIDAR --pairs 0 -o WORK/LIDAR-report [--model DIR]
 
 Writes OUT/NAME.json (every band's numbers) and OUT/NAME.md (the table), kept when they exist
 unless ``--force`` (``bench_output.refuse``, checked before any work); ``--types drones``
@@ -68,6 +69,8 @@ def main() -> int:
     ap.add_argument("--types", default="all",
                     help="all (default), drones, aircraft, or type names separated by commas")
     ap.add_argument("--name", default="heldout", help="the output files' name (NAME.json, .md)")
+    ap.add_argument("--model", default=None,
+                    help="model directory (default: the shipped default model)")
     ap.add_argument("--render", action="store_true",
                     help="only write OUT/NAME.md again from OUT/NAME.json")
     ap.add_argument("--force", action="store_true",
@@ -96,7 +99,8 @@ def main() -> int:
         assert rc == 0, f"build at {lidar}: {rc}"
         t1 = time.perf_counter()
         rc = apcg(["evaluate", "--data", str(data), "--lidar", lidar, "--pairs",
-                   str(args.pairs), "-o", str(rep), "--force"])
+                   str(args.pairs), "-o", str(rep), "--force"]
+                  + (["--model", args.model] if args.model else []))
         assert rc == 0, f"evaluate at {lidar}: {rc}"
         m = json.loads((rep / "metrics.json").read_text())
         m.pop("per_pair", None)
