@@ -8,7 +8,9 @@ near condition, exact beside generated.
 
     .venv/bin/python bench/recognize_clouds.py --per-type 40 \
         --plot docs/evaluation/recognize/clouds.png --json bench/results/recognize_clouds.json \
-        [--force]
+        [--model DIR] [--force]
+
+``--model``: another model directory in place of the shipped default (a candidate).
 
 An existing --plot file stops the run before any work unless ``--force``
 (``bench_output.refuse``); the --json result is replaced in place, as every bench's is.
@@ -39,13 +41,14 @@ def main() -> None:
     ap.add_argument("--plot")
     ap.add_argument("--json")
     ap.add_argument("--force", action="store_true", help="replace the --plot file")
+    ap.add_argument("--model", default=None, help="model directory (default: the shipped one)")
     a = ap.parse_args()
     from bench_output import emit, refuse, save_figure
     refuse([a.plot], a.force)
     types = list(R.DEFAULT_TYPES)
     tab = R.conditions(types, a.per_type, a.seed)
     exact, _ = R.simulated("embree", 1, types, tab, None, DEFAULT_LIDAR, 0)
-    gen, _ = R.Source(str(default_model_dir())).clouds(types, tab, 0)
+    gen, _ = R.Source(a.model or str(default_model_dir())).clouds(types, tab, 0)
     bands = R.bands_of(types, tab)
     rows: dict = {}
     for i, (e, g) in enumerate(zip(exact, gen, strict=True)):
@@ -63,7 +66,8 @@ def main() -> None:
         print(f"{key} | {len(v)} | {m[0]:.0f} / {m[1]:.0f} | {m[2]:.1f} {m[3]:.1f} {m[4]:.1f} | "
               f"{m[5]:.1f} {m[6]:.1f} {m[7]:.1f}")
     if a.json:  # the same bytes as before: indented JSON and a newline
-        emit({"per_type": a.per_type, "seed": a.seed, "groups": table}, a.json, show=False)
+        emit({"per_type": a.per_type, "seed": a.seed, "groups": table}
+             | ({"model": a.model} if a.model else {}), a.json, show=False)
     if a.plot:
         import matplotlib
         matplotlib.use("Agg")
