@@ -279,6 +279,45 @@ def test_atomic_writes_refuse_an_input_under_their_temporary_name(tmp_path):
     assert target.read_bytes() == b"{}" and not held.exists()
 
 
+def test_a_new_output_inside_an_input_directory_is_written_through_its_temporary_name(tmp_path):
+    """`choose-tau --model M -o M/tau_sweep.json` (the documented recipe) writes
+    M/tau_sweep.json.part first: a new name inside an input directory is the command's to
+    write; something already there under that name is not (it may be what the command reads)."""
+    model = tmp_path / "m"
+    model.mkdir()
+    (model / "model.json").write_bytes(MINE)
+    ns = argparse.Namespace(command="choose-tau", model=str(model), force=False, _outputs=())
+    with guarding(ns):
+        write_atomic(model / "tau_sweep.json", b"{}")
+        with atomic_path(model / "other.json") as tmp:
+            tmp.write_bytes(b"[]")
+    assert (model / "tau_sweep.json").read_bytes() == b"{}"
+    assert (model / "other.json").read_bytes() == b"[]"
+    assert sorted(p.name for p in model.iterdir()) == ["model.json", "other.json",
+                                                        "tau_sweep.json"]
+    left = model / "again.json.part"
+    left.write_bytes(MINE)
+    with pytest.raises(InputError, match="inside one"), guarding(ns):
+        write_atomic(model / "again.json", b"{}")
+    assert left.read_bytes() == MINE and not (model / "again.json").exists()
+
+
+def test_generate_writes_its_clouds_into_the_models_own_directory(tmp_path, capsys):
+    """The NPZ writer's zip and spill files inside an input directory (the model's): new
+    names, written, renamed and removed; the model's own files untouched."""
+    import shutil
+
+    from apcg_core.families import default_model_dir
+    model = tmp_path / "model"
+    shutil.copytree(default_model_dir(), model)
+    before = digest(model)
+    rc = main(["generate", "--model", str(model), "--type", "A320neo", "--range-m", "4500",
+               "--elevation-deg", "3.4", "--pitch-deg", "2", "-o", str(model / "g.npz")])
+    assert rc == 0, capsys.readouterr().err
+    after = digest(model)
+    assert after.pop("g.npz") and after == before
+
+
 def test_a_commands_outputs_appear_together_when_it_ends_and_none_when_it_fails(tmp_path):
     args = _args(tmp_path)
     with guarding(args):
