@@ -236,8 +236,7 @@ class Guard:
         an input of the command, or anything already inside an input directory, is refused;
         anything else there is written over. A new name inside an input directory is fine
         (``choose-tau --model M -o M/tau_sweep.json`` writes M/tau_sweep.json.part)."""
-        r = real(path)
-        if r in self.input_files or (os.path.lexists(path) and self.is_input(r)):
+        if os.path.lexists(path) and self.is_input(real(path)):
             raise InputError(f"{path} is an input of this command (or inside one), and this "
                              "command writes a temporary file of that name beside its output; "
                              "it is never replaced: choose another output name")
