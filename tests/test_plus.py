@@ -73,6 +73,29 @@ def test_every_standard_return_lies_in_the_box(tiny_training_data):
             assert (np.hypot(u, v) <= 1.01).all()  # returns sit within R of the centre
 
 
+def test_query_mixes_draw_returns_or_places(tiny_training_data):
+    """`--queries`: the returns mix draws a quarter of its cells among the returns (all hits);
+    the silhouette mix draws none because they are returns, so fewer of its cells are hits;
+    the box quarter (drawn first) is the same cells in both."""
+    from training.families.apcg_plus import QUERIES, QUERY_MIXES, draw_queries
+    ds = DepthDataset(tiny_training_data, "train")
+    idx = np.arange(min(len(ds), 16))
+    got = {mix: draw_queries(ds, idx, np.random.default_rng(5), mix=mix) for mix in QUERY_MIXES}
+    n_box, n_hit = QUERIES // 4, QUERIES // 4
+    has_returns = np.array([len(ds.sample_cloud(int(i)).cell_w) > 0 for i in idx])
+    assert has_returns.any()
+    u, v, hit, _ = got["returns"]
+    assert hit[has_returns, n_box:n_box + n_hit].all()
+    su, sv, shit, _ = got["silhouette"]
+    assert u.shape == su.shape == (len(idx), QUERIES)
+    assert np.array_equal(u[:, :n_box], su[:, :n_box]) and np.array_equal(v[:, :n_box],
+                                                                           sv[:, :n_box])
+    assert shit[has_returns].mean() < hit[has_returns].mean() - 0.1
+    assert shit[has_returns, n_box:].mean() > 0.2  # still mostly near the silhouette
+    with pytest.raises(KeyError):
+        draw_queries(ds, idx, np.random.default_rng(5), mix="labels")
+
+
 def test_box_cells_are_clipped_to_the_window():
     from apcg_core.lidar import LidarParams
     lidar = LidarParams()

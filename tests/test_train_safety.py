@@ -69,6 +69,24 @@ def test_resume_refuses_settings_that_differ(tiny_training_data, tmp_path):
     assert "steps" in RESUMABLE and "width" not in RESUMABLE
 
 
+def test_resume_compares_a_setting_the_run_predates_with_the_default_it_ran_with(
+        tiny_training_data, tmp_path):
+    """A run recorded before a setting existed ran with its default: asking another value on
+    resume is refused, not silently dropped; asking the default is accepted."""
+    run = tmp_path / "run"
+    first = _train(tiny_training_data, run, "--family", "apcg-plus", "--sheet", "16",
+                   "--steps", "2")
+    assert first.returncode == 0, first.stderr
+    state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+    assert state["train"].pop("queries") == "returns"
+    torch.save(state, run / "checkpoint.pt")  # as an older version wrote it
+    out = _train(tiny_training_data, run, "--resume", "--steps", "3", "--queries", "silhouette")
+    assert out.returncode == 2 and "--queries silhouette (the run's: returns)" in out.stderr, \
+        out.stderr
+    same = _train(tiny_training_data, run, "--resume", "--steps", "3", "--queries", "returns")
+    assert same.returncode == 0, same.stderr
+
+
 def test_a_run_killed_before_its_first_checkpoint_starts_over(tiny_training_data, tmp_path):
     run = tmp_path / "run"
     cfg = config_from("tiny", steps=2, seed=0, checkpoint_every=1000)

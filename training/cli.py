@@ -54,6 +54,12 @@ def register_train(sub) -> None:
                    help="apcg-plus: how the network draws its sheet: conv (a 3 x 3 convolution "
                         "at the sheet's resolution, default) or upconv (the last upsampling "
                         "step draws it; about 0.6 times the CPU cost)")
+    from .families.apcg_plus import QUERY_MIXES
+    p.add_argument("--queries", choices=QUERY_MIXES,
+                   help="apcg-plus: where the loss is taken: returns (a quarter of the cells "
+                        "among the sample's returns, a quarter over its box, half near the "
+                        "returns; default) or silhouette (a quarter over the box, the rest near "
+                        "the returns: hit probabilities that match the data's, SPEC 7a)")
     p.add_argument("--lr", type=float,
                    help="learning rate (default: the family's; a fine-tune from --init "
                         "usually wants a smaller one)")
@@ -98,6 +104,7 @@ def _train(args) -> int:
             "keep_every": args.keep_every, "diverge_gp": args.diverge_gp, "ema": args.ema,
             "hours": args.hours, "n_points": args.n_points, "voxel_res": args.voxel_res,
             "diffusion_steps": args.diffusion_steps, "sheet": args.sheet, "head": args.head,
+            "queries": args.queries,
             "init": args.init, "lr": args.lr}
     if args.no_conv:
         over["conv"] = False
@@ -164,10 +171,13 @@ def _check_resume_matches(args, saved: dict, over: dict) -> None:
 
     from .trainer import read_run_record
 
-    differ = [f"--{k.replace('_', '-')} {v} (the run's: {saved.get(k)})"
+    from .trainer import TrainConfig
+    # against the run's value, or the default it ran with when its record predates the setting
+    ran = TrainConfig.from_dict(saved)
+    differ = [f"--{k.replace('_', '-')} {v} (the run's: {getattr(ran, k)})"
               for k, v in over.items()
-              if v is not None and k not in RESUMABLE and k != "family" and k in saved
-              and saved[k] != v]
+              if v is not None and k not in RESUMABLE and k != "family" and hasattr(ran, k)
+              and getattr(ran, k) != v]
     record = read_run_record(args.output)
     if record is not None:
         ran_on = record.get("data")
