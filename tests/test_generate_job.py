@@ -152,3 +152,18 @@ def test_a_damaged_part_is_named_and_made_again_once_deleted(tmp_path, monkeypat
     assert a.namelist() == b.namelist()
     assert all(a.read(n) == b.read(n) for n in a.namelist() if n != "meta.npy")
     assert not out.with_name("r.npz.parts").exists()
+
+
+@pytest.mark.parametrize("ext", ["npz", "ply", "las"])
+def test_bad_input_met_after_the_writer_opened_exits_cleanly(tmp_path, ext):
+    """A pose refused once the output is open (pitch 0 is outside Table 1's 1-5 deg): one line
+    naming it, exit 2, nothing left under any name, and no traceback, not even one Python
+    prints while collecting a half-made writer at exit."""
+    out = tmp_path / f"g.{ext}"
+    p = subprocess.run([*APCG, "generate", "--type", "A320neo", "--range-m", "5000",
+                        "--elevation-deg", "3", "-o", str(out)], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 2, p.stderr
+    assert "pitch = 0 deg is outside the configured range [1 deg, 5 deg]" in p.stderr
+    assert "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr
+    assert list(tmp_path.iterdir()) == []

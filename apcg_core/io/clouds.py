@@ -351,8 +351,10 @@ class CloudWriter:
 
     def abort(self) -> None:
         """Drop what was written: nothing is left under either name."""
-        if self._zip is not None:
-            self._zip.fp.close()  # the zip is dropped whole: no central directory written
+        if self._zip is not None:  # dropped whole: no central directory written, and none
+            fp, self._zip.fp = self._zip.fp, None  # later when the ZipFile is collected
+            self._zip = None
+            fp.close()
         for handle in (self._file, self._las, *(v[0] for v in self._spill.values())):
             try:
                 if handle is not None:
