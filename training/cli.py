@@ -169,9 +169,8 @@ def _check_resume_matches(args, saved: dict, over: dict) -> None:
 
     from apcg_core.errors import InputError
 
-    from .trainer import read_run_record
+    from .trainer import TrainConfig, read_run_record
 
-    from .trainer import TrainConfig
     # against the run's value, or the default it ran with when its record predates the setting
     ran = TrainConfig.from_dict(saved)
     differ = [f"--{k.replace('_', '-')} {v} (the run's: {getattr(ran, k)})"
