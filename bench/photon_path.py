@@ -22,7 +22,8 @@ sum of E, the correlation of E over those cells, and the mean absolute differenc
 cells fire).
 
     .venv/bin/python bench/photon_path.py [--model apcg_core/models/default] [--previous] \
-        [--sensor 1550nm-day] [--band 3000,6000] [--json bench/results/photon_path.json]
+        [--sensor 1550nm-day] [--band 3000,6000] [--agree 4] \
+        [--json bench/results/photon_path.json]
 """
 
 from __future__ import annotations
@@ -98,6 +99,8 @@ def main() -> None:
     ap.add_argument("--model", action="append", default=[], help="a model directory whose "
                     "family draws at any lidar (repeatable)")
     ap.add_argument("--previous", action="store_true", help="also the rule before stop 46")
+    ap.add_argument("--agree", type=float, default=G.AGREE, help="the slope rule's AGREE "
+                    "(apcg_core.sensor.generated; default the package's)")
     ap.add_argument("--sensor", default="1550nm-day")
     ap.add_argument("--band", default="3000,6000", help="slant range band, metres: LO,HI")
     ap.add_argument("--test-per-type", type=int, default=R.TEST_PER_TYPE)
@@ -106,6 +109,7 @@ def main() -> None:
     a = ap.parse_args()
     from bench_output import emit
     sensor = load_sensor(a.sensor)
+    G.AGREE = a.agree
     lo, hi = (float(x) for x in a.band.split(","))
     types = list(R.DEFAULT_TYPES)
     table = R.conditions(types, a.test_per_type, R._seed(a.seed, R.TEST_CONDITIONS))
@@ -145,7 +149,7 @@ def main() -> None:
             c = rows[name][k]
             print(f"  {k}: sum {c['sum_ratio']:.3f} x, correlation {c['correlation']:.3f}, "
                   f"fire difference {c['fire_difference']:.3f}")
-    emit({"sensor": a.sensor, "band_m": [lo, hi], "seed": a.seed,
+    emit({"sensor": a.sensor, "band_m": [lo, hi], "seed": a.seed, "agree": a.agree,
           "test_per_type": a.test_per_type, "models": a.model, "types": rows}, a.json,
          show=False)
 
