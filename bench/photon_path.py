@@ -17,13 +17,15 @@ sub-rays instead, drawn at the 3-times finer lidar, their incidence read off the
 
 against ``exact 4x4``, for the recognition benchmark's aircraft types at its test conditions
 (``training.recognize.conditions``, ``--seed``) in one range band: cells lit by either, the
-sum of E, the correlation of E over those cells, and the mean absolute difference of
+sum of E, the correlation of E over those cells, the mean absolute difference of
 1 - exp(-pulses E) (the chance that a pulse train carries signal at all: what decides which
-cells fire).
+cells fire), and the sub-rays' mean cosine of incidence and share of grazing ones.
 
     .venv/bin/python bench/photon_path.py [--model apcg_core/models/default] [--previous] \
         [--sensor 1550nm-day] [--band 3000,6000] [--agree 4] \
         [--json bench/results/photon_path.json]
+    .venv/bin/python bench/photon_path.py --model apcg_core/models/default \
+        --show-row A320neo,4200,3.5,0.05,0.6,0.02      # one condition's ranges along a row
 """
 
 from __future__ import annotations
@@ -47,16 +49,26 @@ AIRCRAFT = ("A320neo", "737-800", "G650ER", "G550", "777-300ER", "F-16C Fighting
             "UH-60 Black Hawk")
 
 
-def per_cell(hits, rho: float, sensor) -> dict:
-    """Cell key -> expected signal photo-electrons per pulse, summed over its sub-rays."""
-    pe = signal_photoelectrons(hits.range_m, hits.cos, rho, sensor, hits.sub_rays)
-    key = ((hits.sample.astype(np.int64) << 32) + ((hits.h.astype(np.int64) + (1 << 15)) << 16)
-           + (hits.w.astype(np.int64) + (1 << 15)))
-    u, inv = np.unique(key, return_inverse=True)
-    return dict(zip(u.tolist(), np.bincount(inv, pe).tolist(), strict=True))
+class Lit(dict):
+    """Cell key -> expected signal photo-electrons per pulse (summed over its sub-rays), and
+    the sub-rays' incidence: their mean cosine and the share below :data:`GRAZING`."""
+
+    def __init__(self, hits, rho: float, sensor) -> None:
+        pe = signal_photoelectrons(hits.range_m, hits.cos, rho, sensor, hits.sub_rays)
+        key = ((hits.sample.astype(np.int64) << 32)
+               + ((hits.h.astype(np.int64) + (1 << 15)) << 16)
+               + (hits.w.astype(np.int64) + (1 << 15)))
+        u, inv = np.unique(key, return_inverse=True)
+        super().__init__(zip(u.tolist(), np.bincount(inv, pe).tolist(), strict=True))
+        self.mean_cos = float(hits.cos.mean()) if len(hits.cos) else None
+        self.grazing = float((hits.cos < GRAZING).mean()) if len(hits.cos) else None
 
 
-def compare(ref: dict, got: dict, pulses: int) -> dict:
+GRAZING = 0.3  # a sub-ray "grazing" below this cosine of incidence (about 73 degrees)
+per_cell = Lit
+
+
+def compare(ref: Lit, got: Lit, pulses: int) -> dict:
     keys = sorted(set(ref) | set(got))
     x = np.array([ref.get(k, 0.0) for k in keys])
     y = np.array([got.get(k, 0.0) for k in keys])
@@ -64,7 +76,8 @@ def compare(ref: dict, got: dict, pulses: int) -> dict:
     return {"cells": int((y > 0).sum()), "cells_both": int(((x > 0) & (y > 0)).sum()),
             "sum_ratio": round(float(y.sum() / x.sum()), 4),
             "correlation": round(float(np.corrcoef(x, y)[0, 1]), 4),
-            "fire_difference": round(float(fire.mean()), 4)}
+            "fire_difference": round(float(fire.mean()), 4),
+            "mean_cos": round(got.mean_cos, 3), "grazing_share": round(got.grazing, 3)}
 
 
 def previous_rule_hits(cloud, elevation, lidar, n, k=G.SUB_READS):
@@ -94,6 +107,31 @@ def previous_rule_hits(cloud, elevation, lidar, n, k=G.SUB_READS):
                         cos[keep], n, k * k)
 
 
+def show_row(spec: str, models) -> None:
+    """Print the ranges (r - r0) along the fullest finer row of one condition, exact and each
+    model's: TYPE,RANGE_M,ELEVATION_DEG,PITCH,YAW,ROLL (angles of the attitude in radians)."""
+    name, *vals = spec.split(",")
+    r0, elev, pitch, yaw, roll = (float(v) for v in vals)
+    t = np.array([[0.0, r0, np.radians(elev), pitch, yaw, roll]])
+    fine = G.sub_ray_lidar(LIDAR)
+    with Simulator("embree", fine, quantize=False) as sim:
+        clouds = {"exact": sim.simulate_type(default_catalog(), name, t).cloud}
+    for m in models:
+        m = copy.copy(m)
+        m.lidar, m.quantize = fine, False
+        clouds[str(m.directory)] = m.generate(m.conditions([name], t[:, 1:])).cloud
+    ex = clouds["exact"]
+    rows, counts = np.unique(ex.cell_h, return_counts=True)
+    row = rows[np.argmax(counts)]
+    mid = int(np.median(ex.cell_w[ex.cell_h == row]))
+    print(f"finer row {row}, finer columns {mid - 20} .. {mid + 19}, r - r0 in m ('.': none):")
+    for label, c in clouds.items():
+        at = dict(zip(c.cell_w[c.cell_h == row].tolist(), c.range_m[c.cell_h == row] - r0,
+                      strict=True))
+        print(f"  {label}: " + " ".join(f"{at[w]:.2f}" if w in at else "."
+                                         for w in range(mid - 20, mid + 20)))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", action="append", default=[], help="a model directory whose "
@@ -105,8 +143,14 @@ def main() -> None:
     ap.add_argument("--band", default="3000,6000", help="slant range band, metres: LO,HI")
     ap.add_argument("--test-per-type", type=int, default=R.TEST_PER_TYPE)
     ap.add_argument("--seed", type=int, default=0, help="the recognition benchmark's --seed")
+    ap.add_argument("--show-row", metavar="TYPE,RANGE_M,ELEV_DEG,PITCH,YAW,ROLL",
+                    help="only print one condition's ranges along a finer row, exact and "
+                         "each --model's")
     ap.add_argument("--json")
     a = ap.parse_args()
+    if a.show_row:
+        show_row(a.show_row, [load_model(d) for d in a.model])
+        return
     from bench_output import emit
     sensor = load_sensor(a.sensor)
     G.AGREE = a.agree
@@ -143,12 +187,16 @@ def main() -> None:
                 G.sub_ray_hits(m, t, [name] * len(t), LIDAR), rho, sensor)
         rows[name] = {"clouds": int(len(t)), "cells_exact_4x4": len(ref),
                       "sum_exact_4x4": round(sum(ref.values()), 3),
+                      "mean_cos_exact_4x4": round(ref.mean_cos, 3),
+                      "grazing_share_exact_4x4": round(ref.grazing, 3),
                       **{k: compare(ref, v, sensor.pulses) for k, v in got.items()}}
-        print(f"{name} ({len(t)} clouds, {len(ref)} cells lit by 4x4 sub-rays):")
+        print(f"{name} ({len(t)} clouds, {len(ref)} cells lit by 4x4 sub-rays, mean cos "
+              f"{ref.mean_cos:.3f}, grazing {ref.grazing:.2f}):")
         for k in got:
             c = rows[name][k]
             print(f"  {k}: sum {c['sum_ratio']:.3f} x, correlation {c['correlation']:.3f}, "
-                  f"fire difference {c['fire_difference']:.3f}")
+                  f"fire difference {c['fire_difference']:.3f}, mean cos {c['mean_cos']:.3f}, "
+                  f"grazing {c['grazing_share']:.2f}")
     emit({"sensor": a.sensor, "band_m": [lo, hi], "seed": a.seed, "agree": a.agree,
           "test_per_type": a.test_per_type, "models": a.model, "types": rows}, a.json,
          show=False)
