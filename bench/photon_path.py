@@ -65,7 +65,6 @@ class Lit(dict):
 
 
 GRAZING = 0.3  # a sub-ray "grazing" below this cosine of incidence (about 73 degrees)
-per_cell = Lit
 
 
 def compare(ref: Lit, got: Lit, pulses: int) -> dict:
@@ -100,11 +99,8 @@ def previous_rule_hits(cloud, elevation, lidar, n, k=G.SUB_READS):
     beta = np.asarray(elevation, np.float64)[s] + h * fine.r_beta
     cos = 1.0 / np.sqrt(1.0 + (slope(k) / (r * fine.r_alpha * np.cos(beta))) ** 2
                         + (slope(k * span) / (r * fine.r_beta)) ** 2)
-    half = (k - 1) // 2
-    wc, hc = np.floor_divide(w + half, k), np.floor_divide(h + half, k)
-    keep = lidar.inside(wc, hc)
-    return G.SubRayHits(s[keep], wc[keep].astype(np.int32), hc[keep].astype(np.int32), r[keep],
-                        cos[keep], n, k * k)
+    return G.cells_of_fine_hits(G.SubRayHits(s, w.astype(np.int32), h.astype(np.int32), r,
+                                             cos, n, 1), lidar, k)
 
 
 def show_row(spec: str, models) -> None:
@@ -165,25 +161,24 @@ def main() -> None:
         t = table[table[:, 0] == types.index(name)]
         if not len(t):
             continue
-        t = t.copy()
         rho = reflectivity_of(cat.get(name))
         mesh = cat.mesh(cat.get(name))
         with Simulator("embree", LIDAR, quantize=False, supersample=4) as sim:
-            ref = per_cell(sim.sub_ray_hits(mesh, t), rho, sensor)
+            ref = Lit(sim.sub_ray_hits(mesh, t), rho, sensor)
         with Simulator("embree", LIDAR, quantize=False, supersample=3) as sim:
-            got = {"exact 3x3": per_cell(sim.sub_ray_hits(mesh, t), rho, sensor)}
+            got = {"exact 3x3": Lit(sim.sub_ray_hits(mesh, t), rho, sensor)}
         fine = G.sub_ray_lidar(LIDAR)
         with Simulator("embree", fine, quantize=False, supersample=1) as sim:
             cloud = sim.simulate_type(cat, name, t).cloud
-        got["path on exact"] = per_cell(G.sub_rays_of_fine_cloud(cloud, t[:, 2], LIDAR, len(t)),
+        got["path on exact"] = Lit(G.sub_rays_of_fine_cloud(cloud, t[:, 2], LIDAR, len(t)),
                                         rho, sensor)
         if a.previous:
-            got["path on exact, previous rule"] = per_cell(
+            got["path on exact, previous rule"] = Lit(
                 previous_rule_hits(cloud, t[:, 2], LIDAR, len(t)), rho, sensor)
         for m in models:
             m = copy.copy(m)
             m.use_lidar(LIDAR)
-            got[f"path on {m.directory}"] = per_cell(
+            got[f"path on {m.directory}"] = Lit(
                 G.sub_ray_hits(m, t, [name] * len(t), LIDAR), rho, sensor)
         rows[name] = {"clouds": int(len(t)), "cells_exact_4x4": len(ref),
                       "sum_exact_4x4": round(sum(ref.values()), 3),

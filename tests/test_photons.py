@@ -468,10 +468,10 @@ def test_the_generated_path_on_exact_geometry_lights_the_cells_the_normals_do(na
     table = np.array([[0, 3200.0, math.radians(4.0), 0.08, 0.4, 0.05],
                       [0, 4500.0, math.radians(12.0), -0.1, -1.1, 0.2],
                       [0, 5800.0, math.radians(25.0), 0.2, 2.0, -0.3]])
-    nb = sensor()
+    night = sensor()
 
     def per_cell(hits):
-        pe = signal_photoelectrons(hits.range_m, hits.cos, 0.6, nb, hits.sub_rays)
+        pe = signal_photoelectrons(hits.range_m, hits.cos, 0.6, night, hits.sub_rays)
         key = (hits.sample * 10**6 + (hits.h.astype(np.int64) + 500) * 1000
                + hits.w.astype(np.int64) + 500)
         u, inv = np.unique(key, return_inverse=True)

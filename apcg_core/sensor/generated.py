@@ -119,14 +119,20 @@ def sub_rays_of_fine_cloud(cloud: PointCloud, elevation: np.ndarray, lidar: Lida
     """``lidar``'s K x K sub-rays from a cloud drawn at ``sub_ray_lidar(lidar, k)``: each
     finer point one sub-ray of the cell it falls in, its incidence from the slope across finer
     cells (:func:`hits_of_cloud`); points outside ``lidar``'s window are left out."""
-    fine = sub_ray_lidar(lidar, k)
-    hits = hits_of_cloud(cloud, elevation, fine, n_samples)
+    return cells_of_fine_hits(hits_of_cloud(cloud, elevation, sub_ray_lidar(lidar, k),
+                                            n_samples), lidar, k)
+
+
+def cells_of_fine_hits(hits: SubRayHits, lidar: LidarParams, k: int = SUB_READS) -> SubRayHits:
+    """Returns at ``sub_ray_lidar(lidar, k)``'s cells as sub-rays of ``lidar``'s cells (the
+    finer cell whose centre lies in a cell is one of its K x K sub-rays); outside ``lidar``'s
+    window left out."""
     half = (k - 1) // 2
     w = np.floor_divide(hits.w.astype(np.int64) + half, k)
     h = np.floor_divide(hits.h.astype(np.int64) + half, k)
     keep = lidar.inside(w, h)
     return SubRayHits(hits.sample[keep], w[keep].astype(np.int32), h[keep].astype(np.int32),
-                      hits.range_m[keep], hits.cos[keep], n_samples, k * k)
+                      hits.range_m[keep], hits.cos[keep], hits.n_samples, k * k)
 
 
 def photon_generated(cloud: PointCloud, table: np.ndarray, names, lidar: LidarParams, sensor,
