@@ -245,6 +245,7 @@ def _task(plan: Plan, catalog, s: ShardPlan, out: Path) -> ShardTask:
                      fine_cloud_points=int(plan.config.get("fine_cloud_points", 10_000)),
                      lidar=plan.lidar.to_dict(),
                      sensor=plan.sensor.to_dict() if plan.sensor else None,
+                     incidence=bool(plan.config.get("incidence", False)),
                      seed=int(plan.config.get("seed", 0)))
 
 

@@ -212,4 +212,12 @@ def make_plan(cfg: dict, catalog, backend: str | None = None,
         raise InputError("a sensor needs a ray-casting backend (the photon stage takes every "
                          "sub-ray's range and incidence); accepted: embree, blender, "
                          "blender-bvh")
+    if cfg.get("incidence", False):
+        if sensor_params is not None:
+            raise InputError("incidence = true records each return's cosine of incidence in "
+                             "an ideal dataset; a sensor's dataset records the signal per cell "
+                             "instead (target_signal_pe): give one or the other")
+        if cfg["backend"] == "points":
+            raise InputError("incidence = true needs a ray-casting backend (the face each ray "
+                             "meets); accepted: embree, blender, blender-bvh")
     return Plan(cfg, lidar, space, types, table, split, shards, values, sensor_params)

@@ -76,6 +76,9 @@ SCHEMA: dict = {
     # a preset name, a TOML file, or the [sensor] table itself: apcg_core.sensor checks it
     "sensor": Key("a sensor preset name, a TOML file or a [sensor] table (docs/SPEC.md "
                   "section 8)", lambda v: _text(v) or isinstance(v, dict)),
+    # each return's cosine of incidence in the shards (cos_incidence): what an incidence
+    # output learns from (training.families.plus_incidence); ideal ray-cast datasets only
+    "incidence": Key("true or false", lambda v: isinstance(v, bool)),
     "lidar": Table({"r_alpha_deg": _POSITIVE, "r_beta_deg": _POSITIVE, "r_r_m": _POSITIVE,
                     "width": _EVEN, "height": _EVEN}),
     "ranges": Table({k: _PAIR for k in ("aircraft_range_m", "drone_range_m", "elevation_deg",

@@ -36,6 +36,7 @@ class ShardTask:
     lidar: dict
     sensor: dict | None = None  # SensorParams.to_dict(); None: the ideal standard cloud
     seed: int = 0  # the dataset's seed: a sample's photons are seeded by (seed, sample id)
+    incidence: bool = False  # also each return's cosine of incidence (cos_incidence)
 
 
 _SIMULATORS: dict = {}
@@ -67,8 +68,36 @@ def compute_shard(task: ShardTask) -> Shard:
     if task.sensor is not None:
         return _photon_shard(task, sim, default_catalog())
     cl = sim.simulate_cells_type(default_catalog(), task.type_catalog_index, task.table)
-    return _shard(task, lidar, cl.sample, cl.cell_w, cl.cell_h, cl.range_m, cl.clipped,
-                  cl.n_rays)
+    shard = _shard(task, lidar, cl.sample, cl.cell_w, cl.cell_h, cl.range_m, cl.clipped,
+                   cl.n_rays)
+    if task.incidence:
+        shard.cos_incidence = _incidence(sim, default_catalog(), task, cl).astype(np.float16)
+    return shard
+
+
+def _incidence(sim, catalog, task: ShardTask, cl) -> np.ndarray:
+    """Each return's cosine of incidence: that of the nearest of its cell's sub-rays (the ray
+    whose range the cell returns), from the same rays cast again with their faces named
+    (``Simulator.sub_ray_hits``). A return whose cell the second cast misses (float32 rounding
+    on an edge between two casts, rare) is taken as facing the lidar, as the photon stage
+    takes a hit whose face the caster cannot name."""
+    t = catalog.get(task.type_catalog_index)
+    hits = sim.sub_ray_hits(catalog.mesh(t), task.table, key=("type", t.index))
+    span = np.int64(1) << 20
+
+    def key(s, w, h):
+        return ((s.astype(np.int64) * span + h.astype(np.int64) + span // 2) * span
+                + w.astype(np.int64) + span // 2)
+
+    k = key(hits.sample, hits.w, hits.h)
+    order = np.lexsort((hits.range_m, k))  # by cell, nearest sub-ray first
+    k, cos = k[order], hits.cos[order]
+    first = np.concatenate([[True], k[1:] != k[:-1]]) if len(k) else np.zeros(0, bool)
+    k, cos = k[first], cos[first]
+    want = key(cl.sample, cl.cell_w, cl.cell_h)
+    at = np.minimum(np.searchsorted(k, want), max(len(k) - 1, 0))
+    found = (k[at] == want) if len(k) else np.zeros(len(want), bool)
+    return np.where(found, cos[at] if len(k) else 1.0, 1.0)
 
 
 def _pixels(lidar, w, h):

@@ -44,6 +44,14 @@ class DepthDataset:
         self.pixel = np.concatenate([s.pixel.astype(np.int64) for s in shards])
         self.depth = np.concatenate([s.depth for s in shards]).astype(np.float32)
         self.delta_range_m = np.concatenate([s.delta_range_m for s in shards])
+        # each return's cosine of incidence, where the dataset was built with incidence = true
+        # (every shard, or the build is refused below: none is half-labelled)
+        has = [s.cos_incidence is not None for s in shards]
+        if any(has) and not all(has):
+            raise InputError(f"dataset {directory}: some shards hold cos_incidence and some "
+                             "do not; rebuild it with one config")
+        self.cos_incidence = (np.concatenate([s.cos_incidence for s in shards])
+                              .astype(np.float32) if all(has) else None)
         self.q = scale_ratio(self.conditions[:, 1])
         self.lidar = LidarParams.from_dict(self.header["lidar"])
         self.types = TypeTable.from_records(self.header["types"], owner=f"dataset {directory}")

@@ -96,19 +96,21 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
             "generator_weights": (f"moving average (decay {st['train']['ema']:g}) since step "
                                   f"{st.get('ema_since', 0)}" if averaged else "raw")}
     out = family.export(st, head, Path(out_dir), meta, data, sampling_steps=sampling_steps)
+    # a family that writes beside a model's own files names its run's record apart
+    prefix = getattr(family, "record_prefix", "")
     if (run / "train_config.json").exists():
-        shutil.copy(run / "train_config.json", out / "train_config.json")
+        shutil.copy(run / "train_config.json", out / f"{prefix}train_config.json")
     if (run / "log.csv").exists():  # the log up to the exported step
         from apcg_core.io.csv_table import read_csv
         table = read_csv(run / "log.csv", required=("step",), what="training log")
         rows = [r for r in table if r.int("step") <= st["step"]]
         keep = [r for r in rows[:-1] if r.int("step") % log_every == 0] + rows[-1:]
-        (out / "log.csv").write_text("".join(table.lines[i - 1].rstrip("\r\n") + "\n" for i in
+        (out / f"{prefix}log.csv").write_text("".join(table.lines[i - 1].rstrip("\r\n") + "\n" for i in
                                              [table.header_line, *(r.line for r in keep)]))
         if log_every > 1:
             meta_path = out / "model.json"
             meta_now = json.loads(meta_path.read_text())
-            meta_now["log"] = (f"log.csv keeps every {log_every}th of the run's {len(rows)} "
+            meta_now[f"{prefix}log"] = (f"{prefix}log.csv keeps every {log_every}th of the run's {len(rows)} "
                                "logged steps, and the last")
             meta_path.write_text(json.dumps(meta_now, indent=1) + "\n")
     return out

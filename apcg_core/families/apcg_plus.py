@@ -167,6 +167,17 @@ class PlusModel(ModelTypes):
         self.runtime = "onnx" if runtime == "auto" else runtime
         self._rt: _Runtime | None = None
         self._opening = threading.Lock()
+        # the incidence output (training/families/plus_incidence.py): a second network the
+        # photon stage reads each sub-ray's cosine of incidence from (SPEC section 8)
+        self.incidence_path = self.directory / "incidence.onnx"
+        has_file, has_record = self.incidence_path.is_file(), "incidence" in self.meta
+        if has_file != has_record:
+            raise InputError(f"{self.directory}: " + (
+                "incidence.onnx is there but model.json does not say what it is (its "
+                "'incidence' record); export it again with `apcg export`" if has_file else
+                "model.json records an incidence network but incidence.onnx is missing"))
+        self.draws_incidence = has_file
+        self._incidence = {}  # its onnxruntime session, once opened (shared by shallow copies)
 
     # How `apcg generate` feeds this model (apcg_core/generation_cli.py): its clouds depend on
     # neither the seed nor how the conditions are cut into blocks, so a block is one network
@@ -238,6 +249,39 @@ class PlusModel(ModelTypes):
         out = [self._even_run(codes[s:s + rows], nu[s:s + rows, 1:])
                for s in range(0, len(table), rows)]
         return np.concatenate(out) if out else np.zeros((0, 2, 1, 1), np.float32)
+
+    def incidence_of(self, table: np.ndarray, cloud: PointCloud) -> np.ndarray:
+        """Each point's cosine of incidence (``cloud.sample`` indexing condition rows
+        ``table``, its cells at this model's lidar): the logistic of the incidence network's
+        sheet read at the cell's centre as the model's own sheet is (bilinear)."""
+        if not self.draws_incidence:
+            raise InputError(f"{self.directory} has no incidence output (incidence.onnx); "
+                             "`apcg train --family apcg-plus-incidence --init MODEL` makes one")
+        with self._opening:
+            if "session" not in self._incidence:
+                import onnxruntime as ort
+                opts = ort.SessionOptions()
+                opts.intra_op_num_threads = 1 if self.workers > 1 else 0
+                self._incidence["session"] = onnx_session(self.incidence_path, opts)
+        session = self._incidence["session"]
+        nu = self.space.encode(table).astype(np.float32)
+        codes = table[:, 0].astype(np.int64)
+        parts = []
+        for s in range(0, len(table), NET_ROWS):  # even batches, as _even_run and for its reason
+            c, p = codes[s:s + NET_ROWS], nu[s:s + NET_ROWS, 1:]
+            n = len(c)
+            if n % 2:
+                c, p = np.append(c, c[-1:]), np.concatenate([p, p[-1:]])
+            parts.append(session.run(
+                None, {"type_code": c, "pose": np.ascontiguousarray(p)})[0][:n])
+        if not len(cloud):
+            return np.zeros(0)
+        sample = (np.zeros(len(cloud), np.int64) if cloud.sample is None
+                  else np.asarray(cloud.sample, np.int64))
+        u, v = sheet_coords(cloud.cell_w, cloud.cell_h, table[sample, 1], table[sample, 2],
+                            self.radius[codes[sample]], self.lidar)
+        logit = sample_sheets(np.concatenate(parts).astype(np.float64), sample, u, v)[:, 0]
+        return 1.0 / (1.0 + np.exp(-logit))
 
     def clouds_of(self, table: np.ndarray, sheets: np.ndarray,
                   compiled: bool | None = None) -> PointCloud:

@@ -27,6 +27,10 @@ SHARD_KEYS = ("sample_id", "conditions", "nu", "offsets", "pixel", "depth", "del
 # A photon dataset's shards (a [sensor] in the config, SPEC section 8) also hold these; an
 # ideal dataset's shards do not, and are byte-identical to those built before they existed.
 PHOTON_KEYS = ("label", "count", "pulse", "target_offsets", "target_pixel", "target_signal_pe")
+# An ideal dataset built with ``incidence = true`` also holds each point's cosine of incidence
+# (what an incidence output is trained on, docs/DATASET.md); others do not.
+INCIDENCE_KEYS = ("cos_incidence",)
+OPTIONAL_KEYS = PHOTON_KEYS + INCIDENCE_KEYS
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
@@ -127,12 +131,15 @@ class Shard:
     target_offsets: np.ndarray | None = None  # (n + 1,) int64
     target_pixel: np.ndarray | None = None  # (T,) uint16/uint32
     target_signal_pe: np.ndarray | None = None  # (T,) float32
+    # ideal datasets built with incidence = true: per point the cosine of the angle between
+    # the cell's ray and the face it met
+    cos_incidence: np.ndarray | None = None  # (P,) float16
 
     def __len__(self) -> int:
         return len(self.sample_id)
 
     def to_bytes(self) -> bytes:
-        keys = SHARD_KEYS + tuple(k for k in PHOTON_KEYS if getattr(self, k) is not None)
+        keys = SHARD_KEYS + tuple(k for k in OPTIONAL_KEYS if getattr(self, k) is not None)
         return npz_bytes({k: getattr(self, k) for k in keys})
 
     @classmethod
@@ -144,7 +151,7 @@ class Shard:
                 if missing:
                     raise InputError(f"dataset shard {path} lacks arrays {missing}; it is not "
                                      "an APCG shard or is from another format version")
-                arrays = {k: z[k] for k in SHARD_KEYS + PHOTON_KEYS if k in z.files}
+                arrays = {k: z[k] for k in SHARD_KEYS + OPTIONAL_KEYS if k in z.files}
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
             if isinstance(exc, InputError):
                 raise
@@ -155,13 +162,14 @@ class Shard:
         if len(shard.offsets) != n + 1 or shard.offsets[-1] != len(shard.pixel):
             raise InputError(f"dataset shard {path} is inconsistent (offsets do not match the "
                              "points); delete it and build again")
-        per_point = [k for k in ("label", "count", "pulse") if getattr(shard, k) is not None
+        per_point = [k for k in ("label", "count", "pulse", "cos_incidence")
+                     if getattr(shard, k) is not None
                      and len(getattr(shard, k)) != len(shard.pixel)]
         t_off, t_pix = shard.target_offsets, shard.target_pixel
         if per_point or (t_off is not None and (
                 len(t_off) != n + 1 or t_pix is None or t_off[-1] != len(t_pix)
                 or shard.target_signal_pe is None or len(shard.target_signal_pe) != len(t_pix))):
-            raise InputError(f"dataset shard {path} is inconsistent (its photon arrays "
+            raise InputError(f"dataset shard {path} is inconsistent (its per-point arrays "
                              f"{per_point or ['target_*']} do not match its points); delete it "
                              "and build again")
         return shard

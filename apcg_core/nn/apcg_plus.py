@@ -32,7 +32,9 @@ class PlusConfig:
     features: ``conv``, a 3 x 3 convolution over features at the sheet's own resolution (the
     trained default); ``upconv``, the last upsampling step draws the sheet itself, so no
     features are ever held at full resolution (about 0.6 times the cost a condition on a CPU,
-    docs/SCALE.md; what ``apcg distill`` makes)."""
+    docs/SCALE.md; what ``apcg distill`` makes). ``outputs`` is the sheet's channels: 2 for a
+    model's network (hit logit, range offset), 1 for its incidence network (the logit of the
+    cosine of incidence, training/families/plus_incidence.py)."""
 
     n_types: int
     width: float = 1.0
@@ -43,6 +45,7 @@ class PlusConfig:
     film: bool = True
     head: str = "conv"
     family: str = "apcg-plus"
+    outputs: int = 2
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_types, int) or self.n_types < 1:
@@ -53,6 +56,9 @@ class PlusConfig:
         if k != int(k) or not 1 <= k <= len(BASE_CHANNELS) - 1:
             raise InputError(f"sheet must be 4 x 2^k with 1 <= k <= {len(BASE_CHANNELS) - 1} "
                              f"(8, 16, ... 512), got {self.sheet}")
+        if self.outputs not in (1, 2):
+            raise InputError(f"outputs (the sheet's channels) must be 1 or 2, got "
+                             f"{self.outputs!r}")
         if self.head not in HEADS:
             raise InputError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
 
@@ -110,13 +116,13 @@ class PlusNet(nn.Module):
                 nn.init.zeros_(f.weight)
                 nn.init.zeros_(f.bias)
         self.act = nn.SiLU()
-        self.head = (nn.Conv2d(ch[-1], 2, 3, padding=1) if cfg.head == "conv"
-                     else nn.ConvTranspose2d(ch[-1], 2, 4, 2, 1))
+        self.head = (nn.Conv2d(ch[-1], cfg.outputs, 3, padding=1) if cfg.head == "conv"
+                     else nn.ConvTranspose2d(ch[-1], cfg.outputs, 4, 2, 1))
 
     def forward(self, type_code: torch.Tensor, pose: torch.Tensor,
                 embedding: torch.Tensor | None = None,
                 offset: torch.Tensor | None = None) -> torch.Tensor:
-        """(N,) int64 type codes and (N, 5) scaled pose -> (N, 2, S, S) sheets. ``embedding``
+        """(N,) int64 type codes and (N, 5) scaled pose -> (N, outputs, S, S) sheets. ``embedding``
         and ``offset`` replace the weights of the type embedding and the type offset (``apcg
         teach`` fits one row of each)."""
         emb = (self.type_embedding(type_code) if embedding is None

@@ -64,10 +64,11 @@ def _slope(r: np.ndarray, minus: np.ndarray, plus: np.ndarray) -> np.ndarray:
 
 
 def hits_of_cloud(cloud: PointCloud, elevation: np.ndarray, lidar: LidarParams,
-                  n_samples: int) -> SubRayHits:
+                  n_samples: int, cos: np.ndarray | None = None) -> SubRayHits:
     """One return per point of ``cloud`` (``cloud.sample`` in 0..n_samples-1, ``elevation``
     per sample for the cell heights), its incidence from the range slope to the neighbouring
-    cells (:func:`_slope`)."""
+    cells (:func:`_slope`), or each point's ``cos`` where given (a model's incidence
+    output)."""
     s = (np.zeros(len(cloud), np.int64) if cloud.sample is None
          else np.asarray(cloud.sample, np.int64))
     w = cloud.cell_w.astype(np.int64)
@@ -77,6 +78,9 @@ def hits_of_cloud(cloud: PointCloud, elevation: np.ndarray, lidar: LidarParams,
     key = (s * (lidar.height + 2) + (h - lidar.h_min + 1)) * span + (w - lidar.w_min + 1)
     order = np.argsort(key, kind="stable")
     key, s, w, h, r = key[order], s[order], w[order], h[order], r[order]
+    if cos is not None:
+        cos = np.clip(np.asarray(cos, np.float64)[order], 0.0, 1.0)
+        return SubRayHits(s, w.astype(np.int32), h.astype(np.int32), r, cos, n_samples, 1)
     dr_w = _slope(r, _neighbour_range(key, key, r, -1), _neighbour_range(key, key, r, 1))
     dr_h = _slope(r, _neighbour_range(key, key, r, -span), _neighbour_range(key, key, r, span))
     beta = np.asarray(elevation, np.float64)[s] + h * lidar.r_beta
@@ -104,23 +108,30 @@ def sub_ray_hits(model, table: np.ndarray, names, lidar: LidarParams,
                  k: int = SUB_READS) -> SubRayHits:
     """The K x K sub-rays of ``model``'s clouds of conditions ``table`` at ``lidar``: the
     model (a family with ``ANY_LIDAR``) draws them at the K-times finer lidar, unquantized.
-    The model itself is left as it was (a shallow copy draws)."""
+    Each sub-ray's incidence is the model's incidence output where it has one
+    (``draws_incidence``), else the range slope's. The model itself is left as it was (a
+    shallow copy draws)."""
     import copy
     fine_model = copy.copy(model)
     fine = sub_ray_lidar(lidar, k)
     fine_model.lidar = fine
     fine_model.quantize = False
-    res = fine_model.generate(fine_model.conditions(list(names), table[:, 1:]))
-    return sub_rays_of_fine_cloud(res.cloud, table[:, 2], lidar, len(table), k)
+    conditions = fine_model.conditions(list(names), table[:, 1:])
+    res = fine_model.generate(conditions)
+    cos = (fine_model.incidence_of(fine_model.repeated_conditions(conditions, 1), res.cloud)
+           if getattr(model, "draws_incidence", False) else None)
+    return sub_rays_of_fine_cloud(res.cloud, table[:, 2], lidar, len(table), k, cos)
 
 
 def sub_rays_of_fine_cloud(cloud: PointCloud, elevation: np.ndarray, lidar: LidarParams,
-                           n_samples: int, k: int = SUB_READS) -> SubRayHits:
+                           n_samples: int, k: int = SUB_READS,
+                           cos: np.ndarray | None = None) -> SubRayHits:
     """``lidar``'s K x K sub-rays from a cloud drawn at ``sub_ray_lidar(lidar, k)``: each
-    finer point one sub-ray of the cell it falls in, its incidence from the slope across finer
-    cells (:func:`hits_of_cloud`); points outside ``lidar``'s window are left out."""
+    finer point one sub-ray of the cell it falls in, its incidence ``cos`` where given (per
+    point), else from the slope across finer cells (:func:`hits_of_cloud`); points outside
+    ``lidar``'s window are left out."""
     return cells_of_fine_hits(hits_of_cloud(cloud, elevation, sub_ray_lidar(lidar, k),
-                                            n_samples), lidar, k)
+                                            n_samples, cos), lidar, k)
 
 
 def cells_of_fine_hits(hits: SubRayHits, lidar: LidarParams, k: int = SUB_READS) -> SubRayHits:

@@ -64,16 +64,20 @@ class HitLookup:
         order = np.argsort(keys, kind="stable")
         self.keys = keys[order]
         self.delta = ds.delta_range_m[order].astype(np.float64)
+        cos = getattr(ds, "cos_incidence", None)  # an incidence dataset's (plus_incidence.py)
+        self.cos = None if cos is None else cos[order].astype(np.float32)
         self.offsets = ds.offsets
         self.pixel = ds.pixel
         self.n_px = n_px
 
-    def find(self, sample, pixel):
-        """(is a return, its range offset in metres or 0) for cells ``pixel`` of ``sample``."""
+    def find(self, sample, pixel, cosine: bool = False):
+        """(is a return, its range offset in metres or 0) for cells ``pixel`` of ``sample``;
+        with ``cosine``, also its cosine of incidence or 0."""
         key = sample * self.n_px + pixel
         pos = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
         hit = self.keys[pos] == key
-        return hit, np.where(hit, self.delta[pos], 0.0)
+        found = hit, np.where(hit, self.delta[pos], 0.0)
+        return (*found, np.where(hit, self.cos[pos], 0.0)) if cosine else found
 
 
 _LOOKUPS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -94,9 +98,10 @@ def radius_of(ds) -> np.ndarray:
     return np.asarray(rad, np.float64)[ds.conditions[:, 0].astype(np.int64)]
 
 
-def draw_queries(ds, idx, rng, n: int = QUERIES, mix: str = "returns"):
+def draw_queries(ds, idx, rng, n: int = QUERIES, mix: str = "returns", cosine: bool = False):
     """Query cells of samples ``idx``: (B, n) arrays of u, v, hit (0/1) and range offset / R,
-    drawn by ``mix`` (a name of QUERY_MIXES)."""
+    drawn by ``mix`` (a name of QUERY_MIXES); with ``cosine``, also each return's cosine of
+    incidence (0 where none; an incidence dataset's)."""
     lidar = ds.lidar
     look = hit_lookup(ds)
     idx = np.asarray(idx, np.int64)
@@ -129,9 +134,10 @@ def draw_queries(ds, idx, rng, n: int = QUERIES, mix: str = "returns"):
     w = np.clip(np.concatenate([wu, wr], axis=1), w_lo[:, None], w_hi[:, None])
     h = np.clip(np.concatenate([hu, hr], axis=1), h_lo[:, None], h_hi[:, None])
     pixel = lidar.row_of_h(h) * lidar.width + lidar.col_of_w(w)
-    hit, delta = look.find(np.repeat(idx[:, None], n, axis=1), pixel)
+    hit, delta, *cos = look.find(np.repeat(idx[:, None], n, axis=1), pixel, cosine)
     u, v = sheet_coords(w, h, r0[:, None], b0[:, None], rad[:, None], lidar)
-    return u, v, hit.astype(np.float32), (delta / rad[:, None])
+    return (u, v, hit.astype(np.float32), (delta / rad[:, None]),
+            *(c.astype(np.float32) for c in cos))
 
 
 class PlusFamily(Family):
@@ -400,8 +406,9 @@ class PlusFamily(Family):
         return fit
 
 
-def export_sheets_onnx(net, path: Path) -> None:
-    """The network as ONNX: inputs type_code (N,) int64 and pose (N, 5); output sheet."""
+def export_sheets_onnx(net, path: Path, output: str = "sheet") -> None:
+    """The network as ONNX: inputs type_code (N,) int64 and pose (N, 5); output ``output``
+    (a model's ``sheet``, its incidence network's ``incidence``)."""
     import os
     import warnings
 
@@ -411,10 +418,10 @@ def export_sheets_onnx(net, path: Path) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         torch.onnx.export(net, (torch.zeros(2, dtype=torch.int64), torch.zeros(2, 5)), str(tmp),
-                          input_names=["type_code", "pose"], output_names=["sheet"],
+                          input_names=["type_code", "pose"], output_names=[output],
                           opset_version=17, dynamo=False, do_constant_folding=False,
                           dynamic_axes={"type_code": {0: "batch"}, "pose": {0: "batch"},
-                                        "sheet": {0: "batch"}})
+                                        output: {0: "batch"}})
     os.replace(tmp, path)
 
 

@@ -1,0 +1,204 @@
+"""An APCG+ model's incidence output (training/families/plus_incidence.py, SPEC section 8): the
+dataset records each return's cosine of incidence (checked against the mesh's own faces), the
+incidence network learns it and is exported beside the model without touching the model's own
+network, the photon stage reads it, and what cannot be trained or loaded is refused by name."""
+
+import copy
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apcg_core.catalog import default_catalog
+from apcg_core.depth import DEFAULT_LIDAR
+from apcg_core.errors import InputError
+from apcg_core.families import default_model_dir, load_model
+from apcg_core.sensor import generated as G
+from dataset_builder.build import build_dataset
+from dataset_builder.rays import sample_frames
+from training.data import DepthDataset
+
+pytest.importorskip("torch")
+trimesh = pytest.importorskip("trimesh")
+
+BASE = default_model_dir()
+SMALL = {"seed": 3, "backend": "embree", "shard_size": 50, "test_fraction": 0.2,
+         "sampling": "random", "samples_per_type": 12,
+         "types": ["A320neo", "F-16C Fighting Falcon", "Mavic 3", "UH-60 Black Hawk"]}
+
+
+def _build(tmp_path, name, **cfg) -> Path:
+    out = tmp_path / name
+    build_dataset({**SMALL, **cfg}, out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def every_type(tmp_path_factory) -> Path:
+    """Two conditions of every catalog type with their cosines: the default model's types."""
+    out = tmp_path_factory.mktemp("incidence") / "ds"
+    build_dataset({**SMALL, "types": "all", "samples_per_type": 2, "test_fraction": 0.5,
+                   "shard_size": 1000, "incidence": True}, out, progress=False)
+    return out
+
+
+def test_incidence_adds_each_returns_cosine_and_changes_nothing_else(tmp_path):
+    plain = _build(tmp_path, "plain", quantize=False)
+    inc = _build(tmp_path, "inc", quantize=False, incidence=True)
+    head = json.loads((inc / "dataset.json").read_text())
+    cat = default_catalog()
+    checked = 0
+    for shard in head["shards"]:
+        a, b = np.load(inc / shard["file"]), np.load(plain / shard["file"])
+        assert set(a.files) == set(b.files) | {"cos_incidence"}
+        for k in b.files:  # the standard cloud byte for byte
+            assert np.array_equal(a[k], b[k]), (shard["file"], k)
+        cos = a["cos_incidence"].astype(np.float64)
+        assert cos.dtype == np.float64 and len(cos) == len(a["pixel"])
+        assert ((cos >= 0) & (cos <= 1)).all()
+        # against the mesh itself: the face each cell's ray meets first (trimesh's own ray
+        # query, in the body frame), its normal against the ray
+        t = cat.get(head["types"][shard["type_code"]]["name"])
+        mesh = cat.mesh(t)
+        tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        table = a["conditions"]
+        m, c = sample_frames(table)
+        s = np.repeat(np.arange(len(table)), np.diff(a["offsets"]))
+        row, col = np.divmod(a["pixel"].astype(np.int64), DEFAULT_LIDAR.width)
+        w, h = DEFAULT_LIDAR.w_of_col(col), DEFAULT_LIDAR.h_of_row(row)
+        alpha, beta = DEFAULT_LIDAR.cell_centre_angles(w, h, table[s, 2])
+        d = np.stack([np.cos(beta) * np.sin(alpha), np.sin(beta),
+                      np.cos(beta) * np.cos(alpha)], axis=1)
+        origin = np.einsum("nj,njk->nk", -c[s], m[s])  # observation -> body: x (M^T)
+        direction = np.einsum("nj,njk->nk", d, m[s])
+        # start the rays near the target (float32 queries at kilometres lose the faces)
+        r0 = table[s, 1] - 200.0
+        face = tm.ray.intersects_first(origin + direction * r0[:, None], direction)
+        met = face >= 0
+        assert met.mean() > 0.97, (t.name, met.mean())
+        want = np.abs((tm.face_normals[face[met]] * direction[met]).sum(axis=1))
+        err = np.abs(cos[met] - want)
+        assert np.median(err) < 2e-3 and (err < 0.02).mean() > 0.95, (t.name, err.max())
+        checked += int(met.sum())
+    assert checked > 500
+
+
+def test_incidence_is_refused_where_it_cannot_be_recorded(tmp_path):
+    with pytest.raises(InputError, match="incidence = true records .* a sensor's dataset"):
+        _build(tmp_path, "a", incidence=True, sensor="1550nm-day")
+    with pytest.raises(InputError, match="incidence = true needs a ray-casting backend"):
+        _build(tmp_path, "b", incidence=True, backend="points")
+    with pytest.raises(InputError, match="incidence.*true or false"):
+        _build(tmp_path, "c", incidence="yes")
+    for name in ("a", "b", "c"):
+        assert not (tmp_path / name / "manifest.json").exists()
+
+
+def _train(every_type, run, *extra) -> int:
+    from apcg_core.cli import main
+    return main(["train", "--data", str(every_type), "-o", str(run), "--family",
+                 "apcg-plus-incidence", "--init", str(BASE), "--width", "0.75", "--sheet", "32",
+                 "--head", "upconv", "--no-progress", *extra])
+
+
+def _error(model, ds) -> float:
+    """Mean |cosine - the data's| at every return of ``ds``'s training half."""
+    table = ds.conditions.copy()
+    codes = [model.types.names.index(ds.types.name(int(c))) for c in table[:, 0]]
+    table[:, 0] = codes
+    row, col = np.divmod(ds.pixel, ds.width)
+    from apcg_core.cloud import PointCloud
+    cloud = PointCloud(np.zeros((len(row), 3)), np.zeros(len(row)), ds.lidar.w_of_col(col),
+                       ds.lidar.h_of_row(row), np.repeat(np.arange(len(ds)),
+                                                         np.diff(ds.offsets)))
+    return float(np.abs(model.incidence_of(table, cloud) - ds.cos_incidence).mean())
+
+
+def test_the_incidence_output_learns_and_is_exported_beside_the_model(every_type, tmp_path,
+                                                                      capsys):
+    from training.export import export_model
+    start = tmp_path / "start"
+    assert _train(every_type, start, "--steps", "1", "--lr", "1e-12", "--no-bf16") == 0
+    assert _train(every_type, tmp_path / "run", "--steps", "150", "--lr", "3e-3",
+                  "--no-bf16") == 0
+    assert json.loads((tmp_path / "run" / "train_config.json").read_text())["train"][
+        "bf16"] is False
+    ds = DepthDataset(every_type, "train")
+    before = load_model(export_model(start, tmp_path / "m0"))
+    out = export_model(tmp_path / "run", tmp_path / "m")
+    after = load_model(out)
+    e0, e1 = _error(before, ds), _error(after, ds)
+    assert e0 > 0.15 and e1 < 0.8 * e0, (e0, e1)  # a cosine of one half everywhere, at first
+    # the model itself, untouched: its network, threshold and its own run's record
+    for name in ("sheets.onnx", "train_config.json", "log.csv", "tau_sweep.json"):
+        assert (out / name).read_bytes() == (BASE / name).read_bytes(), name
+    assert after.family == "apcg-plus" and after.tau == load_model(BASE).tau
+    assert after.draws_incidence and not load_model(BASE).draws_incidence
+    rec = after.meta["incidence"]
+    assert rec["net"]["outputs"] == 1 and rec["trained_steps"] == 150
+    assert rec["train"]["init"] == str(BASE)
+    assert (out / "incidence_log.csv").read_text().startswith("step,")
+    assert json.loads((out / "incidence_train_config.json").read_text())["train"][
+        "family"] == "apcg-plus-incidence"
+    # the photon stage reads it: the same sub-rays as without it, their cosines the output's
+    table = np.array([[0, 4200.0, np.radians(3.5), np.radians(2.0), 0.6, 0.02],
+                      [0, 5100.0, np.radians(3.2), np.radians(3.0), -0.8, -0.05]])
+    names = ["A320neo", "F-16C Fighting Falcon"]
+    m = copy.copy(after)
+    m.use_lidar(DEFAULT_LIDAR)
+    got = G.sub_ray_hits(m, table, names, DEFAULT_LIDAR)
+    slope = copy.copy(m)
+    slope.draws_incidence = False
+    ref = G.sub_ray_hits(slope, table, names, DEFAULT_LIDAR)
+    assert len(got.cos) > 100
+    for k in ("sample", "w", "h", "range_m"):
+        assert np.array_equal(getattr(got, k), getattr(ref, k)), k
+    assert not np.allclose(got.cos, ref.cos)
+    fine = copy.copy(m)
+    fine.lidar, fine.quantize = G.sub_ray_lidar(DEFAULT_LIDAR), False
+    conds = fine.conditions(names, table[:, 1:])
+    cloud = fine.generate(conds).cloud
+    want = fine.incidence_of(fine.repeated_conditions(conds, 1), cloud)
+    hits = G.hits_of_cloud(cloud, table[:, 2], fine.lidar, len(table), want)
+    inside = G.cells_of_fine_hits(hits, DEFAULT_LIDAR)
+    assert np.array_equal(inside.cos, got.cos)
+    # each cosine stays with its own point whatever order the cloud comes in
+    order = np.random.default_rng(0).permutation(len(cloud))
+    from apcg_core.cloud import PointCloud
+    shuffled = PointCloud(cloud.xyz[order], cloud.range_m[order], cloud.cell_w[order],
+                          cloud.cell_h[order], cloud.sample[order])
+    again = G.hits_of_cloud(shuffled, table[:, 2], fine.lidar, len(table), want[order])
+    assert np.array_equal(again.cos, hits.cos) and np.array_equal(again.w, hits.w)
+
+
+def test_what_cannot_be_trained_or_loaded_is_refused(every_type, tmp_path, capsys):
+    from apcg_core.cli import main
+    assert main(["train", "--data", str(every_type), "-o", str(tmp_path / "a"), "--family",
+                 "apcg-plus-incidence", "--width", "0.75", "--sheet", "32", "--head", "upconv",
+                 "--steps", "1", "--no-progress"]) == 2
+    assert "give the model with --init MODEL" in capsys.readouterr().err
+    plain = _build(tmp_path, "plain", types="all", samples_per_type=1, test_fraction=0.0,
+                   shard_size=1000)
+    assert _train(plain, tmp_path / "b", "--steps", "1") == 2
+    assert "holds no cos_incidence: build it with incidence = true" in capsys.readouterr().err
+    assert _train(every_type, tmp_path / "c", "--steps", "1", "--width", "0.5") == 2
+    assert "its network differs from the run's in width" in capsys.readouterr().err
+    # a model directory whose incidence network and record disagree
+    model = tmp_path / "m"
+    shutil.copytree(BASE, model)
+    (model / "incidence.onnx").write_bytes((BASE / "sheets.onnx").read_bytes())
+    with pytest.raises(InputError, match="incidence.onnx is there but model.json does not "
+                                         "say what it is"):
+        load_model(model)
+    (model / "incidence.onnx").unlink()
+    meta = json.loads((model / "model.json").read_text())
+    (model / "model.json").write_text(json.dumps({**meta, "incidence": {"net": {}}}))
+    with pytest.raises(InputError, match="incidence.onnx is missing"):
+        load_model(model)
+    with pytest.raises(InputError, match="has no incidence output"):
+        load_model(BASE).incidence_of(np.zeros((0, 6)), None)
+    with pytest.raises(InputError, match="not a family of models"):
+        from apcg_core.families import get_family
+        get_family("apcg-plus-incidence").load(model)
