@@ -147,7 +147,8 @@ def test_apcg_generate_runs_a_comparison_family_model(data, tmp_path, capsys):
     meta_path = mdir / "model.json"
     meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "family": "gizmo"}))
     with pytest.raises(InputError, match="unknown model family 'gizmo'; installed: apcg-plus, "
-                                         "apcg-plus-incidence, cgan, diffusion, point-gan, voxel-gan"):
+                                         "apcg-plus-incidence, cgan, diffusion, point-gan, "
+                                         "voxel-gan"):
         load_model(mdir)
 
 

@@ -105,13 +105,14 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
         table = read_csv(run / "log.csv", required=("step",), what="training log")
         rows = [r for r in table if r.int("step") <= st["step"]]
         keep = [r for r in rows[:-1] if r.int("step") % log_every == 0] + rows[-1:]
-        (out / f"{prefix}log.csv").write_text("".join(table.lines[i - 1].rstrip("\r\n") + "\n" for i in
-                                             [table.header_line, *(r.line for r in keep)]))
+        lines = [table.header_line, *(r.line for r in keep)]
+        (out / f"{prefix}log.csv").write_text(
+            "".join(table.lines[i - 1].rstrip("\r\n") + "\n" for i in lines))
         if log_every > 1:
             meta_path = out / "model.json"
             meta_now = json.loads(meta_path.read_text())
-            meta_now[f"{prefix}log"] = (f"{prefix}log.csv keeps every {log_every}th of the run's {len(rows)} "
-                               "logged steps, and the last")
+            meta_now[f"{prefix}log"] = (f"{prefix}log.csv keeps every {log_every}th of the "
+                                        f"run's {len(rows)} logged steps, and the last")
             meta_path.write_text(json.dumps(meta_now, indent=1) + "\n")
     return out
 
