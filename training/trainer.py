@@ -64,7 +64,8 @@ class TrainConfig:
     diffusion_steps: int = 200  # T of the DDPM schedule
     sheet: int = 64  # side of an APCG+ sheet (4 x 2^k)
     head: str = "conv"  # how an APCG+ network draws its sheet (apcg_core.families.plus_heads.HEADS)
-    queries: str = "returns"  # how APCG+ draws its loss's cells (training.families.apcg_plus.QUERY_MIXES)
+    # how APCG+ draws its loss's cells (training.families.apcg_plus.QUERY_MIXES)
+    queries: str = "returns"
     keep_every: int = 0  # also keep checkpoints/step-NNNNNN.pt every this many steps (0: never)
     diverge_gp: float = 50.0  # stop when the gradient penalty's mean over 50 steps exceeds it
     ema: float = 0.0  # decay of an exponential moving average of the generator (0: none)
