@@ -5,13 +5,13 @@ share, and MMD between the generated-with-photons cloud and a simulated-with-pho
 against the floor of two simulated draws of the same condition (other seeds).
 
     .venv/bin/python bench/photons_generated.py -o docs/evaluation/lidars \
-        [--sensors 1550nm-night,1550nm-day] [--per-band 6] [--seed 0] [--force]
+        [--sensors 1550nm-night,1550nm-day] [--per-band 6] [--seed 0] [--model DIR] [--force]
 
 Conditions: per band, --per-band random built-in types of that band at random Table 1
 conditions (seeded). Simulated: embree, 4 x 4 sub-rays per cell (simulate's default with a
-sensor), draws seeded (seed + 1, id) and (seed + 2, id); generated: the shipped default model,
-its photons seeded (seed + 3, id): no two of the three share a draw. MMD by the protocol's
-settings (2,048 points at most).
+sensor), draws seeded (seed + 1, id) and (seed + 2, id); generated: the shipped default model
+(or ``--model``), its photons seeded (seed + 3, id): no two of the three share a draw. MMD by
+the protocol's settings (2,048 points at most).
 Writes OUT/photons_generated.json and OUT/photons_generated.md; when either exists the run
 stops before any work unless ``--force`` (``bench_output.refuse``).
 """
@@ -66,6 +66,8 @@ def main() -> int:
     ap.add_argument("--cell-reads", action="store_true",
                     help="one return per generated point filling its cell (K = 1), not the "
                          "model's 3 x 3 sub-reads")
+    ap.add_argument("--model", default=None, help="a model directory (default: the shipped "
+                    "default); its incidence output is used where it has one (SPEC section 8)")
     ap.add_argument("--force", action="store_true",
                     help="replace OUT/photons_generated.json and .md when they exist")
     args = ap.parse_args()
@@ -73,7 +75,7 @@ def main() -> int:
     report = [Path(args.output) / "photons_generated.json",
               Path(args.output) / "photons_generated.md"]
     refuse(report, args.force)
-    model = load_model()
+    model = load_model(args.model)
     cat = default_catalog()
     names, table = conditions(model, args.per_band, args.seed)
     cond = model.conditions(names, table[:, 1:])
