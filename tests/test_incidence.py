@@ -96,10 +96,10 @@ def test_incidence_is_refused_where_it_cannot_be_recorded(tmp_path):
         assert not (tmp_path / name / "manifest.json").exists()
 
 
-def _train(every_type, run, *extra) -> int:
+def _train(every_type, run, *extra, init=BASE) -> int:
     from apcg_core.cli import main
     return main(["train", "--data", str(every_type), "-o", str(run), "--family",
-                 "apcg-plus-incidence", "--init", str(BASE), "--width", "0.75", "--sheet", "32",
+                 "apcg-plus-incidence", "--init", str(init), "--width", "0.75", "--sheet", "32",
                  "--head", "upconv", "--no-progress", *extra])
 
 
@@ -171,6 +171,21 @@ def test_the_incidence_output_learns_and_is_exported_beside_the_model(every_type
                           cloud.cell_h[order], cloud.sample[order])
     again = G.hits_of_cloud(shuffled, table[:, 2], fine.lidar, len(table), want[order])
     assert np.array_equal(again.cos, hits.cos) and np.array_equal(again.w, hits.w)
+    # a model written from this one without its incidence network says so, and loads
+    from training.distill import DistillConfig, distill
+    from training.families.apcg_plus import PLUS
+    assert not PLUS.untrained(after, tmp_path / "u").draws_incidence
+    student = distill(out, tmp_path / "d", DistillConfig(teacher=str(out), width=0.25,
+                                                         head="upconv", steps=1, batch_size=4,
+                                                         checkpoint_every=1000),
+                      device="cpu", progress=False)
+    assert not load_model(student["model"]).draws_incidence
+    # trained again on a model that has one: the record is the new run's alone
+    assert _train(every_type, tmp_path / "again", "--steps", "2", "--no-bf16", init=out) == 0
+    again_model = load_model(export_model(tmp_path / "again", tmp_path / "m2", log_every=2))
+    assert again_model.meta["incidence"]["trained_steps"] == 2
+    assert again_model.meta["incidence_log"].startswith("incidence_log.csv keeps every 2th")
+    assert (tmp_path / "m2" / "sheets.onnx").read_bytes() == (BASE / "sheets.onnx").read_bytes()
 
 
 def test_what_cannot_be_trained_or_loaded_is_refused(every_type, tmp_path, capsys):

@@ -251,7 +251,7 @@ class PlusFamily(Family):
         torch.manual_seed(seed)
         export_sheets_onnx(PlusNet(PlusConfig.from_dict(model.meta["net"])),
                            out / "sheets.onnx")
-        (out / "model.json").write_text(json.dumps(model.meta))
+        (out / "model.json").write_text(json.dumps(without_incidence(model.meta)))
         return PlusModel(out, runtime="onnx")
 
 
@@ -296,7 +296,7 @@ class PlusFamily(Family):
         export_sheets_onnx(net, out / "sheets.onnx")
         meta = {k: v for k, v in model.meta.items()
                 if k not in ("measured_lidars", "tau_choice", "log", "train", "trained_steps",
-                             "trained_epochs", "taught")}
+                             "trained_epochs", "taught", *INCIDENCE_RECORD)}
         meta.update({"net": net.cfg.to_dict(), **extra,
                      "generator_weights": "moving average of the student's weights"})
         (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
@@ -395,7 +395,9 @@ class PlusFamily(Family):
                "trained": "the type's rows of the type embedding and offset",
                "started_from": model.types.names[nearest],
                "dataset": ds.header.get("config", {}).get("description")}
-        meta = {**model.meta, "net": net.cfg.to_dict(), "condition_space": space,
+        # the incidence network (if any) knows the old types only: the taught model has none
+        meta = {**without_incidence(model.meta), "net": net.cfg.to_dict(),
+                "condition_space": space,
                 "types": [*model.types.to_records(), {"code": new_code, **rec}],
                 "taught": [*model.meta.get("taught", []), {"type": rec["name"], **fit}]}
         (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
@@ -404,6 +406,16 @@ class PlusFamily(Family):
             if src.exists():
                 (out / name).write_bytes(src.read_bytes())
         return fit
+
+
+# What model.json records of an incidence network (training/families/plus_incidence.py): a
+# model written from another one without copying incidence.onnx (a student, a taught type, an
+# untrained twin) leaves them out, and its photons read the range's slope (SPEC section 8).
+INCIDENCE_RECORD = ("incidence", "incidence_log")
+
+
+def without_incidence(meta: dict) -> dict:
+    return {k: v for k, v in meta.items() if k not in INCIDENCE_RECORD}
 
 
 def export_sheets_onnx(net, path: Path, output: str = "sheet") -> None:

@@ -25,7 +25,7 @@ import numpy as np
 from apcg_core.errors import InputError
 
 from .apcg_plus import FAMILY as MODEL_FAMILY
-from .apcg_plus import PlusFamily, draw_queries, export_sheets_onnx
+from .apcg_plus import PlusFamily, draw_queries, export_sheets_onnx, without_incidence
 
 NAME = "apcg-plus-incidence"
 CLOSE = 0.1  # a cosine "within" this of the data's counts as right in the log
@@ -143,7 +143,7 @@ class IncidenceFamily(PlusFamily):
         export_sheets_onnx(net, out / "incidence.onnx", output="incidence")
         record = {k: meta[k] for k in ("net", "trained_steps", "trained_epochs", "dataset",
                                        "train", "generator_weights") if k in meta}
-        full = {**model.meta, "incidence": record}
+        full = {**without_incidence(model.meta), "incidence": record}
         (out / "model.json").write_text(json.dumps(full, indent=1) + "\n")
         return out
 
