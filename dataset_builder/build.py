@@ -266,6 +266,7 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
             "shards_total": len(shards), "shards_present": len(present),
             "complete": (out / "manifest.json").exists() and len(present) == len(shards),
             "sensor": head.get("sensor", {}).get("name", "ideal"),
+            "incidence": bool(head["config"].get("incidence", False)),
             "bytes_on_disk": sum((out / s["file"]).stat().st_size for s in present)}
     n_done = sum(s["n_samples"] for s in present)
     info["samples_present"] = n_done
@@ -281,7 +282,7 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
                 bad.append(s["file"])
                 continue
             sh = Shard.load(p)
-            if len(sh) != s["n_samples"]:
+            if len(sh) != s["n_samples"] or (sh.cos_incidence is None) == info["incidence"]:
                 bad.append(s["file"])
                 continue
             n_points += len(sh.pixel)

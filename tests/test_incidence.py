@@ -83,6 +83,11 @@ def test_incidence_adds_each_returns_cosine_and_changes_nothing_else(tmp_path):
         assert np.median(err) < 2e-3 and (err < 0.02).mean() > 0.95, (t.name, err.max())
         checked += int(met.sum())
     assert checked > 500
+    from dataset_builder.build import dataset_info
+    assert dataset_info(inc, verify=True)["incidence"] is True
+    assert dataset_info(plain, verify=True)["incidence"] is False
+    assert DepthDataset(plain, "train").cos_incidence is None
+    assert len(DepthDataset(inc, "train").cos_incidence) == len(DepthDataset(inc, "train").pixel)
 
 
 def test_incidence_is_refused_where_it_cannot_be_recorded(tmp_path):
