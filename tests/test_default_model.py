@@ -19,7 +19,8 @@ from training import faithfulness, protocol
 DEFAULT = default_model_dir()
 CGAN = DEFAULT.parent / "cgan"
 FILES = {DEFAULT: {"model.json", "sheets.onnx", "log.csv", "train_config.json",
-                   "evaluation.json", "tau_sweep.json"},
+                   "evaluation.json", "tau_sweep.json", "incidence.onnx", "incidence_log.csv",
+                   "incidence_train_config.json"},
          CGAN: {"model.json", "generator.onnx", "log.csv", "train_config.json",
                 "evaluation.json", "tau_sweep.json"}}
 
@@ -39,6 +40,11 @@ def test_shipped_model_files_and_size(model_dir):
     # the log covers every trained step
     last = (model_dir / "log.csv").read_text().strip().splitlines()[-1]
     assert int(last.split(",")[0]) == meta["trained_steps"]
+    if "incidence" in meta:  # its incidence network's run too (SPEC section 8)
+        last = (model_dir / "incidence_log.csv").read_text().strip().splitlines()[-1]
+        assert int(last.split(",")[0]) == meta["incidence"]["trained_steps"] > 0
+        run = json.loads((model_dir / "incidence_train_config.json").read_text())
+        assert run["train"]["family"] == "apcg-plus-incidence"
     report = json.loads((model_dir / "evaluation.json").read_text())
     assert report["half"] == "test" and report["family"] == meta.get("family", "cgan")
 

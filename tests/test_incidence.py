@@ -29,6 +29,18 @@ SMALL = {"seed": 3, "backend": "embree", "shard_size": 50, "test_fraction": 0.2,
          "types": ["A320neo", "F-16C Fighting Falcon", "Mavic 3", "UH-60 Black Hawk"]}
 
 
+def slope_only(directory: Path, out: Path) -> Path:
+    """A copy of the model in ``directory`` without its incidence network (its photons read
+    the range's slope)."""
+    shutil.copytree(directory, out)
+    for f in out.glob("incidence*"):
+        f.unlink()
+    meta = json.loads((out / "model.json").read_text())
+    (out / "model.json").write_text(json.dumps(
+        {k: v for k, v in meta.items() if k not in ("incidence", "incidence_log")}))
+    return out
+
+
 def _build(tmp_path, name, **cfg) -> Path:
     out = tmp_path / name
     build_dataset({**SMALL, **cfg}, out, progress=False)
@@ -140,7 +152,8 @@ def test_the_incidence_output_learns_and_is_exported_beside_the_model(every_type
     for name in ("sheets.onnx", "train_config.json", "log.csv", "tau_sweep.json"):
         assert (out / name).read_bytes() == (BASE / name).read_bytes(), name
     assert after.family == "apcg-plus" and after.tau == load_model(BASE).tau
-    assert after.draws_incidence and not load_model(BASE).draws_incidence
+    assert after.draws_incidence
+    assert not load_model(slope_only(BASE, tmp_path / "slope")).draws_incidence
     rec = after.meta["incidence"]
     assert rec["net"]["outputs"] == 1 and rec["trained_steps"] == 150
     assert rec["train"]["init"] == str(BASE)
@@ -206,8 +219,7 @@ def test_what_cannot_be_trained_or_loaded_is_refused(every_type, tmp_path, capsy
     assert _train(every_type, tmp_path / "c", "--steps", "1", "--width", "0.5") == 2
     assert "its network differs from the run's in width" in capsys.readouterr().err
     # a model directory whose incidence network and record disagree
-    model = tmp_path / "m"
-    shutil.copytree(BASE, model)
+    model = slope_only(BASE, tmp_path / "m")
     (model / "incidence.onnx").write_bytes((BASE / "sheets.onnx").read_bytes())
     with pytest.raises(InputError, match="incidence.onnx is there but model.json does not "
                                          "say what it is"):
@@ -218,7 +230,7 @@ def test_what_cannot_be_trained_or_loaded_is_refused(every_type, tmp_path, capsy
     with pytest.raises(InputError, match="incidence.onnx is missing"):
         load_model(model)
     with pytest.raises(InputError, match="has no incidence output"):
-        load_model(BASE).incidence_of(np.zeros((0, 6)), None)
+        load_model(slope_only(BASE, tmp_path / "s")).incidence_of(np.zeros((0, 6)), None)
     with pytest.raises(InputError, match="not a family of models"):
         from apcg_core.families import get_family
         get_family("apcg-plus-incidence").load(model)
