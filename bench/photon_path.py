@@ -13,7 +13,12 @@ sub-rays instead, drawn at the 3-times finer lidar, their incidence read off the
 * ``path on exact, previous rule`` (``--previous``): the same with the rule before stop 46
   (centred differences across one whole cell, 3 finer cells);
 * each ``--model``: the path on the model's own draw (``sub_ray_hits``), as
-  ``apcg generate --sensor`` and the recognition benchmark do.
+  ``apcg generate --sensor`` and the recognition benchmark do (its incidence output where it
+  has one); with ``--slope``, also the same draw with the incidence read off the range's slope
+  (the path of a model without an incidence output); with ``--true-cos``, also the same draw
+  with each sub-ray's true cosine where the simulator's finer-cell ray meets the target in
+  that finer cell (else the model's): what a perfect incidence output would give on the
+  model's geometry.
 
 against ``exact 4x4``, for the recognition benchmark's aircraft types at its test conditions
 (``training.recognize.conditions``, ``--seed``) in one range band: cells lit by either, the
@@ -21,7 +26,7 @@ sum of E, the correlation of E over those cells, the mean absolute difference of
 1 - exp(-pulses E) (the chance that a pulse train carries signal at all: what decides which
 cells fire), and the sub-rays' mean cosine of incidence and share of grazing ones.
 
-    .venv/bin/python bench/photon_path.py [--model apcg_core/models/default] [--previous] \
+    .venv/bin/python bench/photon_path.py [--model apcg_core/models/default] [--slope] [--previous] \
         [--sensor 1550nm-day] [--band 3000,6000] [--agree 4] \
         [--json bench/results/photon_path.json]
     .venv/bin/python bench/photon_path.py --model apcg_core/models/default \
@@ -103,6 +108,32 @@ def previous_rule_hits(cloud, elevation, lidar, n, k=G.SUB_READS):
                                              cos, n, 1), lidar, k)
 
 
+def true_cos_hits(model, t, name, true):
+    """``model``'s sub-rays of conditions ``t`` (its draw at the finer lidar), each with the
+    cosine of the simulator's ray through the same finer cell (``true``: its sub-ray hits at
+    the finer lidar, one ray a cell) where that ray meets the target, else the model's own."""
+    fine = copy.copy(model)
+    fine.lidar, fine.quantize = G.sub_ray_lidar(LIDAR), False
+    conds = fine.conditions([name] * len(t), t[:, 1:])
+    cloud = fine.generate(conds).cloud
+    own = G.hits_of_cloud(cloud, t[:, 2], fine.lidar, len(t),
+                          fine.incidence_of(fine.repeated_conditions(conds, 1), cloud)
+                          if getattr(model, "draws_incidence", False) else None)
+
+    def key(h):
+        return ((h.sample.astype(np.int64) << 32) + ((h.h.astype(np.int64) + (1 << 15)) << 16)
+                + (h.w.astype(np.int64) + (1 << 15)))
+
+    k_true = key(true)
+    order = np.argsort(k_true)
+    k_true, cos_true = k_true[order], true.cos[order]
+    k_own = key(own)
+    at = np.minimum(np.searchsorted(k_true, k_own), len(k_true) - 1)
+    found = k_true[at] == k_own
+    own.cos[found] = cos_true[at[found]]
+    return G.cells_of_fine_hits(own, LIDAR)
+
+
 def show_row(spec: str, models) -> None:
     """Print the ranges (r - r0) along the fullest finer row of one condition, exact and each
     model's: TYPE,RANGE_M,ELEVATION_DEG,PITCH,YAW,ROLL (angles of the attitude in radians)."""
@@ -133,6 +164,10 @@ def main() -> None:
     ap.add_argument("--model", action="append", default=[], help="a model directory whose "
                     "family draws at any lidar (repeatable)")
     ap.add_argument("--previous", action="store_true", help="also the rule before stop 46")
+    ap.add_argument("--slope", action="store_true", help="also each model's draw with the "
+                    "incidence from the range's slope, where it has an incidence output")
+    ap.add_argument("--true-cos", action="store_true", help="also each model's draw with the "
+                    "simulator's true cosines at its finer cells")
     ap.add_argument("--agree", type=float, default=G.AGREE, help="the slope rule's AGREE "
                     "(apcg_core.sensor.generated; default the package's)")
     ap.add_argument("--sensor", default="1550nm-day")
@@ -170,6 +205,7 @@ def main() -> None:
         fine = G.sub_ray_lidar(LIDAR)
         with Simulator("embree", fine, quantize=False, supersample=1) as sim:
             cloud = sim.simulate_type(cat, name, t).cloud
+            true = sim.sub_ray_hits(mesh, t) if a.true_cos else None
         got["path on exact"] = Lit(G.sub_rays_of_fine_cloud(cloud, t[:, 2], LIDAR, len(t)),
                                         rho, sensor)
         if a.previous:
@@ -180,6 +216,13 @@ def main() -> None:
             m.use_lidar(LIDAR)
             got[f"path on {m.directory}"] = Lit(
                 G.sub_ray_hits(m, t, [name] * len(t), LIDAR), rho, sensor)
+            if a.true_cos:
+                got[f"path on {m.directory}, true cosines"] = Lit(
+                    true_cos_hits(m, t, name, true), rho, sensor)
+            if a.slope and getattr(m, "draws_incidence", False):
+                m.draws_incidence = False
+                got[f"path on {m.directory}, slope"] = Lit(
+                    G.sub_ray_hits(m, t, [name] * len(t), LIDAR), rho, sensor)
         rows[name] = {"clouds": int(len(t)), "cells_exact_4x4": len(ref),
                       "sum_exact_4x4": round(sum(ref.values()), 3),
                       "mean_cos_exact_4x4": round(ref.mean_cos, 3),
@@ -193,6 +236,7 @@ def main() -> None:
                   f"fire difference {c['fire_difference']:.3f}, mean cos {c['mean_cos']:.3f}, "
                   f"grazing {c['grazing_share']:.2f}")
     emit({"sensor": a.sensor, "band_m": [lo, hi], "seed": a.seed, "agree": a.agree,
+          "slope": a.slope, "true_cos": a.true_cos,
           "test_per_type": a.test_per_type, "models": a.model, "types": rows}, a.json,
          show=False)
 
