@@ -234,3 +234,34 @@ def test_what_cannot_be_trained_or_loaded_is_refused(every_type, tmp_path, capsy
     with pytest.raises(InputError, match="not a family of models"):
         from apcg_core.families import get_family
         get_family("apcg-plus-incidence").load(model)
+
+
+def test_the_shipped_incidence_is_each_conditions_own_in_any_batch_and_order():
+    """Over more conditions than one chunk, points in any order: each point's cosine is the
+    one its condition gives alone (memory flat: the network runs a chunk at a time)."""
+    from apcg_core.cloud import PointCloud
+    from apcg_core.families.apcg_plus import CHUNK
+    model = load_model()
+    assert model.draws_incidence
+    rng = np.random.default_rng(4)
+    n = CHUNK + 37
+    names = [["A320neo", "G550", "Mavic 3"][i % 3] for i in range(n)]
+    far = np.array([name != "Mavic 3" for name in names])
+    pose = np.column_stack([np.where(far, rng.uniform(3000, 9000, n), rng.uniform(100, 600, n)),
+                            np.radians(rng.uniform(3, 4, n)), np.radians(rng.uniform(1, 5, n)),
+                            np.radians(rng.uniform(-60, 60, n)),
+                            np.radians(rng.uniform(-5, 5, n))])
+    conds = model.conditions(names, pose)
+    table = model.repeated_conditions(conds, 1)
+    cloud = model.generate(conds).cloud
+    order = rng.permutation(len(cloud))
+    shuffled = PointCloud(cloud.xyz[order], cloud.range_m[order], cloud.cell_w[order],
+                          cloud.cell_h[order], cloud.sample[order])
+    got = model.incidence_of(table, shuffled)
+    assert got.shape == (len(cloud),) and ((got > 0) & (got < 1)).all()
+    for i in (0, 1, CHUNK - 1, CHUNK, n - 1):
+        mine = shuffled.sample == i
+        alone = PointCloud(shuffled.xyz[mine], shuffled.range_m[mine], shuffled.cell_w[mine],
+                           shuffled.cell_h[mine], np.zeros(int(mine.sum()), np.int64))
+        assert mine.any()
+        assert np.array_equal(model.incidence_of(table[i:i + 1], alone), got[mine]), i

@@ -253,7 +253,10 @@ class PlusModel(ModelTypes):
     def incidence_of(self, table: np.ndarray, cloud: PointCloud) -> np.ndarray:
         """Each point's cosine of incidence (``cloud.sample`` indexing condition rows
         ``table``, its cells at this model's lidar): the logistic of the incidence network's
-        sheet read at the cell's centre as the model's own sheet is (bilinear)."""
+        sheet read at the cell's centre as the model's own sheet is (bilinear). The network
+        runs on onnxruntime whatever this model's runtime, CHUNK conditions at a time (memory
+        flat in the number of conditions), in even batches as :meth:`_even_run` and for its
+        reason."""
         if not self.draws_incidence:
             raise InputError(f"{self.directory} has no incidence output (incidence.onnx); "
                              "`apcg train --family apcg-plus-incidence --init MODEL` makes one")
@@ -264,24 +267,34 @@ class PlusModel(ModelTypes):
                 opts.intra_op_num_threads = 1 if self.workers > 1 else 0
                 self._incidence["session"] = onnx_session(self.incidence_path, opts)
         session = self._incidence["session"]
-        nu = self.space.encode(table).astype(np.float32)
-        codes = table[:, 0].astype(np.int64)
-        parts = []
-        for s in range(0, len(table), NET_ROWS):  # even batches, as _even_run and for its reason
-            c, p = codes[s:s + NET_ROWS], nu[s:s + NET_ROWS, 1:]
-            n = len(c)
-            if n % 2:
-                c, p = np.append(c, c[-1:]), np.concatenate([p, p[-1:]])
-            parts.append(session.run(
-                None, {"type_code": c, "pose": np.ascontiguousarray(p)})[0][:n])
+        out = np.zeros(len(cloud))
         if not len(cloud):
-            return np.zeros(0)
+            return out
         sample = (np.zeros(len(cloud), np.int64) if cloud.sample is None
                   else np.asarray(cloud.sample, np.int64))
-        u, v = sheet_coords(cloud.cell_w, cloud.cell_h, table[sample, 1], table[sample, 2],
-                            self.radius[codes[sample]], self.lidar)
-        logit = sample_sheets(np.concatenate(parts).astype(np.float64), sample, u, v)[:, 0]
-        return 1.0 / (1.0 + np.exp(-logit))
+        order = np.argsort(sample, kind="stable")
+        nu = self.space.encode(table).astype(np.float32)
+        codes = table[:, 0].astype(np.int64)
+        for lo in range(0, len(table), CHUNK):
+            hi = min(lo + CHUNK, len(table))
+            a, b = np.searchsorted(sample[order], [lo, hi])
+            if a == b:
+                continue
+            sheets = []
+            for s in range(lo, hi, NET_ROWS):
+                e = min(s + NET_ROWS, hi)
+                c, p = codes[s:e], nu[s:e, 1:]
+                if (e - s) % 2:
+                    c, p = np.append(c, c[-1:]), np.concatenate([p, p[-1:]])
+                sheets.append(session.run(
+                    None, {"type_code": c, "pose": np.ascontiguousarray(p)})[0][:e - s])
+            pts = order[a:b]
+            sm = sample[pts]
+            u, v = sheet_coords(cloud.cell_w[pts], cloud.cell_h[pts], table[sm, 1],
+                                table[sm, 2], self.radius[codes[sm]], self.lidar)
+            logit = sample_sheets(np.concatenate(sheets).astype(np.float64), sm - lo, u, v)
+            out[pts] = 1.0 / (1.0 + np.exp(-logit[:, 0]))
+        return out
 
     def clouds_of(self, table: np.ndarray, sheets: np.ndarray,
                   compiled: bool | None = None) -> PointCloud:
