@@ -26,8 +26,8 @@ sum of E, the correlation of E over those cells, the mean absolute difference of
 1 - exp(-pulses E) (the chance that a pulse train carries signal at all: what decides which
 cells fire), and the sub-rays' mean cosine of incidence and share of grazing ones.
 
-    .venv/bin/python bench/photon_path.py [--model apcg_core/models/default] [--slope] [--previous] \
-        [--sensor 1550nm-day] [--band 3000,6000] [--agree 4] \
+    .venv/bin/python bench/photon_path.py [--model apcg_core/models/default] [--slope] \
+        [--true-cos] [--previous] [--sensor 1550nm-day] [--band 3000,6000] [--agree 4] \
         [--json bench/results/photon_path.json]
     .venv/bin/python bench/photon_path.py --model apcg_core/models/default \
         --show-row A320neo,4200,3.5,0.05,0.6,0.02      # one condition's ranges along a row
