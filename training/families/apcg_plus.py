@@ -164,24 +164,32 @@ class PlusFamily(Family):
     def init_from(self, net, model_dir, dataset) -> None:
         """Start ``net`` from the weights of the APCG+ model in ``model_dir`` (`apcg train
         --init`): the same types in the same order as the dataset's, the same network."""
+        net.load_state_dict(self.starting_model(net, model_dir, dataset).torch_net()
+                            .state_dict())
+
+    def starting_model(self, net, model_dir, dataset):
+        """The APCG+ model in ``model_dir``, refused unless it can start ``net``: its types the
+        dataset's, in the same order, and its network ``net``'s but for the sheet's channels
+        (an incidence network's one against the model's two)."""
         from apcg_core.families import load_model
         model = load_model(model_dir)
         if model.family != FAMILY:
-            raise InputError(f"--init {model_dir}: a {model.family} model; an {FAMILY} run "
+            raise InputError(f"--init {model_dir}: a {model.family} model; an {self.name} run "
                              f"starts only from an {FAMILY} model")
         if list(model.types.names) != list(dataset.types.names):
             raise InputError(f"--init {model_dir}: its types are not the dataset's (the same "
                              "names in the same order are needed; the dataset has "
                              f"{len(dataset.types.names)}, the model {len(model.types.names)})")
         from apcg_core.nn.apcg_plus import PlusConfig
-        theirs, ours = PlusConfig.from_dict(model.meta["net"]).to_dict(), net.cfg.to_dict()
+        theirs = PlusConfig.from_dict({**model.meta["net"], "outputs": net.cfg.outputs}).to_dict()
+        ours = net.cfg.to_dict()
         if theirs != ours:
             diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
             said = ", ".join(f"{k}={theirs.get(k)!r}" for k in diff)
             raise InputError(f"--init {model_dir}: its network differs from the run's in "
                              f"{', '.join(diff)} (the model's: {said}); give the same "
                              "--width, --sheet and --head")
-        net.load_state_dict(model.torch_net().state_dict())
+        return model
 
     def networks(self, net):
         from apcg_core.nn.apcg_plus import PlusNet
@@ -194,34 +202,50 @@ class PlusFamily(Family):
     def batches_per_step(self, cfg) -> int:
         return 1
 
+    def draw(self, tr, idx, rng):
+        """Query cells of samples ``idx`` and their targets: u, v, hit, range offset."""
+        return draw_queries(tr.data, idx, rng, mix=tr.cfg.queries)
+
     def batch(self, tr, idx):
-        """The batch's query cells (u, v, hit, offset) as tensors, drawn with the batch's own
-        seed (so a resumed run draws the same cells)."""
+        """The batch's query cells (u, v) and targets (:meth:`draw`) as tensors, drawn with
+        the batch's own seed (so a resumed run draws the same cells)."""
         import torch
         rng = np.random.default_rng([tr.cfg.seed, tr.batch_counter, tr.rank])
-        u, v, hit, off = draw_queries(tr.data, idx, rng, mix=tr.cfg.queries)
+        u, v, *targets = self.draw(tr, idx, rng)
         grid = torch.from_numpy(np.stack([u, -v], axis=-1).astype(np.float32))[:, :, None]
-        return (torch.from_numpy(np.asarray(idx, np.int64)), grid, torch.from_numpy(hit),
-                torch.from_numpy(off.astype(np.float32)))
+        return (torch.from_numpy(np.asarray(idx, np.int64)), grid,
+                *(torch.from_numpy(np.asarray(t, np.float32)) for t in targets))
 
-    def train_step(self, tr) -> dict:
+    @staticmethod
+    def read_queries(tr):
+        """The next batch's sheets read at its query cells, (B, channels, Q), and its
+        targets."""
         import torch
         import torch.nn.functional as F
-        (idx, grid, hit, off), nu = tr.next_batch()
+        (idx, grid, *targets), nu = tr.next_batch()
         codes = torch.from_numpy(tr.data.conditions[idx.numpy(), 0].astype(np.int64))
         tr.G.train()
         with tr.autocast():
             sheets = tr.G(codes, nu[:, 1:])
         read = F.grid_sample(sheets.float(), grid, mode="bilinear", padding_mode="border",
-                             align_corners=False)[..., 0]  # (B, 2, Q)
-        logit, depth = read[:, 0], read[:, 1]
-        bce = F.binary_cross_entropy_with_logits(logit, hit)
-        l1 = (torch.abs(depth - off) * hit).sum() / hit.sum().clamp(min=1.0)
-        loss = bce + DEPTH_WEIGHT * l1
+                             align_corners=False)[..., 0]
+        return read, targets
+
+    @staticmethod
+    def descend(tr, loss) -> None:
         tr.opt_g.zero_grad(set_to_none=True)
         loss.backward()
         tr.allreduce_grads(tr.G)
         tr.opt_g.step()
+
+    def train_step(self, tr) -> dict:
+        import torch
+        import torch.nn.functional as F
+        read, (hit, off) = self.read_queries(tr)
+        logit, depth = read[:, 0], read[:, 1]
+        bce = F.binary_cross_entropy_with_logits(logit, hit)
+        l1 = (torch.abs(depth - off) * hit).sum() / hit.sum().clamp(min=1.0)
+        self.descend(tr, bce + DEPTH_WEIGHT * l1)
         right = ((logit > 0).float() == hit).float().mean()
         return tr.finish_step(bce, l1, 0.0, right)
 

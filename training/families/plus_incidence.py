@@ -20,8 +20,6 @@ import json
 import shutil
 from pathlib import Path
 
-import numpy as np
-
 from apcg_core.errors import InputError
 
 from .apcg_plus import FAMILY as MODEL_FAMILY
@@ -58,24 +56,7 @@ class IncidenceFamily(PlusFamily):
         """Every weight of the model's network but the last layer's (one channel here, two
         there), which starts at zero: a cosine of one half everywhere."""
         import torch
-
-        from apcg_core.families import load_model
-        from apcg_core.nn.apcg_plus import PlusConfig
-        model = load_model(model_dir)
-        if model.family != MODEL_FAMILY:
-            raise InputError(f"--init {model_dir}: a {model.family} model; the {NAME} family "
-                             f"trains the incidence output of an {MODEL_FAMILY} model")
-        if list(model.types.names) != list(dataset.types.names):
-            raise InputError(f"--init {model_dir}: its types are not the dataset's (the same "
-                             "names in the same order are needed)")
-        theirs = PlusConfig.from_dict({**model.meta["net"], "outputs": 1}).to_dict()
-        ours = net.cfg.to_dict()
-        if theirs != ours:
-            diff = sorted(k for k in ours if theirs.get(k) != ours.get(k))
-            said = ", ".join(f"{k}={theirs.get(k)!r}" for k in diff)
-            raise InputError(f"--init {model_dir}: its network differs from the run's in "
-                             f"{', '.join(diff)} (the model's: {said}); give the same "
-                             "--width, --sheet and --head")
+        model = self.starting_model(net, model_dir, dataset)
         own = model.torch_net().state_dict()
         start = {k: v for k, v in own.items() if not k.startswith("head.")}
         net.load_state_dict(start, strict=False)
@@ -89,33 +70,19 @@ class IncidenceFamily(PlusFamily):
                              "with incidence = true in its config (docs/DATASET.md)")
         super().prepare(dataset)
 
-    def batch(self, tr, idx):
-        """The batch's query cells (u, v, is a return, its cosine), drawn as the model's
-        training draws them (the same seeds)."""
-        import torch
-        rng = np.random.default_rng([tr.cfg.seed, tr.batch_counter, tr.rank])
+    def draw(self, tr, idx, rng):
+        """Query cells drawn as the model's training draws them, and their targets: is a
+        return, its cosine of incidence."""
         u, v, hit, _, cos = draw_queries(tr.data, idx, rng, cosine=True)
-        grid = torch.from_numpy(np.stack([u, -v], axis=-1).astype(np.float32))[:, :, None]
-        return (torch.from_numpy(np.asarray(idx, np.int64)), grid, torch.from_numpy(hit),
-                torch.from_numpy(cos))
+        return u, v, hit, cos
 
     def train_step(self, tr) -> dict:
         import torch
-        import torch.nn.functional as F
-        (idx, grid, hit, cos), nu = tr.next_batch()
-        codes = torch.from_numpy(tr.data.conditions[idx.numpy(), 0].astype(np.int64))
-        tr.G.train()
-        with tr.autocast():
-            sheets = tr.G(codes, nu[:, 1:])
-        read = F.grid_sample(sheets.float(), grid, mode="bilinear", padding_mode="border",
-                             align_corners=False)[:, 0, :, 0]  # (B, Q)
-        err = torch.abs(torch.sigmoid(read) - cos) * hit
+        read, (hit, cos) = self.read_queries(tr)
+        err = torch.abs(torch.sigmoid(read[:, 0]) - cos) * hit
         n = hit.sum().clamp(min=1.0)
         l1 = err.sum() / n
-        tr.opt_g.zero_grad(set_to_none=True)
-        l1.backward()
-        tr.allreduce_grads(tr.G)
-        tr.opt_g.step()
+        self.descend(tr, l1)
         right = ((err < CLOSE).float() * hit).sum() / n
         return tr.finish_step(l1, l1, 0.0, right)
 
