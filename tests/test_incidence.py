@@ -265,3 +265,21 @@ def test_the_shipped_incidence_is_each_conditions_own_in_any_batch_and_order():
                            shuffled.cell_h[mine], np.zeros(int(mine.sum()), np.int64))
         assert mine.any()
         assert np.array_equal(model.incidence_of(table[i:i + 1], alone), got[mine]), i
+
+
+def test_blenders_ray_caster_records_the_same_cosines(tmp_path):
+    """The `blender` backend (bpy in this process) names the faces its rays meet as embree
+    does: the same returns, the same cosines."""
+    pytest.importorskip("bpy")
+    cfg = {"types": ["A320neo", "Mavic 3"], "samples_per_type": 4, "incidence": True}
+    emb = _build(tmp_path, "e", **cfg)
+    ble = _build(tmp_path, "b", backend="blender", **cfg)
+    head = json.loads((emb / "dataset.json").read_text())
+    n = 0
+    for shard in head["shards"]:
+        a, b = np.load(emb / shard["file"]), np.load(ble / shard["file"])
+        assert np.array_equal(a["pixel"], b["pixel"]) and np.array_equal(a["offsets"],
+                                                                          b["offsets"])
+        assert np.abs(a["cos_incidence"].astype(float) - b["cos_incidence"]).max() < 0.01
+        n += len(a["pixel"])
+    assert n > 200
