@@ -189,6 +189,17 @@ def test_the_incidence_output_learns_and_is_exported_beside_the_model(every_type
                           cloud.cell_h[order], cloud.sample[order])
     again = G.hits_of_cloud(shuffled, table[:, 2], fine.lidar, len(table), want[order])
     assert np.array_equal(again.cos, hits.cos) and np.array_equal(again.w, hits.w)
+    # the model the run started from is an input of its export: never its output, even with
+    # --force, though the command line does not name it
+    base_copy = slope_only(BASE, tmp_path / "base")
+    assert _train(every_type, tmp_path / "from_copy", "--steps", "1", "--no-bf16",
+                  init=base_copy) == 0
+    before_bytes = {f.name: f.read_bytes() for f in base_copy.iterdir()}
+    from apcg_core.cli import main
+    assert main(["export", "--run", str(tmp_path / "from_copy"), "-o", str(base_copy),
+                 "--force"]) == 2
+    assert "is the model this run was trained from (its --init)" in capsys.readouterr().err
+    assert {f.name: f.read_bytes() for f in base_copy.iterdir()} == before_bytes
     # a model written from this one without its incidence network says so, and loads
     from training.distill import DistillConfig, distill
     from training.families.apcg_plus import PLUS

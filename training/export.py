@@ -54,13 +54,14 @@ def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
                          "replace it")
     from apcg_core.outputs import staged_directory
     with staged_directory(out) as staging:
-        _export(run, staging, tau, data_dir, checkpoint, raw, sampling_steps, log_every)
+        _export(run, staging, tau, data_dir, checkpoint, raw, sampling_steps, log_every,
+                target=out)
     return out
 
 
 def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
             checkpoint=None, raw: bool = False, sampling_steps: int | None = None,
-            log_every: int = 1) -> Path:
+            log_every: int = 1, target=None) -> Path:
     """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest.
     The generator's moving average is exported when the run kept one, the raw weights when
     ``raw`` or when it did not. ``sampling_steps`` (families that sample on a schedule) records
@@ -68,7 +69,9 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     family without a schedule refuses it. What the model directory holds is the run's family's
     (``training/families/<family>.py``); nothing is written when the family refuses.
     ``log_every`` keeps every n-th step of the log (and the last), for a model that ships in the
-    package."""
+    package. ``target`` (the directory the model is published into) is refused when it is a
+    directory the family's export reads (``export_reads``: an incidence run's ``--init``
+    model), which is an input even though the command line does not name it."""
     from apcg_core.errors import check_int
     check_int("log_every", log_every, 1)
     run = Path(run_dir)
@@ -82,6 +85,12 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     data = data_dir or record["data"]
     head = read_header(data)
     family = get_family(st["train"].get("family", "cgan"), need="export")
+    if target is not None:
+        for read in getattr(family, "export_reads", lambda state: [])(st):
+            if Path(read).resolve() == Path(target).resolve():
+                raise InputError(f"-o {target} is the model this run was trained from (its "
+                                 "--init), which the export reads; export to another "
+                                 "directory")
     averaged = st.get("G_ema") is not None and not raw
     if averaged:
         st["G"] = st["G_ema"]

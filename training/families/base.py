@@ -13,7 +13,8 @@ A family object provides:
 * ``prepare(dataset)`` (once, off the training clock); ``batch(trainer, idx)`` -> the real
   batch of samples ``idx``; ``batches_per_step(cfg)``; ``train_step(trainer)`` -> one step's
   log row;
-* ``export(state, header, out_dir, meta, data_dir, sampling_steps)`` -> the model directory;
+* ``export(state, header, out_dir, meta, data_dir, sampling_steps)`` -> the model directory
+  (``export_reads(state)``: the directories it reads besides the run, never its output);
 * ``untrained(model, out_dir, seed)`` -> the same network freshly initialised, loaded.
 """
 
@@ -39,6 +40,10 @@ class Family:
 
     def prepare(self, dataset) -> None:
         """Work on the training data done once, before the training clock starts."""
+
+    def export_reads(self, state: dict) -> list[str]:
+        """Directories the export reads besides the run (never written into by it)."""
+        return []
 
     def check_sampling_steps(self, sampling_steps, state: dict) -> None:
         """Refuses a sampling-step count unless the family samples on a schedule."""

@@ -86,6 +86,10 @@ class IncidenceFamily(PlusFamily):
         right = ((err < CLOSE).float() * hit).sum() / n
         return tr.finish_step(l1, l1, 0.0, right)
 
+    def export_reads(self, state: dict) -> list[str]:
+        base = state["train"].get("init")
+        return [base] if base else []
+
     def export(self, state: dict, header: dict, out_dir, meta: dict, data_dir,
                sampling_steps=None) -> Path:
         """The ``--init`` model's directory again, with ``incidence.onnx`` and, in model.json,
@@ -114,8 +118,6 @@ class IncidenceFamily(PlusFamily):
         (out / "model.json").write_text(json.dumps(full, indent=1) + "\n")
         return out
 
-    def untrained(self, model, out_dir, seed: int = 0):
-        raise InputError(f"the {NAME} family has no untrained baseline: evaluate the model")
 
 
 INCIDENCE = IncidenceFamily()
