@@ -29,6 +29,7 @@ import numpy as np
 
 from apcg_core.errors import InputError
 from apcg_core.families.apcg_plus import FAMILY, box_half_cells, sheet_coords
+from apcg_core.io.dataset import write_atomic
 
 from .base import Family
 
@@ -275,7 +276,7 @@ class PlusFamily(Family):
         torch.manual_seed(seed)
         export_sheets_onnx(PlusNet(PlusConfig.from_dict(model.meta["net"])),
                            out / "sheets.onnx")
-        (out / "model.json").write_text(json.dumps(without_incidence(model.meta)))
+        write_atomic(out / "model.json", json.dumps(without_incidence(model.meta)).encode())
         return PlusModel(out, runtime="onnx")
 
 
