@@ -203,28 +203,32 @@ class PlusModel(ModelTypes):
         with torch.no_grad():
             return self._rt.net(torch.from_numpy(codes), torch.from_numpy(pose)).numpy()
 
-    def _even_run(self, codes: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    def _even_run(self, codes: np.ndarray, pose: np.ndarray, run=None) -> np.ndarray:
         """The network on an even number of rows (an odd batch gets a copy of its last row,
         whose sheet is dropped): onnxruntime's matrix products take a lone last row another
         way, so an odd batch's sheets differ in the last bits from the same conditions' in an
         even one; even, a condition's sheet is the same bytes in any batch (one condition
-        alone, a block, a CSV of 10^6), so its cloud is too (tests/test_plus.py)."""
+        alone, a block, a CSV of 10^6), so its cloud is too (tests/test_plus.py). ``run``: the
+        network to run (default the model's own, :meth:`_run`)."""
         n = len(codes)
         if n % 2:
             codes, pose = np.append(codes, codes[-1:]), np.concatenate([pose, pose[-1:]])
-        return self._run(codes, np.ascontiguousarray(pose))[:n]
+        return (run or self._run)(codes, np.ascontiguousarray(pose))[:n]
 
     def _open(self, runtime: str) -> _Runtime:
         if runtime == "onnx":
-            try:
-                import onnxruntime as ort
-            except ImportError as exc:
-                raise InputError("generation needs onnxruntime: pip install onnxruntime "
-                                 "(or --runtime torch)") from exc
-            opts = ort.SessionOptions()
-            opts.intra_op_num_threads = 1 if self.workers > 1 else 0  # 0: onnxruntime's own
-            return _Runtime("onnx", session=onnx_session(self.onnx_path, opts))
+            return _Runtime("onnx", session=self._onnx_session(self.onnx_path))
         return _Runtime("torch", net=self.torch_net().eval())
+
+    def _onnx_session(self, path):
+        try:
+            import onnxruntime as ort
+        except ImportError as exc:
+            raise InputError("generation needs onnxruntime: pip install onnxruntime "
+                             "(or --runtime torch)") from exc
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = 1 if self.workers > 1 else 0  # 0: onnxruntime's own
+        return onnx_session(path, opts)
 
     def torch_net(self):
         """A fresh torch network (apcg_core.nn.apcg_plus.PlusNet) holding this model's
@@ -241,12 +245,13 @@ class PlusModel(ModelTypes):
         net.load_state_dict({k: torch.from_numpy(state[k]) for k in own})
         return net
 
-    def sheets(self, table: np.ndarray, rows: int = NET_ROWS) -> np.ndarray:
+    def sheets(self, table: np.ndarray, rows: int = NET_ROWS, run=None) -> np.ndarray:
         """The network's sheets (N, 2, S, S) for condition rows in this model's types,
-        ``rows`` conditions a network call (the same sheets at any count)."""
+        ``rows`` conditions a network call (the same sheets at any count); ``run``: another
+        network on the same inputs (:meth:`_even_run`)."""
         nu = self.space.encode(table).astype(np.float32)
         codes = table[:, 0].astype(np.int64)
-        out = [self._even_run(codes[s:s + rows], nu[s:s + rows, 1:])
+        out = [self._even_run(codes[s:s + rows], nu[s:s + rows, 1:], run)
                for s in range(0, len(table), rows)]
         return np.concatenate(out) if out else np.zeros((0, 2, 1, 1), np.float32)
 
@@ -255,45 +260,36 @@ class PlusModel(ModelTypes):
         ``table``, its cells at this model's lidar): the logistic of the incidence network's
         sheet read at the cell's centre as the model's own sheet is (bilinear). The network
         runs on onnxruntime whatever this model's runtime, CHUNK conditions at a time (memory
-        flat in the number of conditions), in even batches as :meth:`_even_run` and for its
-        reason."""
+        flat in the number of conditions), through :meth:`sheets` as the model's own does."""
         if not self.draws_incidence:
             raise InputError(f"{self.directory} has no incidence output (incidence.onnx); "
                              "`apcg train --family apcg-plus-incidence --init MODEL` makes one")
         with self._opening:
             if "session" not in self._incidence:
-                import onnxruntime as ort
-                opts = ort.SessionOptions()
-                opts.intra_op_num_threads = 1 if self.workers > 1 else 0
-                self._incidence["session"] = onnx_session(self.incidence_path, opts)
+                self._incidence["session"] = self._onnx_session(self.incidence_path)
         session = self._incidence["session"]
+
+        def run(codes, pose):
+            return session.run(None, {"type_code": codes, "pose": pose})[0]
+
         out = np.zeros(len(cloud))
         if not len(cloud):
             return out
         sample = (np.zeros(len(cloud), np.int64) if cloud.sample is None
                   else np.asarray(cloud.sample, np.int64))
         order = np.argsort(sample, kind="stable")
-        nu = self.space.encode(table).astype(np.float32)
         codes = table[:, 0].astype(np.int64)
         for lo in range(0, len(table), CHUNK):
             hi = min(lo + CHUNK, len(table))
             a, b = np.searchsorted(sample[order], [lo, hi])
             if a == b:
                 continue
-            sheets = []
-            for s in range(lo, hi, NET_ROWS):
-                e = min(s + NET_ROWS, hi)
-                c, p = codes[s:e], nu[s:e, 1:]
-                if (e - s) % 2:
-                    c, p = np.append(c, c[-1:]), np.concatenate([p, p[-1:]])
-                sheets.append(session.run(
-                    None, {"type_code": c, "pose": np.ascontiguousarray(p)})[0][:e - s])
             pts = order[a:b]
             sm = sample[pts]
             u, v = sheet_coords(cloud.cell_w[pts], cloud.cell_h[pts], table[sm, 1],
                                 table[sm, 2], self.radius[codes[sm]], self.lidar)
-            logit = sample_sheets(np.concatenate(sheets).astype(np.float64), sm - lo, u, v)
-            out[pts] = 1.0 / (1.0 + np.exp(-logit[:, 0]))
+            sheets = self.sheets(table[lo:hi], run=run).astype(np.float64)
+            out[pts] = 1.0 / (1.0 + np.exp(-sample_sheets(sheets, sm - lo, u, v)[:, 0]))
         return out
 
     def clouds_of(self, table: np.ndarray, sheets: np.ndarray,

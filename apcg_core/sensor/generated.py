@@ -116,9 +116,8 @@ def sub_ray_hits(model, table: np.ndarray, names, lidar: LidarParams,
     fine = sub_ray_lidar(lidar, k)
     fine_model.lidar = fine
     fine_model.quantize = False
-    conditions = fine_model.conditions(list(names), table[:, 1:])
-    res = fine_model.generate(conditions)
-    cos = (fine_model.incidence_of(fine_model.repeated_conditions(conditions, 1), res.cloud)
+    res = fine_model.generate(fine_model.conditions(list(names), table[:, 1:]))
+    cos = (fine_model.incidence_of(res.table, res.cloud)
            if getattr(model, "draws_incidence", False) else None)
     return sub_rays_of_fine_cloud(res.cloud, table[:, 2], lidar, len(table), k, cos)
 
