@@ -34,12 +34,15 @@ def register_train(sub) -> None:
     p.add_argument("--width", type=float, help="channel width multiplier (1.0 = the paper)")
     p.add_argument("--n-critic", type=int, help="critic steps per generator step")
     p.add_argument("--batch-size", type=int)
-    # bfloat16 autocast halves the work where the CPU has bf16 instructions and costs 5 times
-    # fp32 where it has none: 87.5 against 17.6 ms a step of 32 at width 0.75 on an AMD EPYC
-    # without avx512_bf16 (2026-11-28)
+    # bfloat16 autocast is slower where the CPU has no bf16 instructions: on an AMD EPYC without
+    # avx512_bf16 (2026-11-28), 200 steps of 32 of the width 0.75 APCG+ network from its
+    # default took 28.9 s with --bf16 against 13.3 s with --no-bf16, whole process (medians of
+    # 3, the two in turn; `apcg train --data D --family apcg-plus --init
+    # apcg_core/models/default --width 0.75 --sheet 32 --head upconv --steps 200 --threads 1`)
     p.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
                    help="bfloat16 autocast (default: the preset's; --no-bf16 on a CPU without "
-                        "bf16 instructions, where it is about 5 times slower than fp32)")
+                        "bf16 instructions, where it is slower than fp32: 2.2 times a whole "
+                        "200-step run measured)")
     p.add_argument("--no-conv", action="store_true", help="ablation: fully connected layers")
     p.add_argument("--no-attention", action="store_true", help="ablation: no self-attention")
     p.add_argument("--bce", action="store_true", help="ablation: BCE loss, no Wasserstein/GP")
