@@ -112,13 +112,7 @@ def true_cos_hits(model, t, name, true):
     """``model``'s sub-rays of conditions ``t`` (its draw at the finer lidar), each with the
     cosine of the simulator's ray through the same finer cell (``true``: its sub-ray hits at
     the finer lidar, one ray a cell) where that ray meets the target, else the model's own."""
-    fine = copy.copy(model)
-    fine.lidar, fine.quantize = G.sub_ray_lidar(LIDAR), False
-    conds = fine.conditions([name] * len(t), t[:, 1:])
-    cloud = fine.generate(conds).cloud
-    own = G.hits_of_cloud(cloud, t[:, 2], fine.lidar, len(t),
-                          fine.incidence_of(fine.repeated_conditions(conds, 1), cloud)
-                          if getattr(model, "draws_incidence", False) else None)
+    own = G.fine_hits(model, t, [name] * len(t), LIDAR)
 
     def key(h):
         return ((h.sample.astype(np.int64) << 32) + ((h.h.astype(np.int64) + (1 << 15)) << 16)

@@ -107,19 +107,25 @@ def sub_ray_lidar(lidar: LidarParams, k: int = SUB_READS) -> LidarParams:
 def sub_ray_hits(model, table: np.ndarray, names, lidar: LidarParams,
                  k: int = SUB_READS) -> SubRayHits:
     """The K x K sub-rays of ``model``'s clouds of conditions ``table`` at ``lidar``: the
-    model (a family with ``ANY_LIDAR``) draws them at the K-times finer lidar, unquantized.
-    Each sub-ray's incidence is the model's incidence output where it has one
-    (``draws_incidence``), else the range slope's. The model itself is left as it was (a
-    shallow copy draws)."""
+    model (a family with ``ANY_LIDAR``) draws them at the K-times finer lidar, unquantized
+    (:func:`fine_hits`), each finer point a sub-ray of the cell it falls in."""
+    return cells_of_fine_hits(fine_hits(model, table, names, lidar, k), lidar, k)
+
+
+def fine_hits(model, table: np.ndarray, names, lidar: LidarParams,
+              k: int = SUB_READS) -> SubRayHits:
+    """``model``'s returns of conditions ``table`` at ``sub_ray_lidar(lidar, k)``, one per
+    finer cell, unquantized; each one's incidence is the model's incidence output where it
+    has one (``draws_incidence``), else the range slope's. The model itself is left as it was
+    (a shallow copy draws)."""
     import copy
     fine_model = copy.copy(model)
-    fine = sub_ray_lidar(lidar, k)
-    fine_model.lidar = fine
+    fine_model.lidar = sub_ray_lidar(lidar, k)
     fine_model.quantize = False
     res = fine_model.generate(fine_model.conditions(list(names), table[:, 1:]))
     cos = (fine_model.incidence_of(res.table, res.cloud)
            if getattr(model, "draws_incidence", False) else None)
-    return sub_rays_of_fine_cloud(res.cloud, table[:, 2], lidar, len(table), k, cos)
+    return hits_of_cloud(res.cloud, table[:, 2], fine_model.lidar, len(table), cos)
 
 
 def sub_rays_of_fine_cloud(cloud: PointCloud, elevation: np.ndarray, lidar: LidarParams,

@@ -119,7 +119,6 @@ class IncidenceFamily(PlusFamily):
         return out
 
 
-
 INCIDENCE = IncidenceFamily()
 
 __all__ = ["INCIDENCE", "IncidenceFamily"]
