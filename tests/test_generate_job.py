@@ -155,15 +155,19 @@ def test_a_damaged_part_is_named_and_made_again_once_deleted(tmp_path, monkeypat
 
 
 @pytest.mark.parametrize("ext", ["npz", "ply", "las"])
-def test_bad_input_met_after_the_writer_opened_exits_cleanly(tmp_path, ext):
-    """A pose refused once the output is open (pitch 0 is outside Table 1's 1-5 deg): one line
-    naming it, exit 2, nothing left under any name, and no traceback, not even one Python
+@pytest.mark.parametrize("pose, says", [
+    (["--type", "A320neo", "--range-m", "5000", "--elevation-deg", "3"],
+     "pitch = 0 deg is outside the configured range [1 deg, 5 deg]"),
+    # a 777 at 3 km overflows the lidar's window: the refusal must come before that warning
+    (["--type", "777-300ER", "--range-m", "3000", "--elevation-deg", "20", "--pitch-deg", "2"],
+     "elevation = 20 deg is outside the configured range [3 deg, 4 deg]")])
+def test_a_pose_outside_the_models_ranges_is_refused_first(tmp_path, ext, pose, says):
+    """A pose outside the model's ranges (Table 1): one line naming it, exit 2, before any
+    warning about the request and before any file, and no traceback, not even one Python
     prints while collecting a half-made writer at exit."""
     out = tmp_path / f"g.{ext}"
-    p = subprocess.run([*APCG, "generate", "--type", "A320neo", "--range-m", "5000",
-                        "--elevation-deg", "3", "-o", str(out)], capture_output=True, text=True,
-                       timeout=300)
+    p = subprocess.run([*APCG, "generate", *pose, "-o", str(out)], capture_output=True,
+                       text=True, timeout=300)
     assert p.returncode == 2, p.stderr
-    assert "pitch = 0 deg is outside the configured range [1 deg, 5 deg]" in p.stderr
-    assert "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr
+    assert p.stderr.strip().splitlines() == [f"apcg generate: error: the condition: {says}"]
     assert list(tmp_path.iterdir()) == []

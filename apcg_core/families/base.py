@@ -131,9 +131,12 @@ class ModelTypes:
 
     def condition(self, type_key, range_m, elevation, pitch=0.0, yaw=0.0,
                   roll=0.0) -> Conditions:
-        """One condition (radians, metres), checked physically."""
+        """One condition (radians, metres), checked physically and against this model's
+        condition space (before anything is made of it: a refusal comes first)."""
         row = Condition(0, range_m, elevation, pitch, yaw, roll).as_array()[1:]
-        return self.conditions([type_key], row[None])
+        conditions = self.conditions([type_key], row[None])
+        self.space.check(conditions.table, where=lambda i, j: "the condition")
+        return conditions
 
     def depth_length(self, codes) -> np.ndarray:
         return self.types.column("depth_length_m").astype(np.float64)[
