@@ -22,6 +22,12 @@ from .data import DepthDataset
 from .trainer import read_checkpoint, read_run_record
 
 
+
+def ordinal(n: int) -> str:
+    """2 -> "2nd", 100 -> "100th", 13 -> "13th" (the log note's English)."""
+    suffix = "th" if n % 100 in (11, 12, 13) else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
 def export_onnx(g: Generator, path: Path) -> None:
     g = g.eval()
     z = torch.zeros(2, NOISE_DIM)
@@ -120,7 +126,7 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
         if log_every > 1:
             meta_path = out / "model.json"
             meta_now = json.loads(meta_path.read_text())
-            meta_now[f"{prefix}log"] = (f"{prefix}log.csv keeps every {log_every}th of the "
+            meta_now[f"{prefix}log"] = (f"{prefix}log.csv keeps every {ordinal(log_every)} of the "
                                         f"run's {len(rows)} logged steps, and the last")
             meta_path.write_text(json.dumps(meta_now, indent=1) + "\n")
     return out
