@@ -94,3 +94,22 @@ def problems(values: dict) -> list[str]:
             if not rule.ok(float(v)):
                 out.append(f"{option_name(dest)} {v!r} not accepted: {rule.accepted}")
     return out
+
+
+def check_values(**values) -> None:
+    """The same rules for a Python function's keyword arguments (the Blender add-on's API takes
+    the command line's names): raise InputError naming the first refused value and what is
+    accepted. None is skipped (the function's own default applies)."""
+    from .errors import InputError
+    for dest, v in values.items():
+        if v is None:
+            continue
+        rule = RULES.get(dest, ANY)
+        integer = rule.accepted.startswith("an integer")
+        try:
+            number = float(v)
+        except (TypeError, ValueError):
+            number = None
+        if (isinstance(v, bool) or isinstance(v, str) or number is None or not rule.ok(number)
+                or (integer and number != int(number))):
+            raise InputError(f"{dest} = {v!r} not accepted: {rule.accepted}")

@@ -44,7 +44,10 @@ from .objects import (
     lidar_of,
     lidar_params,
     make_target,
+    named,
     pose_of,
+    require_lidar,
+    require_target,
     set_pose,
     simulator_row,
     source_of,
@@ -64,18 +67,23 @@ OCCLUSION_MARGIN_M = 0.5
 
 def _lidar_and_targets(lidar, targets):
     if targets is None:
-        if not is_lidar(lidar):
-            raise InputError(f"{getattr(lidar, 'name', lidar)!r} is not an APCG lidar")
-        targets = targets_of(lidar)
-    targets = list(targets)
+        targets = targets_of(require_lidar(lidar))
+    elif isinstance(targets, (list, tuple)):
+        targets = list(targets)
+    else:
+        raise InputError(f"targets must be a list of APCG targets (or None: the lidar's), "
+                         f"got {named(targets)}")
     if not targets:
         raise InputError("no targets to scan: add one with apcg.add_aircraft")
     for t in targets:
-        if not is_target(t):
-            raise InputError(f"{t.name!r} is not an APCG target")
-        if lidar_of(t) is None:
-            raise InputError(f"target {t.name!r} is not parented to an APCG lidar")
+        require_target(t)
     return targets
+
+
+def _check_seed_and_sizes(**values) -> None:
+    """``seed``, ``count``, ``supersample``... by the command line's rules (their names)."""
+    from apcg_core.options import check_values
+    check_values(**values)
 
 
 def _pose_meta(pose: dict) -> dict:
@@ -98,8 +106,7 @@ def read_lidar_file(lidar, ref):
     ``[lidar]`` table and optionally a ``[sensor]`` table, which then becomes its Sensor)."""
     from apcg_core.lidar import lidar_from_table
     from apcg_core.lidar import read_lidar_file as read
-    if not is_lidar(lidar):
-        raise InputError(f"{getattr(lidar, 'name', lidar)!r} is not an APCG lidar")
+    require_lidar(lidar)
     path, doc = read(ref)
     params = lidar_from_table(doc["lidar"], source=str(path))
     p = lidar.apcg_lidar
@@ -122,8 +129,7 @@ def write_lidar_file(lidar, path) -> None:
 
     from apcg_core.io.dataset import write_atomic
     from apcg_core.lidar import lidar_file_text
-    if not is_lidar(lidar):
-        raise InputError(f"{getattr(lidar, 'name', lidar)!r} is not an APCG lidar")
+    require_lidar(lidar)
     sensor = sensor_of(lidar)
     text = lidar_file_text(lidar_params(lidar), sensor.to_dict() if sensor else None,
                            comment=f"APCG lidar {lidar.name!r}, written by the Blender add-on")
@@ -158,7 +164,8 @@ def scan_target(target, backend: str = "blender", quantize: bool = True,
     (SPEC section 8), its points labelled signal / noise, the draws seeded by ``seed``."""
     from apcg_core.sensor import SensorParams, load_sensor, to_cloud
     from dataset_builder.simulate import SimResult, Simulator
-    lidar = lidar_of(target)
+    lidar = lidar_of(require_target(target))
+    _check_seed_and_sizes(seed=seed, supersample=supersample)
     params = lidar_params(lidar)
     if isinstance(sensor, str) and sensor == "lidar":
         sensor = sensor_of(lidar)
@@ -211,6 +218,7 @@ def scan(lidar, targets=None, backend: str = "blender", quantize: bool = True,
     from apcg_core.sensor import SensorParams, load_sensor
     from dataset_builder.simulate import Simulator
     targets = _lidar_and_targets(lidar, targets)
+    _check_seed_and_sizes(seed=seed, supersample=supersample)
     if isinstance(sensor, str) and sensor == "lidar":
         sensor = sensor_of(lidar_of(targets[0]))
     elif not isinstance(sensor, SensorParams):
@@ -277,7 +285,8 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
     """
     from apcg_core.families import ModelTypes
     if not is_target(target):
-        raise InputError(f"{getattr(target, 'name', target)!r} is not an APCG target")
+        raise InputError(f"{named(target)} is not an APCG target")
+    _check_seed_and_sizes(count=count, seed=seed)
     if not isinstance(model, ModelTypes):
         model = load_model(model, runtime=runtime)
     pose = pose_of(target)
@@ -342,7 +351,7 @@ def add_to_catalog(target, kind: str = "aircraft", category: str = "other",
     from apcg_core.catalog import default_catalog
     from apcg_core.catalog.mesh import Mesh
     if not is_target(target):
-        raise InputError(f"{getattr(target, 'name', target)!r} is not an APCG target: make one "
+        raise InputError(f"{named(target)} is not an APCG target: make one "
                          "with apcg.make_target first")
     catalog = catalog or default_catalog()
     name = (name or str(target.get(TYPE_KEY, target.name))).strip()
@@ -395,9 +404,10 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     from apcg_core.sensor import SensorParams, load_sensor
     from dataset_builder.scene import SceneScanner, write_sequence
     targets = _lidar_and_targets(lidar, targets)
+    _check_seed_and_sizes(seed=seed, supersample=supersample)
     scene = bpy.context.scene
-    start = scene.frame_start if frame_start is None else int(frame_start)
-    end = scene.frame_end if frame_end is None else int(frame_end)
+    start = scene.frame_start if frame_start is None else _frame("frame_start", frame_start)
+    end = scene.frame_end if frame_end is None else _frame("frame_end", frame_end)
     if end < start:
         raise InputError(f"frame_end {end} is before frame_start {start}")
     fps = scene.render.fps / scene.render.fps_base
@@ -450,6 +460,17 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
                               progress)
     finally:
         scanner.close()
+
+
+def _frame(name: str, value) -> int:
+    """A timeline frame number given to the API: an integer, or an InputError naming it."""
+    try:
+        ok = not isinstance(value, (bool, str)) and float(value) == int(value)
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise InputError(f"{name} = {value!r} not accepted: a frame number (an integer)")
+    return int(value)
 
 
 VISIBILITY = ("hide_viewport", "hide_render")

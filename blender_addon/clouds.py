@@ -31,11 +31,25 @@ SOURCES = {"scan": 0, "generated": 1, "imported": 2}
 
 
 def is_cloud(obj) -> bool:
-    return obj is not None and obj.get(CLOUD_KEY) is not None
+    return isinstance(obj, bpy.types.Object) and obj.get(CLOUD_KEY) is not None
+
+
+# what a cloud object's record must hold for the cloud to be read back
+_INFO_KEYS = ("source", "origin", "azimuth", "r0")
 
 
 def cloud_info(obj) -> dict:
-    return json.loads(obj[CLOUD_KEY])
+    """A cloud object's record (its ``apcg_cloud`` property); a damaged one is named."""
+    try:
+        info = json.loads(obj[CLOUD_KEY])
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{obj.name!r}: its {CLOUD_KEY} property is not the JSON record an "
+                         f"APCG cloud carries ({exc}); import or make the cloud again") from exc
+    missing = [k for k in _INFO_KEYS if not isinstance(info, dict) or k not in info]
+    if missing:
+        raise InputError(f"{obj.name!r}: its {CLOUD_KEY} record lacks {', '.join(missing)}; "
+                         "import or make the cloud again")
+    return info
 
 
 # --- the shared display -------------------------------------------------------------------------
@@ -136,6 +150,16 @@ def _radius_identifier(tree) -> str:
 
 
 def set_point_radius(obj, radius: float) -> None:
+    """The displayed radius of a cloud object's points (metres)."""
+    if not is_cloud(obj):
+        name = repr(obj.name) if isinstance(obj, bpy.types.ID) else repr(obj)
+        raise InputError(f"{name} is not an APCG point cloud object")
+    try:
+        radius = float(radius)
+    except (TypeError, ValueError):
+        radius = math.nan
+    if not (math.isfinite(radius) and radius > 0):
+        raise InputError(f"radius must be a finite number of metres > 0, got {radius!r}")
     mod = obj.modifiers.get("APCG points")
     mod[_radius_identifier(mod.node_group)] = float(radius)
     obj.update_tag()
@@ -208,7 +232,8 @@ def _get_attr(me, name: str, dtype, n: int):
 def cloud_from_object(obj) -> tuple[PointCloud, dict]:
     """The observation-frame cloud (float64) of a cloud object, and its info."""
     if not is_cloud(obj) or obj.type != "MESH":
-        raise InputError(f"{obj.name!r} is not an APCG point cloud object")
+        name = repr(obj.name) if isinstance(obj, bpy.types.ID) else repr(obj)
+        raise InputError(f"{name} is not an APCG point cloud object")
     info = cloud_info(obj)
     me = obj.data
     n = len(me.vertices)

@@ -42,18 +42,40 @@ _MOVED_TOL_REL = 1e-6
 
 
 def is_lidar(obj) -> bool:
-    return obj is not None and obj.get(LIDAR_KEY) is not None
+    return isinstance(obj, bpy.types.Object) and obj.get(LIDAR_KEY) is not None
 
 
 def is_target(obj) -> bool:
-    return obj is not None and obj.get(POSE_KEY) is not None
+    return isinstance(obj, bpy.types.Object) and obj.get(POSE_KEY) is not None
+
+
+def named(obj) -> str:
+    """How a message names what it was given: an object's name, else the value itself."""
+    return repr(obj.name) if isinstance(obj, bpy.types.ID) else repr(obj)
+
+
+def require_lidar(obj):
+    """``obj`` if it is an APCG lidar; else an InputError naming what was given."""
+    if not is_lidar(obj):
+        raise InputError(f"{named(obj)} is not an APCG lidar (add one with apcg.add_lidar)")
+    return obj
+
+
+def require_target(obj):
+    """``obj`` if it is an APCG target parented to a lidar; else an InputError naming it."""
+    if not is_target(obj):
+        raise InputError(f"{named(obj)} is not an APCG target (add one with "
+                         "apcg.add_aircraft, or make one from a mesh with apcg.make_target)")
+    if lidar_of(obj) is None:
+        raise InputError(f"target {obj.name!r} is not parented to an APCG lidar")
+    return obj
 
 
 def lidar_of(obj):
     """The lidar a target (or cloud) belongs to: its parent when that is a lidar."""
     if is_lidar(obj):
         return obj
-    parent = obj.parent if obj is not None else None
+    parent = obj.parent if isinstance(obj, bpy.types.Object) else None
     return parent if is_lidar(parent) else None
 
 
@@ -130,20 +152,35 @@ def body_mesh(obj, depsgraph=None) -> _Mesh:
 
 
 def _check_pose(range_m, elevation, pitch, yaw, roll, azimuth) -> list[float]:
+    """The pose as floats, checked by the command line's rules (apcg_core.options: the same
+    names, the angles in degrees) and physically (apcg_core.condition.Condition)."""
+    from apcg_core.condition import Condition
+    from apcg_core.options import check_values
+    for name, v in zip(POSE_NAMES, (range_m, elevation, pitch, yaw, roll, azimuth), strict=True):
+        if v is None:
+            raise InputError(f"{name} must be a number, got None")
+    check_values(range_m=range_m)
+    check_values(**{f"{k}_deg": v if v is None or isinstance(v, (bool, str)) else
+                    _degrees(v) for k, v in zip(POSE_NAMES[1:], (elevation, pitch, yaw, roll,
+                                                                 azimuth), strict=True)})
     vals = [float(v) for v in (range_m, elevation, pitch, yaw, roll, azimuth)]
-    for name, v in zip(POSE_NAMES, vals, strict=True):
-        if not math.isfinite(v):
-            raise InputError(f"{name} must be finite, got {v!r}")
-    if vals[0] <= 0:
-        raise InputError(f"range_m must be > 0, got {vals[0]!r}")
-    if abs(vals[1]) >= math.pi / 2:
-        raise InputError(f"elevation must be inside (-90, 90) deg, got {math.degrees(vals[1])}")
+    Condition(0, *vals[:5])
     return vals
+
+
+def _degrees(radians):
+    try:
+        return math.degrees(float(radians))
+    except (TypeError, ValueError):
+        return radians  # refused by check_values, by its own value
 
 
 def set_pose(obj, range_m, elevation, pitch=0.0, yaw=0.0, roll=0.0, azimuth=0.0) -> None:
     """Place a target relative to its lidar (metres, radians; the angles in the project's one
     order, POSE_NAMES); keeps the exact doubles."""
+    if not isinstance(obj, bpy.types.Object) or is_lidar(obj) or lidar_of(obj) is None:
+        raise InputError(f"{named(obj)} is not a target of an APCG lidar: a pose places an "
+                         "object parented to a lidar (apcg.add_aircraft, apcg.make_target)")
     vals = _check_pose(range_m, elevation, pitch, yaw, roll, azimuth)
     m = target_matrix_lidar_local(*vals)
     obj[POSE_KEY] = dict(zip(POSE_NAMES, vals, strict=True))
@@ -176,15 +213,39 @@ def pose_moved(obj) -> bool:
 def pose_of(obj) -> dict:
     """The target's pose: a dict of POSE_NAMES (m and rad)."""
     if not is_target(obj):
-        raise InputError(f"{obj.name!r} is not an APCG target (add one with apcg.add_aircraft)")
+        raise InputError(f"{named(obj)} is not an APCG target (add one with "
+                         "apcg.add_aircraft)")
+    _check_unit_scale(obj)
     if not pose_moved(obj):
         return _stored_pose(obj)
     return pose_from_lidar_local(_matrix_of(obj))
 
 
+# A target's size is its mesh's (its type's, or the mesh it was made from): the float32 matrix
+# of an unscaled object keeps its scale within ~1e-7 of 1.
+_SCALE_TOL = 1e-4
+
+
+def _check_unit_scale(obj) -> None:
+    """Refuse a target whose object scale is not 1: the simulator and the models cast its
+    mesh as it is, so a scaled target would not be what Blender shows."""
+    scale = [float(v) for v in obj.matrix_basis.to_scale()]
+    det = float(obj.matrix_basis.to_3x3().determinant())
+    if max(abs(v - 1.0) for v in scale) > _SCALE_TOL or det < 0:
+        raise InputError(
+            f"target {obj.name!r} has scale ({', '.join(f'{v:.6g}' for v in scale)})"
+            f"{', mirrored' if det < 0 else ''}: a target is scanned at its mesh's own size, "
+            "so its scale must be 1. Set its scale to 1; for another size, scale the mesh "
+            "object it was made from and make the target again (apcg.make_target)")
+
+
 def sync_pose(obj) -> bool:
     """Store the pose of a moved target as its doubles; True if it had moved."""
     if is_target(obj) and pose_moved(obj):
+        try:
+            _check_unit_scale(obj)
+        except InputError:  # a scaled target keeps its last pose; a scan names its scale
+            return False
         obj[POSE_KEY] = pose_from_lidar_local(_matrix_of(obj))
         return True
     return False
@@ -202,9 +263,10 @@ def add_aircraft(lidar, type_name: str, range_m: float, elevation_deg: float,
                  pitch_deg: float = 0.0, yaw_deg: float = 0.0, roll_deg: float = 0.0,
                  azimuth_deg: float = 0.0, catalog=None, name: str | None = None):
     """A catalog type (by name or index) as a target of ``lidar`` at the given pose."""
-    if not is_lidar(lidar):
-        raise InputError(f"{getattr(lidar, 'name', lidar)!r} is not an APCG lidar "
-                         "(add one with apcg.add_lidar)")
+    require_lidar(lidar)
+    # every check before anything is made: a refusal leaves the scene as it was
+    pose = _check_pose(range_m, *(_radians(v) for v in (elevation_deg, pitch_deg, yaw_deg,
+                                                         roll_deg, azimuth_deg)))
     catalog = catalog or default_catalog()
     t = catalog.get(type_name)
     mesh = catalog.mesh(t)
@@ -214,17 +276,28 @@ def add_aircraft(lidar, type_name: str, range_m: float, elevation_deg: float,
     obj[LENGTH_KEY] = float(catalog.depth_length_m(t))
     _link_like(obj, lidar)
     obj.parent = lidar
-    set_pose(obj, range_m, *(math.radians(v) for v in (elevation_deg, pitch_deg, yaw_deg,
-                                                        roll_deg, azimuth_deg)))
+    set_pose(obj, *pose)
     return obj
+
+
+def _radians(degrees):
+    """Degrees as radians for :func:`_check_pose`, which refuses what is not a number by its
+    degrees value (the value given)."""
+    if isinstance(degrees, (bool, str)):
+        return degrees
+    try:
+        return math.radians(float(degrees))
+    except (TypeError, ValueError, OverflowError):
+        return degrees
 
 
 def world_mesh(obj, depsgraph=None) -> Mesh:
     """An object's evaluated mesh (modifiers applied) with its world rotation and scale baked
     in (its size and orientation as placed in the scene); its location is left out."""
-    if obj is None or obj.type != "MESH":
-        raise InputError(f"{getattr(obj, 'name', obj)!r} is "
-                         f"{'nothing' if obj is None else 'a ' + obj.type}, not a mesh object")
+    if not isinstance(obj, bpy.types.Object) or obj.type != "MESH":
+        raise InputError(f"{named(obj)} is "
+                         f"{'a ' + obj.type if isinstance(obj, bpy.types.Object) else 'not an object'}"
+                         ", not a mesh object")
     depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
     v, f = triangles_of(obj, depsgraph)
     if len(f) == 0:
@@ -315,17 +388,21 @@ def make_target(lidar, obj, range_m: float | None = None, elevation_deg: float =
     4500 m, 300 m for an object under 5 m). Its type is ``type_name`` (default: the object's
     name); a catalog name lets Generate use a model that knows that type. How the axes were
     found is kept under AXES_KEY."""
-    if obj is None or obj.type != "MESH":
-        raise InputError(f"{getattr(obj, 'name', obj)!r} is not a mesh object: select the "
+    if not isinstance(obj, bpy.types.Object) or obj.type != "MESH":
+        raise InputError(f"{named(obj)} is not a mesh object: select the "
                          "mesh of your model")
     if is_target(obj) or obj.get("apcg_cloud") is not None:
         raise InputError(f"{obj.name!r} already is an APCG target or cloud: select the mesh "
                          "object of your model")
-    if lidar is None:
-        lidar = next((o for o in bpy.context.scene.objects if is_lidar(o)), None) or add_lidar()
-    elif not is_lidar(lidar):
-        raise InputError(f"{getattr(lidar, 'name', lidar)!r} is not an APCG lidar "
-                         "(add one with apcg.add_lidar)")
+    if lidar is not None:
+        require_lidar(lidar)
+    # every check before anything is made: a refusal leaves the scene as it was
+    _check_pose(4500.0 if range_m is None else range_m,
+                *(_radians(v) for v in (elevation_deg, pitch_deg, yaw_deg, roll_deg,
+                                        azimuth_deg)))
+    if depth_length_m is not None:
+        from apcg_core.options import check_values
+        check_values(length_m=depth_length_m)
     world = world_mesh(obj, depsgraph)
     axes = _axes_for(world, forward, up)
     body, centre = body_frame(world, axes["forward"], axes["up"])
@@ -340,6 +417,8 @@ def make_target(lidar, obj, range_m: float | None = None, elevation_deg: float =
         length = float(catalog.depth_length_m(type_name))
     if range_m is None:
         range_m = default_range_m(body.extents)
+    if lidar is None:
+        lidar = next((o for o in bpy.context.scene.objects if is_lidar(o)), None) or add_lidar()
     me = mesh_from_arrays(name or f"{obj.name} (target)", body.vertices, body.faces)
     for mat in getattr(obj.data, "materials", ()):
         me.materials.append(mat)
@@ -358,7 +437,7 @@ def make_target(lidar, obj, range_m: float | None = None, elevation_deg: float =
 
 def axes_label(obj) -> str:
     """'forward -Y, up Z (guessed)' for a made target; '' for others."""
-    axes = obj.get(AXES_KEY) if obj is not None else None
+    axes = obj.get(AXES_KEY) if isinstance(obj, bpy.types.Object) else None
     if not axes:
         return ""
     low = "" if axes.get("confident", True) else ", unsure"
@@ -367,12 +446,12 @@ def axes_label(obj) -> str:
 
 def source_of(obj):
     """The scene object a made target was made from (None for catalog types)."""
-    src = obj.get(SOURCE_KEY) if obj is not None else None
+    src = obj.get(SOURCE_KEY) if isinstance(obj, bpy.types.Object) else None
     return src if isinstance(src, bpy.types.Object) else None
 
 
 def targets_of(lidar, selected_only: bool = False) -> list:
-    kids = [o for o in lidar.children if is_target(o)]
+    kids = [o for o in require_lidar(lidar).children if is_target(o)]
     if selected_only:
         kids = [o for o in kids if o.select_get()]
     return kids

@@ -310,7 +310,7 @@ def test_bad_input_is_named(scene):
     lidar = api.add_lidar()
     with pytest.raises(Exception, match="unknown aircraft type 'A999'"):
         api.add_aircraft(lidar, "A999", 4000.0, 3.0)
-    with pytest.raises(Exception, match="range_m must be finite"):
+    with pytest.raises(Exception, match="range_m = nan not accepted: a finite range"):
         api.add_aircraft(lidar, "A320neo", float("nan"), 3.0)
     with pytest.raises(Exception, match="no targets to scan"):
         api.scan(lidar)

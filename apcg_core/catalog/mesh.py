@@ -137,6 +137,11 @@ def sample_surface(mesh: Mesh, n: int, seed: int = 0, return_faces: bool = False
     with ``return_faces`` also the face each point lies on."""
     rng = np.random.default_rng(seed)
     areas = mesh.face_areas
+    total = float(areas.sum()) if len(areas) else 0.0
+    if not (np.isfinite(total) and total > 0):
+        raise InputError(f"the mesh's {len(areas)} faces have {'no' if total == 0 else 'no finite'}"
+                         " area (every face degenerate, or vertices not finite): a lidar "
+                         "would see nothing of it")
     face = rng.choice(len(areas), size=n, p=areas / areas.sum())
     u, v = rng.random(n), rng.random(n)
     flip = u + v > 1

@@ -164,10 +164,15 @@ class ModelTypes:
 def load_model(directory=None, runtime: str = "auto"):
     """The model in ``directory`` (default: the shipped one), opened by the family that made
     it (model.json ``family``), whatever that family is."""
-    d = Path(directory) if directory else DEFAULT_MODEL_DIR
+    d = DEFAULT_MODEL_DIR if directory is None or directory == "" else directory
     if runtime not in RUNTIMES:
         raise InputError(f"runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")
-    return get_family(family_of(d)).load(d, runtime=runtime)
+    name = family_of(d)  # checks that d is a model directory, naming it
+    try:
+        family = get_family(name)
+    except InputError as exc:
+        raise InputError(f"{Path(d) / 'model.json'}: {exc}") from exc
+    return family.load(Path(d), runtime=runtime)
 
 
 _BROKEN = ("a partial or corrupt file: export the model again (`apcg export`), or copy it "

@@ -18,6 +18,7 @@ outside a family's own modules branches on its name: it asks the registry.
 from __future__ import annotations
 
 import json
+import os
 from importlib import import_module
 from pathlib import Path
 
@@ -85,11 +86,14 @@ def get_family(name: str, need: str = "load"):
 
 def read_model_meta(directory) -> dict:
     """A model directory's ``model.json``, checked to be one."""
+    if not isinstance(directory, (str, os.PathLike)):
+        raise InputError(f"a model is given by its directory (a path), got {directory!r}")
     d = Path(directory)
     meta = d / "model.json"
     if not d.is_dir():
-        raise InputError(f"model directory {d} does not exist (a model is a directory made "
-                         "by `apcg export`)")
+        what = "is a file, not" if d.exists() else "does not exist"
+        raise InputError(f"model directory {d} {what} (a model is a directory made by "
+                         "`apcg export`)")
     if not meta.is_file():
         raise InputError(f"{d} is not an APCG model directory (no model.json; `apcg export "
                          "--run RUN -o DIR` makes one from a training run)")

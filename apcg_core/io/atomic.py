@@ -36,6 +36,13 @@ def scratch(path) -> Path:
     return Path(path)
 
 
+def refuse_directory(path) -> None:
+    """A file is never written over a directory (nor is its temporary name made for one)."""
+    if Path(path).is_dir():
+        from ..errors import InputError
+        raise InputError(f"{path} is a directory; give a file name")
+
+
 def publish(tmp, path, held: bool | None = None) -> None:
     """``tmp`` (complete) becomes ``path``: renamed now, or, for a command's own result, moved
     beside ``path`` and renamed when the command ends (``apcg_core.outputs.Guard.commit``)."""
@@ -61,6 +68,7 @@ def atomic_path(path, suffix: str = ".part"):
     half-written one is left. The guard is asked first, so a refusal costs no work. Missing
     parent directories are made."""
     path = Path(path)
+    refuse_directory(path)
     held = claim(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = scratch(path.with_name(path.name + suffix))

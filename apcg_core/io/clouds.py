@@ -19,7 +19,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import InputError
-from .atomic import atomic_path, claim, name_the_file, publish, scratch
+from .atomic import atomic_path, claim, name_the_file, publish, refuse_directory, scratch
 
 FORMATS = (".ply", ".npz", ".las", ".laz")
 _OWN = ("range_m", "cell_w", "cell_h", "sample")
@@ -257,6 +257,7 @@ class CloudWriter:
         self.meta = meta or {}
         # a photon cloud's attributes: fixed up front (a PLY header is written first)
         self.photon_fields = tuple(photon_fields)
+        refuse_directory(self.path)
         self._held_output = claim(self.path)  # the guard first: a refusal costs no work
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = scratch(self.path.with_name(self.path.name + ".part"))
@@ -496,6 +497,11 @@ def read_cloud_attributes(path) -> tuple[PointCloud, dict, dict[str, np.ndarray]
         raise InputError(f"cannot read point cloud {path}: {exc}") from exc
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     n = len(xyz)
+    bad = ~np.isfinite(xyz).all(axis=1)
+    if bad.any():
+        raise InputError(f"cannot read point cloud {path}: {int(bad.sum())} of its {n} points "
+                         f"have a coordinate that is not a finite number (the first: point "
+                         f"{int(np.argmax(bad))}, {xyz[np.argmax(bad)].tolist()})")
     own = {k: cols.pop(k, None) for k in _OWN}
     r = own["range_m"] if own["range_m"] is not None else np.linalg.norm(xyz, axis=1)
     zeros = np.zeros(n, np.int32)
@@ -518,7 +524,12 @@ def _read_npz(path: Path):
     with np.load(path, allow_pickle=False) as z:
         if "xyz" not in z.files:
             raise InputError(f"{path}: the NPZ file has no 'xyz' array (it has {z.files})")
-        xyz = np.asarray(z["xyz"], np.float64).reshape(-1, 3)
+        xyz = np.asarray(z["xyz"], np.float64)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            if xyz.size != 0:
+                raise InputError(f"{path}: the NPZ file's 'xyz' array has shape {xyz.shape}; "
+                                 "a cloud's is (n, 3), one row of x, y, z per point")
+            xyz = xyz.reshape(0, 3)
         meta = json.loads(str(z["meta"])) if "meta" in z.files else {}
         cols = {}
         for k in z.files:

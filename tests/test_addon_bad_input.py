@@ -1,0 +1,167 @@
+"""The add-on's Python API refuses what it cannot use the way the command line does (one
+InputError naming the value and what is accepted), before it changes the scene; in real
+Blender (the bpy module)."""
+
+import inspect
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+import blender_addon  # noqa: E402
+from apcg_core.catalog import default_catalog  # noqa: E402
+from apcg_core.errors import InputError  # noqa: E402
+from blender_addon import api  # noqa: E402
+
+GOOD = dict(range_m=4500.0, elevation_deg=3.4, pitch_deg=2.3)
+
+
+@pytest.fixture
+def scene(tmp_path, monkeypatch):
+    monkeypatch.setenv("APCG_DATA_DIR", str(tmp_path / "data"))
+    default_catalog.cache_clear()
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    blender_addon.register()
+    lidar = api.add_lidar()
+    jet = api.add_aircraft(lidar, "A320neo", **GOOD)
+    yield lidar, jet
+    blender_addon.unregister()
+    default_catalog.cache_clear()
+
+
+def _state():
+    return (sorted(o.name for o in bpy.data.objects), len(bpy.data.meshes))
+
+
+BAD_POSES = [dict(range_m=float("nan")), dict(range_m=0.0), dict(range_m=-5.0),
+             dict(range_m=1e30), dict(range_m="abc"), dict(range_m=None),
+             dict(elevation_deg=95.0), dict(elevation_deg=90.0), dict(pitch_deg=1e30),
+             dict(pitch_deg=120.0), dict(yaw_deg=float("inf")), dict(roll_deg=True)]
+
+
+@pytest.mark.parametrize("bad", BAD_POSES, ids=lambda d: "-".join(f"{k}={v}" for k, v in
+                                                                 d.items()))
+def test_a_refused_pose_leaves_the_scene_as_it_was(scene, bad):
+    """A pose refused by add_aircraft or make_target makes nothing: a half-made object at the
+    lidar would hide every later scan (it did: 235 points -> 0)."""
+    lidar, jet = scene
+    n = len(api.cloud_from_object(api.scan(lidar, occlusion=True)[0])[0])
+    bpy.ops.mesh.primitive_cube_add(size=10.0, location=(0.0, -200.0, 0.0))  # behind
+    cube = bpy.context.active_object
+    before = _state()
+    makers = [lambda: api.add_aircraft(lidar, "A320neo", **{**GOOD, **bad})]
+    if bad != {"range_m": None}:  # make_target's range None: its default range, by design
+        makers.append(lambda: api.make_target(lidar, cube, **{**GOOD, **bad}))
+    for make in makers:
+        with pytest.raises(InputError) as e:
+            make()
+        name = next(iter(bad))
+        assert name.split("_")[0] in str(e.value), str(e.value)
+        assert _state() == before
+    again = api.cloud_from_object(api.scan(lidar, targets=[jet])[0])[0]
+    assert len(again) == n > 0
+
+
+# the API's functions whose first argument is a scene object, and the rest of a valid call
+OBJECT_CALLS = {
+    "scan_target": {}, "scan": {}, "generate": {}, "pose_of": {}, "set_pose": {
+        "range_m": 4500.0, "elevation": 0.06}, "cloud_from_object": {}, "add_to_catalog": {},
+    "add_aircraft": {"type_name": "A320neo", **GOOD}, "make_target": {"obj": "cube"},
+    "read_lidar_file": {"ref": "1550nm-day"}, "write_lidar_file": {"path": "x.toml"},
+    "scan_animation": {"directory": "seq"}, "export_cloud": {"path": "x.ply"},
+    "set_point_radius": {"radius": 0.5}, "check_model_knows": {"target": "jet"},
+    "targets_of": {}, "world_mesh": {},
+}
+
+
+def test_every_function_taking_an_object_refuses_what_is_not_one(scene, tmp_path,
+                                                                   monkeypatch):
+    """None, a name, a number and a plain mesh, given where the API takes a lidar, target or
+    cloud: an InputError naming it, never an AttributeError from inside."""
+    lidar, jet = scene
+    monkeypatch.chdir(tmp_path)
+    bpy.ops.mesh.primitive_cube_add(size=10.0, location=(0.0, -200.0, 0.0))  # behind
+    cube = bpy.context.active_object
+    takes_object = sorted(n for n in api.__all__ if callable(getattr(api, n)) and next(
+        iter(inspect.signature(getattr(api, n)).parameters), "") in ("lidar", "target", "obj",
+                                                                       "model"))
+    predicates = {"is_lidar", "is_target", "is_cloud", "axes_label"}  # a plain answer
+    assert set(takes_object) - predicates <= set(OBJECT_CALLS), takes_object
+    for name in sorted(predicates):
+        for bad in (None, "A320neo", 5, cube):
+            assert not getattr(api, name)(bad)
+    for name in sorted(set(takes_object) - predicates):
+        fn, rest = getattr(api, name), dict(OBJECT_CALLS[name])
+        rest = {k: (cube if v == "cube" else jet if v == "jet" else v) for k, v in rest.items()}
+        if name == "check_model_knows":
+            continue  # its first argument is a model (below)
+        for bad in (None, "A320neo", 5, cube):
+            if name == "make_target" and bad is None:
+                continue  # None: the scene's first lidar, by design
+            if name == "world_mesh" and bad is cube:
+                continue  # any mesh object has one
+            with pytest.raises(InputError) as e:
+                fn(bad, **rest)
+            assert repr(getattr(bad, "name", bad)) in str(e.value), (name, bad, str(e.value))
+
+
+@pytest.mark.parametrize("call, says", [
+    (lambda lidar, jet: api.scan(lidar, seed=float("nan")), "seed = nan"),
+    (lambda lidar, jet: api.scan(lidar, seed=-1), "seed = -1"),
+    (lambda lidar, jet: api.scan(lidar, supersample=0), "supersample = 0"),
+    (lambda lidar, jet: api.scan(lidar, targets=jet), "must be a list"),
+    (lambda lidar, jet: api.scan(lidar, targets=["A320neo"]), "'A320neo' is not an APCG"),
+    (lambda lidar, jet: api.generate(jet, count=0), "count = 0"),
+    (lambda lidar, jet: api.generate(jet, count=2.5), "count = 2.5"),
+    (lambda lidar, jet: api.generate(jet, seed=-1), "seed = -1"),
+    (lambda lidar, jet: api.generate(jet, model=5), "got 5"),
+    (lambda lidar, jet: api.generate(jet, model=__file__), "is a file, not"),
+    (lambda lidar, jet: api.scan_animation(lidar, "seq", frame_start=float("nan")),
+     "frame_start = nan"),
+    (lambda lidar, jet: api.scan_animation(lidar, "seq", seed=2**40), "seed = "),
+])
+def test_numbers_and_options_follow_the_command_lines_rules(scene, tmp_path, monkeypatch,
+                                                            call, says):
+    lidar, jet = scene
+    monkeypatch.chdir(tmp_path)
+    before = _state()
+    with pytest.raises(InputError, match=None) as e:
+        call(lidar, jet)
+    assert says in str(e.value), str(e.value)
+    assert _state() == before
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("scale", [(2.0, 2.0, 2.0), (-1.0, 1.0, 1.0), (0.0, 0.0, 0.0),
+                                   (1.0, 1.0, 0.5)])
+def test_a_scaled_target_is_refused_by_its_scale(scene, scale):
+    """The simulator and the models cast a target's mesh as it is: a scaled object would not
+    be what Blender shows, so scan and generate name its scale instead."""
+    lidar, jet = scene
+    jet.scale = scale
+    for call in (lambda: api.scan(lidar, targets=[jet]), lambda: api.generate(jet)):
+        with pytest.raises(InputError, match="has scale"):
+            call()
+    jet.scale = (1.0, 1.0, 1.0)
+    assert len(api.cloud_from_object(api.scan(lidar, targets=[jet])[0])[0]) > 0
+
+
+def test_files_the_api_cannot_use_are_named(scene, tmp_path):
+    lidar, jet = scene
+    cloud = api.scan(lidar)[0]
+    (tmp_path / "dir.ply").mkdir()
+    with pytest.raises(InputError, match="is a directory"):
+        api.export_cloud(cloud, tmp_path / "dir.ply")
+    with pytest.raises(InputError, match="is a directory"):
+        api.write_lidar_file(lidar, tmp_path / "dir.ply")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.ply"]  # no .part left
+    np.savez(tmp_path / "shape.npz", xyz=np.zeros((3, 2)))
+    np.savez(tmp_path / "nan.npz", xyz=np.array([[1.0, 2.0, 3.0], [np.nan, 0.0, 0.0]]))
+    with pytest.raises(InputError, match=r"shape \(3, 2\)"):
+        api.import_cloud(tmp_path / "shape.npz")
+    with pytest.raises(InputError, match="not a finite number"):
+        api.import_cloud(tmp_path / "nan.npz")
+    cloud["apcg_cloud"] = "{broken"
+    with pytest.raises(InputError, match="apcg_cloud"):
+        api.cloud_from_object(cloud)
