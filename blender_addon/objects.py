@@ -295,9 +295,8 @@ def world_mesh(obj, depsgraph=None) -> Mesh:
     """An object's evaluated mesh (modifiers applied) with its world rotation and scale baked
     in (its size and orientation as placed in the scene); its location is left out."""
     if not isinstance(obj, bpy.types.Object) or obj.type != "MESH":
-        raise InputError(f"{named(obj)} is "
-                         f"{'a ' + obj.type if isinstance(obj, bpy.types.Object) else 'not an object'}"
-                         ", not a mesh object")
+        what = f"a {obj.type}" if isinstance(obj, bpy.types.Object) else "not an object"
+        raise InputError(f"{named(obj)} is {what}, not a mesh object")
     depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
     v, f = triangles_of(obj, depsgraph)
     if len(f) == 0:

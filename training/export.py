@@ -22,7 +22,6 @@ from .data import DepthDataset
 from .trainer import read_checkpoint, read_run_record
 
 
-
 def ordinal(n: int) -> str:
     """2 -> "2nd", 100 -> "100th", 13 -> "13th" (the log note's English)."""
     suffix = "th" if n % 100 in (11, 12, 13) else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
