@@ -399,7 +399,7 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     from apcg_core.catalog.catalog import default_catalog
     from apcg_core.scene.poses import poses_from_angles
     from apcg_core.scene.scan import make_pattern
-    from apcg_core.scene.spec import Scene, SceneTarget, default_pointing
+    from apcg_core.scene.spec import Scene, SceneTarget, check_scan_fits, default_pointing
     from apcg_core.scene.trajectory import Sampled
     from apcg_core.sensor import SensorParams, load_sensor
     from dataset_builder.scene import SceneScanner, write_sequence
@@ -413,6 +413,8 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     fps = scene.render.fps / scene.render.fps_base
     pattern = make_pattern(scan, "Scan Animation")
     params = lidar_params(lidar)
+    # the scene file's check (Scene makes it again), before the timeline is read
+    check_scan_fits(pattern, params, end - start + 1, fps, "Scan Animation")
     # one Blender frame past the end when a frame's scan takes time: its last rows fire then
     last = end + (1 if pattern.groups(params).duration_s > 0 else 0)
     blender_frames = list(range(start, last + 1))
@@ -421,8 +423,12 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     try:
         for f in blender_frames:
             scene.frame_set(f)
-            for t in targets:
-                poses[t.name].append(_pose_in_lidar(lidar, t))
+            for k, t in enumerate(targets, start=1):
+                try:
+                    poses[t.name].append(_pose_in_lidar(lidar, t))
+                except ValueError as exc:  # on the lidar: no direction (an InputError)
+                    raise InputError(f"Blender target {k} ({t.name}): at frame {f}: {exc}"
+                                     ) from None
     finally:
         scene.frame_set(now)
     times = (np.array(blender_frames) - start) / fps

@@ -137,17 +137,7 @@ class SceneScanner:
         scene, lidar, g = self.scene, self.scene.lidar, self.groups
         target = scene.targets[i]
         times = (np.atleast_1d(np.asarray(t0, np.float64))[:, None] + g.time_s[None, :]).ravel()
-        p, b = target.poses(times)
-        c = turn(-scene.pointing_azimuth, p)
-        m = turn(-scene.pointing_azimuth, b)
-        rng = target.trajectory.ranges(p)
-        radius = self.radii[i]
-        need = radius + 2.0 * start_margin_m(radius)
-        if (rng <= need).any():
-            j = int(np.argmax(rng <= need))
-            raise InputError(f"{target.source}: at t = {times[j]:.6g} s its range "
-                             f"{rng[j]:.6g} m puts the lidar inside it (bounding radius "
-                             f"{radius:.3f} m); accepted: a range > {need:.3f} m")
+        m, c, rng = self._posed(i, times)
         table = np.zeros((len(times), 6))
         table[:, 0] = target.type_index
         table[:, 1] = rng
@@ -159,11 +149,48 @@ class SceneScanner:
                            np.maximum(boxes.h_lo, gh_lo), np.minimum(boxes.h_hi, gh_hi),
                            boxes.clipped, boxes.outside)
         keep = (cut.w_hi >= cut.w_lo) & (cut.h_hi >= cut.h_lo) & ~boxes.outside
+        # A target not wholly in front of the lidar (its bounding sphere reaching z <= 0 in the
+        # window's frame): its vertices' azimuths wrap at +-180 deg, so their least and
+        # greatest (the box) span the whole window; whether it can meet the window is then
+        # its sphere's answer (no ray of the window reaches behind the lidar).
+        behind = c[:, 2] <= self.radii[i]
+        if behind.any():
+            keep &= ~behind | self._sphere_meets(i, c)
         if per_frame:
             return keep.reshape(-1, len(g)).any(axis=1)
         return (table[keep], m[keep], c[keep], cut[keep], bool(keep.any()),
                 bool(boxes.clipped[keep].any()) if keep.any() else False,
                 np.flatnonzero(keep) % len(g))
+
+    def _posed(self, i: int, times: np.ndarray):
+        """Target i at ``times``: body -> window-frame maps, centres in the window's frame and
+        ranges; refused where the lidar would sit inside it (every frame's times pass here
+        before a scan or a sequence writes anything: :func:`check_targets_seen`)."""
+        scene, target = self.scene, self.scene.targets[i]
+        p, b = target.poses(times)
+        rng = target.trajectory.ranges(p)
+        radius = self.radii[i]
+        need = radius + 2.0 * start_margin_m(radius)
+        bad = ~(rng > need)  # NaN too
+        if bad.any():
+            j = int(np.argmax(bad))
+            raise InputError(f"{target.source}: at t = {times[j]:.6g} s its range "
+                             f"{rng[j]:.6g} m puts the lidar inside it (bounding radius "
+                             f"{radius:.3f} m); accepted: a range > {need:.3f} m")
+        return turn(-scene.pointing_azimuth, b), turn(-scene.pointing_azimuth, p), rng
+
+    def _sphere_meets(self, i: int, c: np.ndarray) -> np.ndarray:
+        """Whether target i's bounding sphere, centred at ``c`` (N, 3, the window's frame),
+        can reach the window's cells: never False where a ray of the window can hit it."""
+        lidar, el0 = self.scene.lidar, self.scene.pointing_elevation
+        a_lo, a_hi = (lidar.w_min - 0.5) * lidar.r_alpha, (-lidar.w_min + 0.5) * lidar.r_alpha
+        b_lo = el0 + (lidar.h_min - 0.5) * lidar.r_beta
+        b_hi = el0 + (-lidar.h_min + 0.5) * lidar.r_beta
+        az, el, r = cartesian_to_spherical(c)
+        rho = np.arcsin(np.minimum(1.0, self.radii[i] / r))
+        rho_az = np.minimum(np.pi, rho / np.maximum(np.cos(np.abs(el) + rho), 1e-9))
+        return ((az + rho_az >= a_lo) & (az - rho_az <= a_hi) & (el + rho >= b_lo)
+                & (el - rho <= b_hi))
 
     # --- one frame -----------------------------------------------------------------------------
     def scan(self, frame: int) -> FrameScan:
@@ -390,25 +417,32 @@ def window_presence(scanner: SceneScanner, frames) -> np.ndarray:
     return out
 
 
+# Poses computed at once by the checks before a sequence (frames x groups at most): bounded
+# memory whatever the pattern (a cells raster has W x H groups a frame).
+POSES_PER_BATCH = 65536
+
+
+def _frame_batches(scanner: SceneScanner, frames):
+    """(first row, scan times) of batches of whole frames: each frame's groups' times."""
+    g = scanner.groups
+    t0 = scanner.scene.frame_times(frames)
+    step = max(1, POSES_PER_BATCH // len(g))
+    for a in range(0, len(frames), step):
+        yield a, (t0[a:a + step, None] + g.time_s[None, :]).ravel()
+
+
 def sphere_presence(scanner: SceneScanner, frames) -> np.ndarray:
     """(F, T) bool: whether each target's bounding sphere can reach the window in each frame
     (at any of its groups' times). Never False where :func:`window_presence` is True: a quick
-    screen (a 200-frame sequence's in milliseconds, its boxes' in seconds)."""
-    scene, lidar, g = scanner.scene, scanner.scene.lidar, scanner.groups
-    t0 = scene.frame_times(frames)
-    times = (t0[:, None] + g.time_s[None, :]).ravel()
-    a_lo, a_hi = (lidar.w_min - 0.5) * lidar.r_alpha, (-lidar.w_min + 0.5) * lidar.r_alpha
-    b_lo = scene.pointing_elevation + (lidar.h_min - 0.5) * lidar.r_beta
-    b_hi = scene.pointing_elevation + (-lidar.h_min + 0.5) * lidar.r_beta
-    out = np.zeros((len(frames), len(scene.targets)), bool)
-    for i, target in enumerate(scene.targets):
-        p, _ = target.poses(times)
-        az, el, r = cartesian_to_spherical(turn(-scene.pointing_azimuth, p))
-        rho = np.arcsin(np.minimum(1.0, scanner.radii[i] / r))
-        rho_az = np.minimum(np.pi, rho / np.maximum(np.cos(np.abs(el) + rho), 1e-9))
-        meets = ((az + rho_az >= a_lo) & (az - rho_az <= a_hi) & (el + rho >= b_lo)
-                 & (el - rho <= b_hi))
-        out[:, i] = meets.reshape(len(frames), len(g)).any(axis=1)
+    screen (a 200-frame sequence's in milliseconds, its boxes' in seconds). The lidar inside
+    a target at any of these times is refused (``SceneScanner._posed``)."""
+    out = np.zeros((len(frames), len(scanner.scene.targets)), bool)
+    ng = len(scanner.groups)
+    for i in range(len(scanner.scene.targets)):
+        for a, times in _frame_batches(scanner, frames):
+            _, c, _ = scanner._posed(i, times)
+            meets = scanner._sphere_meets(i, c)
+            out[a:a + len(times) // ng, i] = meets.reshape(-1, ng).any(axis=1)
     return out
 
 
@@ -430,7 +464,9 @@ def check_targets_seen(scanner: SceneScanner, frames, every_frame: bool) -> np.n
     its frame; a sequence's when its bounding sphere reaches the window in none of its frames
     (the boxes of every frame would cost as much as the scan: a target whose sphere reaches
     the window but whose box never does is recorded as never ``in_window``, not refused).
-    Returns the presence table."""
+    Both read every target's pose at every group's time of every frame through
+    ``SceneScanner._posed``, which refuses the lidar inside a target: called before anything
+    is written, nothing is written before such a refusal. Returns the presence table."""
     seen = (window_presence if every_frame else sphere_presence)(scanner, frames)
     for i in range(seen.shape[1]):
         bad = ~seen[:, i] if every_frame else (None if seen[:, i].any() else ~seen[:, i])
@@ -623,17 +659,13 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
         header = json_bytes(sequence_header(scene, scanner))
     finally:
         scanner.close()
+    check_sequence_directory(out, header)
     (out / "frames").mkdir(parents=True, exist_ok=True)
     lock = ProcessLock(out / ".sequence.lock", f"scene sequence into {out}")
     lock.acquire()
     try:
         head = out / HEADER
-        if head.exists():
-            if head.read_bytes() != header:
-                raise InputError(f"{out} already holds a different sequence (its {HEADER} "
-                                 "differs from this scene and these options); write into a "
-                                 "new directory or delete it")
-        else:
+        if not check_sequence_directory(out, header):  # again: another run may have begun
             write_atomic(head, header, part_suffix=part_suffix())
         todo = [f for f in frames if not (out / frame_file(f)).exists()]
         tasks = [SequenceTask(i // FRAMES_PER_TASK, str(Path(scene_path).resolve()),
@@ -677,6 +709,26 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
     return summary
 
 
+def check_sequence_directory(out: Path, header: bytes) -> bool:
+    """Whether ``out`` already holds this sequence (its header, byte for byte: True) or none
+    yet (False); refused when it holds a different one (another scene, other options, another
+    Blender timeline), whose frames would otherwise be mixed with these or left stale beside
+    them, and when it is a file. Every sequence writer (`apcg scene sequence`, the add-on's
+    Scan Animation) asks here before it writes."""
+    from apcg_core.scene.sequence import HEADER
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out} is a file; a sequence is written into a directory (a new one, "
+                         "or one holding this same sequence)")
+    head = out / HEADER
+    if not head.exists():
+        return False
+    if not head.is_file() or head.read_bytes() != header:
+        raise InputError(f"{out} already holds a different sequence (its {HEADER} differs "
+                         "from this scene and these options); write into a new directory or "
+                         "delete it")
+    return True
+
+
 def finish_sequence(out: Path, frames) -> dict | None:
     """poses.csv from every frame file, then the manifest (last: the sequence is complete);
     with generated targets the manifest's ``generator`` counts, per track, the frames its
@@ -713,14 +765,18 @@ def write_sequence(scanner: SceneScanner, out_dir, header_extra: dict | None = N
     `apcg scene sequence`. ``progress(i, n)`` after each frame; returning False stops (the
     frames written are kept, no manifest)."""
     from apcg_core.io.dataset import json_bytes, write_atomic
-    from apcg_core.scene.sequence import HEADER
+    from apcg_core.scene.sequence import HEADER, MANIFEST
     scene = scanner.scene
     out = Path(out_dir)
     frames = list(range(scene.frames))
     check_targets_seen(scanner, frames, every_frame=False)
-    header = {**sequence_header(scene, scanner), **(header_extra or {})}
+    header = json_bytes({**sequence_header(scene, scanner), **(header_extra or {})})
+    if check_sequence_directory(out, header):
+        # the same sequence again: every frame is scanned anew (the animation may have
+        # changed), so the directory is not complete until the new manifest is written
+        (out / MANIFEST).unlink(missing_ok=True)
     (out / "frames").mkdir(parents=True, exist_ok=True)
-    write_atomic(out / HEADER, json_bytes(header))
+    write_atomic(out / HEADER, header)
     for f in frames:
         data, _ = frame_npz(scanner, f)
         write_atomic(out / frame_file(f), data)

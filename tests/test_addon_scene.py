@@ -124,3 +124,70 @@ def test_the_scan_animation_operator_writes_and_plays_the_sequence(scene, tmp_pa
     clouds = [o for o in bpy.data.objects if o.name.startswith("APCG sequence seq ")]
     assert len(clouds) == 5
     assert bpy.ops.apcg.import_sequence(directory=str(tmp_path / "seq")) == {"FINISHED"}
+
+
+# --- bad input: the command line's checks, nothing written -------------------------------------
+def _files(directory) -> dict:
+    return {str(p.relative_to(directory)): p.read_bytes()
+            for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+def test_scan_animation_refuses_a_directory_holding_another_sequence(scene, tmp_path, capsys):
+    """`apcg scene sequence`'s check (dataset_builder.scene.check_sequence_directory): five
+    frames of another scene are neither replaced nor left stale beside three new ones."""
+    from test_scene import _write_scene
+
+    from apcg_core.cli import main
+    five = _write_scene(tmp_path / "five.toml", {
+        "sequence": {"frames": 5, "frame_rate_hz": 10.0},
+        "target": [{"type": "737-800", "range_m": 5000.0, "elevation_deg": 3.5}]})
+    out = tmp_path / "DIR"
+    assert main(["scene", "sequence", str(five), "-o", str(out), "--no-progress"]) == 0
+    capsys.readouterr()
+    before = _files(out)
+    lidar, *_ = _animated_scene(scene)
+    with pytest.raises(api.InputError, match="DIR already holds a different sequence"):
+        api.scan_animation(lidar, out, frame_end=3, backend="embree")
+    assert _files(out) == before
+    # its own sequence again is no other sequence: scanned anew, complete
+    mine = tmp_path / "mine"
+    api.scan_animation(lidar, mine, frame_end=3, backend="embree")
+    first = _files(mine)
+    api.scan_animation(lidar, mine, frame_end=3, backend="embree")
+    assert _files(mine) == first and load_sequence(mine).complete
+    with pytest.raises(api.InputError, match="mine already holds a different sequence"):
+        api.scan_animation(lidar, mine, frame_end=2, backend="embree")
+
+
+def test_scan_animation_refuses_a_scan_longer_than_a_frame(scene, tmp_path):
+    """The scene file's check (apcg_core.scene.spec.check_scan_fits, made by every Scene):
+    64 rows 1 s apart at 24 fps."""
+    lidar, *_ = _animated_scene(scene)
+    scene.render.fps = 24
+    scene.frame_set(2)
+    with pytest.raises(api.InputError, match=r"one frame's scan takes 63 s, longer than a frame "
+                                             r"at 24 Hz"):
+        api.scan_animation(lidar, tmp_path / "seq_f", backend="embree",
+                           scan={"pattern": "rows", "line_time_s": 1.0})
+    assert not (tmp_path / "seq_f").exists() and scene.frame_current == 2
+
+
+def test_scan_animation_refuses_the_lidar_inside_a_target_before_writing(scene, tmp_path):
+    """A target keyframed through the lidar (5 m from it at frame 3), or onto it: refused
+    before frame 0 is written, as `apcg scene sequence` refuses it (one InputError)."""
+    lidar = api.add_lidar()
+    jet = api.add_aircraft(lidar, "A320neo", range_m=6000.0, elevation_deg=3.5)
+    start = np.array(jet.location[:])
+    jet.keyframe_insert("location", frame=1)
+    jet.location = tuple(-start + [10.0, 0.0, 0.0])
+    jet.keyframe_insert("location", frame=5)
+    with pytest.raises(api.InputError, match=r"Blender target 1 \(.*\): at t = 0.2 s its range "
+                                             r"5 m puts the lidar inside it"):
+        api.scan_animation(lidar, tmp_path / "seq", backend="embree")
+    assert not (tmp_path / "seq").exists()
+    jet.location = (0.0, 0.0, 0.0)
+    jet.keyframe_insert("location", frame=5)
+    with pytest.raises(api.InputError, match=r"Blender target 1 \(.*\): at frame 5: the "
+                                             r"target sits on the lidar"):
+        api.scan_animation(lidar, tmp_path / "seq", backend="embree")
+    assert not (tmp_path / "seq").exists() and scene.frame_current == 1

@@ -26,6 +26,47 @@ from ..frames import (
     cartesian_to_spherical,
     target_centres,
 )
+from ..options import RULES, Rule
+
+# What a target's pose value accepts, wherever it is given: a [[target]] table's keys and a
+# trajectory CSV file's columns. The pose angles' rules are the command line's own
+# (``apcg simulate --range-m ...``: options.RULES, one table); a scene-frame position's
+# coordinates are bounded by range_m's limit. An elevation of +-90 deg passes the rule and is
+# refused by :func:`pose_value_problem` (straight overhead has no horizontal direction).
+POSE_ANGLES = ("range_m", "azimuth_deg", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg")
+POSITION_XYZ = ("x_m", "y_m", "z_m")
+POSE_RULES: dict[str, Rule] = {
+    **{k: RULES[k] for k in POSE_ANGLES},
+    **{k: Rule("a finite coordinate in metres from -1e6 to 1e6", lo=-1e6, hi=1e6)
+       for k in POSITION_XYZ},
+}
+OVERHEAD = ("an elevation strictly between -90 and 90 deg (a target straight overhead has no "
+            "horizontal direction: SPEC section 2)")
+
+
+def pose_value_problem(name: str, value) -> str | None:
+    """Why ``value`` is refused as the pose value ``name`` (a key of POSE_RULES): "is not
+    accepted: WHAT IS ACCEPTED", or None when it is accepted."""
+    rule = POSE_RULES[name]
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    if not number or not rule.ok(float(value)):
+        return f"is not accepted: {rule.accepted}"
+    if name == "elevation_deg" and abs(value) >= 90:
+        return f"is not accepted: {OVERHEAD}"
+    return None
+
+
+def position_problem(p) -> str | None:
+    """Why a scene-frame position (3,) is refused as a target's place: its range by
+    range_m's rule, straight overhead by elevation_deg's; None when accepted."""
+    x, y, z = (float(v) for v in p)
+    r = float(np.sqrt(x * x + y * y + z * z))
+    if not POSE_RULES["range_m"].ok(r):
+        return f"lies {r:.6g} m from the lidar; accepted: {POSE_RULES['range_m'].accepted}"
+    if x == 0.0 and z == 0.0:
+        return f"lies straight above or below the lidar; accepted: {OVERHEAD}"
+    return None
+
 
 # Gravity for the bank of a coordinated turn (tan(bank) = v omega / g): standard gravity,
 # 9.80665 m/s^2 (CGPM 1901, the value ISO 80000-3 keeps).

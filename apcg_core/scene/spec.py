@@ -48,6 +48,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..lidar import DEG, LidarParams, lidar_from_table
+from .poses import POSE_RULES, pose_value_problem
 from .scan import make_pattern
 from .trajectory import Start, Static, Trajectory, make_trajectory
 
@@ -100,12 +101,43 @@ class Scene:
     record: dict = field(default_factory=dict)  # what the file said (+ trajectory files' hashes)
     source: str = "scene"
 
+    def __post_init__(self) -> None:
+        """Every scene, however made (a scene file, the add-on's Scan Animation), is checked
+        here: one frame's scan ends before the next frame starts, and every target's
+        trajectory holds every time a frame's scan reads (none is extrapolated)."""
+        check_scan_fits(self.pattern, self.lidar, self.frames, self.frame_rate_hz, self.source)
+        span = scan_span(self.pattern, self.lidar, self.frames, self.frame_rate_hz,
+                         self.start_s)
+        for t in self.targets:
+            t.trajectory.check_times(span, t.source)
+
     def frame_times(self, frames=None) -> np.ndarray:
         k = np.arange(self.frames) if frames is None else np.asarray(frames, np.int64)
         return self.start_s + k / self.frame_rate_hz
 
     def digest(self) -> str:
         return hashlib.sha256(json.dumps(self.record, sort_keys=True).encode()).hexdigest()
+
+
+def check_scan_fits(pattern, lidar: LidarParams, frames: int, rate: float,
+                    source: str) -> None:
+    """Refuse a scan that takes a frame's time or longer (one frame's last cells would fire
+    after the next frame's first): the one check of every sequence, from a scene file or
+    from Blender's timeline."""
+    duration = pattern.groups(lidar).duration_s
+    if frames > 1 and duration >= 1.0 / rate:
+        raise InputError(f"{source} [scan]: one frame's scan takes {duration:.6g} s, longer "
+                         f"than a frame at {rate:g} Hz ({1.0 / rate:.6g} s); accepted: a scan "
+                         "shorter than a frame (lower the frame rate, or the scan's "
+                         "line_time_s / cell_time_s)")
+
+
+def scan_span(pattern, lidar: LidarParams, frames: int, rate: float,
+              start_s: float) -> np.ndarray:
+    """[first, last] scene time a sequence's scans read a pose at (the first frame's first
+    cells, the last frame's last)."""
+    g = pattern.groups(lidar).time_s
+    return np.array([start_s + float(g.min()), start_s + (frames - 1) / rate + float(g.max())])
 
 
 def _number(v) -> bool:
@@ -123,6 +155,19 @@ def _get(table: dict, key: str, where: str, lo=-math.inf, hi=math.inf, accepted=
     if not ok:
         raise InputError(f"{where}: {key} = {v!r} is not accepted: {accepted}")
     return float(v)
+
+
+def _pose_value(table: dict, key: str, where: str, default=None) -> float:
+    """A [[target]]'s pose value by the pose rules (poses.POSE_RULES: a trajectory CSV
+    file's columns are checked by the same)."""
+    if key not in table:
+        if default is None:
+            raise InputError(f"{where}: {key} is missing ({POSE_RULES[key].accepted})")
+        return default
+    why = pose_value_problem(key, table[key])
+    if why is not None:
+        raise InputError(f"{where}: {key} = {table[key]!r} {why}")
+    return float(table[key])
 
 
 def _keys(table, accepted, where: str) -> dict:
@@ -184,16 +229,11 @@ def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = No
     start_s = _get(seq, "start_s", f"{source} [sequence]", accepted="a time in seconds",
                    default=0.0)
     pattern = make_pattern(doc.get("scan"), source)
-    duration = pattern.groups(lidar).duration_s
-    if frames > 1 and duration >= 1.0 / rate:
-        raise InputError(f"{source} [scan]: one frame's scan takes {duration:.6g} s, longer "
-                         f"than a frame at {rate:g} Hz ({1.0 / rate:.6g} s); lower "
-                         "frame_rate_hz or line_time_s")
+    check_scan_fits(pattern, lidar, frames, rate, source)
     record = {"lidar": lidar.to_dict(), "scan": pattern.to_dict(),
               "sequence": {"frames": frames, "frame_rate_hz": rate, "start_s": start_s},
               "targets": []}
-    times = start_s + np.arange(frames) / rate
-    scan_t = (times[:, None] + pattern.groups(lidar).time_s[None, :]).ravel()
+    scan_t = scan_span(pattern, lidar, frames, rate, start_s)
     models: dict = {}  # a model directory's types, read once
     if generator is not None:
         given = _generator_value(generator, "--generator", models, Path.cwd(), absolute=True)
@@ -212,7 +252,7 @@ def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = No
             if value[1] is not None:
                 _check_model_type(target, models[value[1]][0])
         targets.append(target)
-    az0, el0 = default_pointing(targets, float(times[0]))
+    az0, el0 = default_pointing(targets, start_s)
     pt = _keys(doc.get("pointing", {}), POINTING_KEYS, f"{source} [pointing]")
     az = _get(pt, "azimuth_deg", f"{source} [pointing]", -360, 360,
               "an azimuth in degrees from -360 to 360", default=az0 / DEG) * DEG \
@@ -305,16 +345,10 @@ def _target(t, i: int, source: str, base_dir, catalog, scan_t, record) -> SceneT
                              "leave them out of the [[target]] table")
         start = None
     else:
-        ang = "an angle in degrees from -360 to 360"
-        r = _get(t, "range_m", where, 0, 1e6, "a range in m > 0 and <= 1e6", open_lo=True)
-        az = _get(t, "azimuth_deg", where, -360, 360, ang, default=0.0)
-        el = _get(t, "elevation_deg", where, -90, 90, "an elevation in degrees between -90 "
-                  "and 90, both excluded", open_lo=True)
-        if abs(el) >= 90:
-            raise InputError(f"{where}: elevation_deg = {el!r} is not accepted: the target "
-                             "straight overhead has no horizontal direction (SPEC section 2)")
-        att = [_get(t, k, where, -360, 360, ang, default=0.0)
-               for k in ("pitch_deg", "yaw_deg", "roll_deg")]
+        r = _pose_value(t, "range_m", where)
+        az = _pose_value(t, "azimuth_deg", where, default=0.0)
+        el = _pose_value(t, "elevation_deg", where)
+        att = [_pose_value(t, k, where, default=0.0) for k in ("pitch_deg", "yaw_deg", "roll_deg")]
         if traj is not None and any(k in t for k in ("pitch_deg", "yaw_deg", "roll_deg")):
             raise InputError(f"{where}: pitch_deg, yaw_deg and roll_deg come from its "
                              f"{traj.get('kind') if isinstance(traj, dict) else ''} "

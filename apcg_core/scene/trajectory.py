@@ -30,7 +30,9 @@ from .poses import (
     G_MPS2,
     flight_matrices,
     interpolate_angles,
+    pose_value_problem,
     poses_from_angles,
+    position_problem,
 )
 
 
@@ -309,15 +311,11 @@ class CSVTrack(Sampled):
         table = read_csv(path, required=("t_s", *_ATTITUDE_COLUMNS),
                          what="trajectory CSV file",
                          any_of=[("range_m", "x_m")])
-        cols = next(c for c in _POSITION_COLUMNS if c[0] in table.header)
-        missing = [c for c in cols if c not in table.header]
-        if missing:
-            raise InputError(f"{path}, line {table.header_line}: the header has {cols[0]} but "
-                             f"no {', '.join(missing)}; a position is {', '.join(cols)}")
+        cols = _position_columns(table, path)
         if len(table) < 2:
             raise InputError(f"{path}: {len(table)} row(s); a trajectory needs at least 2 "
                              "rows to interpolate between")
-        rows = [[row.float(c) for c in ("t_s", *cols, *_ATTITUDE_COLUMNS)] for row in table]
+        rows = [_csv_row(row, cols) for row in table]
         data = np.array(rows)
         t = data[:, 0]
         for i in range(1, len(t)):
@@ -331,15 +329,57 @@ class CSVTrack(Sampled):
                                  f"{max_step_s:g} s apart (set max_step_s in the trajectory "
                                  "table to allow longer steps)")
         if cols[0] == "range_m":
-            bad = np.flatnonzero(data[:, 1] <= 0)
-            if len(bad):
-                raise table.rows[bad[0]].error("range_m", "is not accepted: a range in m > 0")
             pos, _ = poses_from_angles(data[:, 1], data[:, 2] * DEG, data[:, 3] * DEG,
                                        0.0, 0.0, 0.0)
         else:
             pos = data[:, 1:4]
         self.path = path
         super().__init__(t, pos, data[:, 4:7] * DEG)
+
+
+def _position_columns(table, path: Path) -> tuple:
+    """The position columns of a trajectory CSV file's header (one of the two forms, whole),
+    after refusing a column no trajectory has (a typo must not drop its values) and a header
+    with both forms (one of them would be dropped)."""
+    known = ("t_s", *_POSITION_COLUMNS[0], *_POSITION_COLUMNS[1], *_ATTITUDE_COLUMNS)
+    accepted = ("t_s, then range_m, azimuth_deg, elevation_deg or x_m, y_m, z_m, then "
+                "pitch_deg, yaw_deg, roll_deg")
+    for name in table.header:
+        if name and name not in known:
+            raise InputError(f"{path}, line {table.header_line}, column {table.letter(name)}: "
+                             f"unknown column {name!r}; a trajectory CSV file's columns are "
+                             f"{accepted}")
+    forms = [c for c in _POSITION_COLUMNS if any(n in table.header for n in c)]
+    if len(forms) > 1:
+        given = [n for c in forms for n in c if n in table.header]
+        raise InputError(f"{path}, line {table.header_line}: the header gives the position "
+                         f"twice ({', '.join(given)}); accepted: range_m, azimuth_deg, "
+                         "elevation_deg or x_m, y_m, z_m, not both")
+    cols = forms[0]
+    missing = [c for c in cols if c not in table.header]
+    if missing:
+        raise InputError(f"{path}, line {table.header_line}: the header has "
+                         f"{', '.join(c for c in cols if c in table.header)} but no "
+                         f"{', '.join(missing)}; a position is {', '.join(cols)}")
+    return cols
+
+
+def _csv_row(row, cols: tuple) -> list:
+    """One trajectory CSV row's numbers (t_s, the position, the attitude), each pose value
+    checked by the rule a [[target]] table's key of the same name has (poses.POSE_RULES)."""
+    out = [row.float("t_s")]
+    for c in (*cols, *_ATTITUDE_COLUMNS):
+        v = row.float(c)
+        why = pose_value_problem(c, v)
+        if why is not None:
+            raise row.error(c, why)
+        out.append(v)
+    if cols[0] == "x_m":
+        why = position_problem(out[1:4])
+        if why is not None:
+            raise InputError(f"{row.where()}: the position ({', '.join(row[c] for c in cols)}) "
+                             f"{why}")
+    return out
 
 
 def make_trajectory(table: dict | None, start: Start, source: str,
