@@ -21,15 +21,29 @@ def _main() -> int:
     import bpy
 
     from apcg_core.cli import main
-    from apcg_core.errors import InputError
     from dataset_builder.cli import register_dataset, register_simulate
 
-    if "--workers" in argv and argv[argv.index("--workers") + 1] != "1":
-        raise InputError("inside a Blender binary use --workers 1; for parallel builds run "
-                         "several `blender -b ... -- dataset build ... --shard I/N` processes, "
-                         "or `apcg dataset build --workers N` with the bpy module")
+    workers = _workers(argv)
+    if workers is not None and workers != "1":
+        command = " ".join(a for a in argv[:2] if not a.startswith("-"))
+        print(f"apcg {command}: error: --workers {workers} not accepted inside a Blender "
+              "binary: use --workers 1; for parallel builds run several `blender -b ... -- "
+              "dataset build ... --shard I/N` processes, or `apcg dataset build --workers N` "
+              "with the bpy module", file=sys.stderr)
+        return 2
     bpy.ops.wm.read_factory_settings(use_empty=True)
     return main(argv, registrars=[register_simulate, register_dataset])
+
+
+def _workers(argv):
+    """The value given to --workers (either spelling), None when not given or given without
+    one (the command's own parser then names what is missing)."""
+    for i, a in enumerate(argv):
+        if a.startswith("--workers="):
+            return a.split("=", 1)[1].strip()
+        if a == "--workers" and i + 1 < len(argv):
+            return argv[i + 1].strip()
+    return None
 
 
 code = _main()

@@ -190,6 +190,21 @@ def test_blender_binary_build_matches_embree(reference, tmp_path, blender_binary
     assert bad.returncode == 2 and "no dataset config" in bad.stderr
 
 
+@pytest.mark.parametrize("workers", [["--workers", "2"], ["--workers=2"], ["--workers"]])
+def test_blender_binary_refuses_workers_in_one_line(tmp_path, blender_binary, workers):
+    """Inside a Blender binary a build runs in one process: --workers other than 1, in either
+    spelling, or with no value, is one error line and exit 2, nothing written, no traceback."""
+    cmd = [blender_binary, "-b", "--factory-startup", "--python-exit-code", "1", "-P",
+           str(ROOT / "dataset_builder" / "blender_entry.py"), "--", "dataset", "build",
+           "--config", "demo", "-o", str(tmp_path / "out"), "--backend", "blender",
+           "--no-progress", *workers]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 2, run.stdout[-2000:] + run.stderr[-2000:]
+    errors = [line for line in run.stderr.splitlines() if "error" in line]
+    assert len(errors) == 1 and "--workers" in errors[0], run.stderr
+    assert "Traceback" not in run.stderr and not (tmp_path / "out").exists()
+
+
 def test_blender_pool_workers_live_across_shards_and_write_the_same_bytes(tmp_path):
     """Workers of a blender pool now build shard after shard (and type after type, closing old
     casters); the bytes are those of a fresh process per shard."""
