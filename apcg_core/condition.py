@@ -40,6 +40,17 @@ def scale_ratio(range_m):
     return float(out) if np.ndim(out) == 0 else out
 
 
+def distinct(value: float, bound: float) -> str:
+    """``value`` with the fewest significant digits (6 at least) that tell it from ``bound``
+    as that is shown (6 digits): 18000.000001 against 18000, not 18000 against 18000."""
+    shown = f"{bound:.6g}"
+    for digits in range(6, 18):
+        text = f"{value:.{digits}g}"
+        if text != shown and float(text) != float(shown):
+            return text
+    return repr(float(value))
+
+
 @dataclass(frozen=True)
 class Condition:
     """One sample's condition. Angles in radians, range in metres.
@@ -213,9 +224,10 @@ class ConditionSpace:
         if out.any():
             i, j = np.argwhere(out)[0]
             scale, unit = (1.0, " m") if j == 1 else ((1 / DEG, " deg") if j > 1 else (1.0, ""))
+            v, a, b = table[i, j] * scale, lo[i, j] * scale, hi[i, j] * scale
             raise InputError(
-                f"{where(i, j)}: {FIELDS[j]} = {table[i, j] * scale:.6g}{unit} is outside the "
-                f"configured range [{lo[i, j] * scale:.6g}{unit}, {hi[i, j] * scale:.6g}{unit}]")
+                f"{where(i, j)}: {FIELDS[j]} = {distinct(v, a if v < a else b)}{unit} is "
+                f"outside the configured range [{a:.6g}{unit}, {b:.6g}{unit}]")
 
     def encode(self, table) -> np.ndarray:
         """Condition table (N, 6) or one Condition -> nu in [-1, 1] (SPEC section 3)."""
@@ -270,6 +282,10 @@ class ConditionSpace:
 # A conditions CSV (generate --conditions): these columns, the type by catalog name or index;
 # a dataset's conditions.csv (its type_name column) reads as it is.
 CSV_COLUMNS = ("type", "range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg")
+# a dataset's conditions.csv (dataset_builder/build.py conditions_csv) also has these: its
+# rows' bookkeeping, read past (type_name gives the type; type_code is the dataset's own code)
+DATASET_CSV_COLUMNS = ("sample_id", "split", "shard", "type_code", "type_name")
+CSV_ACCEPTED = (*CSV_COLUMNS, *DATASET_CSV_COLUMNS)
 _CSV_FIELD = {"range_m": "range_m", "elevation": "elevation_deg", "pitch": "pitch_deg",
               "yaw": "yaw_deg", "roll": "roll_deg"}
 
@@ -282,8 +298,14 @@ def read_conditions_csv(path, type_name=str):
     name (raising InputError for an unknown one). Read by the project's one CSV reader (a
     byte-order mark, CRLF, quotes, blank lines accepted); every refusal names the file, the
     line, the column and the value. A plain file is read column by column (the fast path);
-    anything else, and every refusal, by the careful row-by-row reader."""
-    fast = _read_conditions_fast(path, type_name)
+    anything else, and every refusal, by the careful row-by-row reader. Columns other than
+    :data:`CSV_ACCEPTED` are refused (not ignored); a row whose ``type`` and ``type_name``
+    name different types is refused."""
+    from .io.csv_table import header_names
+    header = header_names(path)
+    plain = header is not None and set(header) - {""} <= set(CSV_ACCEPTED) \
+        and not {"type", "type_name"} <= set(header)
+    fast = _read_conditions_fast(path, type_name) if plain else None
     if fast is not None:
         names, pose = fast
 
@@ -331,20 +353,29 @@ def _read_conditions_careful(path, type_name):
     from .io.csv_table import read_csv
 
     table = read_csv(path, required=CSV_COLUMNS[1:], any_of=[("type", "type_name")],
-                     what="conditions CSV")
+                     what="conditions CSV", allowed=CSV_ACCEPTED)
     if not table.rows:
         raise InputError(f"{path} has no conditions: only a header (line {table.header_line})")
-    type_col = "type" if "type" in table.header else "type_name"
+    type_cols = [c for c in ("type", "type_name") if c in table.header]
+    type_col = type_cols[0]
     known: dict = {}
     names, pose = [], np.empty((len(table.rows), 5))
-    for i, row in enumerate(table.rows):
-        key = row.text(type_col)
+
+    def named(row, col):
+        key = row.text(col)
         if key not in known:
             try:
                 known[key] = type_name(key)
             except InputError as exc:
-                raise row.error(type_col, f"is not a type this model knows: {exc}") from None
-        names.append(known[key])
+                raise row.error(col, f"is not a type this model knows: {exc}") from None
+        return known[key]
+    for i, row in enumerate(table.rows):
+        found = [named(row, c) for c in type_cols]
+        if len(set(found)) > 1:
+            raise row.error("type", f"and type_name {row['type_name']!r} name different "
+                                    f"types ({found[0]} and {found[1]}); give one of the two "
+                                    "columns, or make them agree")
+        names.append(found[0])
         pose[i] = [row.float(c) for c in CSV_COLUMNS[1:]]
     pose[:, 1:] *= DEG
     bad = _bad_rows(pose)

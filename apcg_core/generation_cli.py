@@ -22,6 +22,8 @@ def register_generate(sub) -> None:
     p.add_argument("--conditions", help="CSV with type,range_m,elevation_deg,pitch_deg,"
                                         "yaw_deg,roll_deg (instead of --type and the pose)")
     add_pose_arguments(p, required=False)  # not needed with --conditions
+    # None: not given (0 with --type, refused with --conditions, whose rows hold the pose)
+    p.set_defaults(pitch_deg=None, yaw_deg=None, roll_deg=None)
     p.add_argument("--count", type=int, default=1, help="clouds per condition (default 1)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="auto",
@@ -39,9 +41,10 @@ def register_generate(sub) -> None:
                         "local Dask cluster of --workers processes, or the one at --address; "
                         "local: a pool of --workers processes); a resumable job, the same "
                         "bytes as one process. Default: this process, all cores")
-    p.add_argument("--workers", type=int, default=2,
-                   help="with --engine and no --address: worker processes (default 2: "
-                        "this machine's cores)")
+    p.add_argument("--workers", type=int,
+                   help=f"with --engine and no --address: worker processes (default "
+                        f"{DEFAULT_WORKERS}: this machine's cores); with --address the "
+                        "cluster's own workers run the parts")
     p.add_argument("--address", metavar="ADDR",
                    help="with --engine dask: a running cluster's scheduler; OUT must be on "
                         "storage every worker mounts at the same path")
@@ -52,11 +55,61 @@ def register_generate(sub) -> None:
     p.set_defaults(func=_run_generate)
 
 
+POSE_OPTIONS = ("range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg")
+DEFAULT_WORKERS = 2  # --engine's local processes when --workers is not given
+
+
+def check_request(args) -> None:
+    """Refuse a request whose options do not go together, before anything is read or made
+    (a refused request leaves no file and no parts directory behind)."""
+    from .errors import InputError
+    from .options import option_name
+    if args.conditions:
+        if args.type:
+            raise InputError("give either --conditions or --type with a pose, not both")
+        given = [option_name(k) for k in POSE_OPTIONS if getattr(args, k) is not None]
+        if given:
+            raise InputError(f"{', '.join(given)} not accepted with --conditions: each row of "
+                             f"{args.conditions} gives its own pose; leave "
+                             f"{'it' if len(given) == 1 else 'them'} out, or give --type "
+                             "with a pose instead of --conditions")
+    elif args.type is None or args.range_m is None or args.elevation_deg is None:
+        raise InputError("give --type, --range-m and --elevation-deg (or --conditions)")
+    if args.engine is None:
+        if args.address:
+            raise InputError("--address needs --engine dask")
+        if args.workers is not None:
+            raise InputError(f"--workers {args.workers} needs --engine (dask or local): "
+                             "without it this process generates, on all cores")
+
+
+def engine_workers(args) -> int:
+    """--workers as given; else 1 with --address (the cluster's own workers run the parts:
+    the engine refuses a size given with it, as for `apcg dataset build`), else
+    DEFAULT_WORKERS."""
+    if args.workers is not None:
+        return args.workers
+    return 1 if args.address else DEFAULT_WORKERS
+
+
+def _pose_defaults_hint(exc, args):
+    """A refusal of the pose that names a default (pitch, yaw, roll: 0 deg when not given),
+    with that said: the user did not write the value."""
+    from .errors import InputError
+    for k in ("pitch_deg", "yaw_deg", "roll_deg"):
+        field = k[:-len("_deg")]
+        if getattr(args, k) is None and f"{field} = " in str(exc):
+            return InputError(f"{exc}; {field} 0 deg is the default of --{field}-deg, which "
+                              f"was not given: give --{field}-deg within that range")
+    return exc
+
+
 def _run_generate(args) -> int:
     from .errors import InputError
     from .families import conditions_from_csv, load_model
     from .lidar import DEG
 
+    check_request(args)
     sensor = sensor_of(args)
     model = model_at_lidar(load_model(args.model, runtime=args.runtime), args, "generate")
     if args.tau is not None:
@@ -65,14 +118,14 @@ def _run_generate(args) -> int:
                              f"{model.family} model, which has none")
         model.tau = model.check_tau(args.tau)
     if args.conditions:
-        if args.type:
-            raise InputError("give either --conditions or --type with a pose, not both")
         table = conditions_from_csv(args.conditions, model)
     else:
-        if args.type is None or args.range_m is None or args.elevation_deg is None:
-            raise InputError("give --type, --range-m and --elevation-deg (or --conditions)")
-        table = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
-                                args.pitch_deg * DEG, args.yaw_deg * DEG, args.roll_deg * DEG)
+        attitude = [(getattr(args, k) or 0.0) * DEG for k in POSE_OPTIONS[2:]]
+        try:
+            table = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
+                                    *attitude)
+        except InputError as exc:
+            raise _pose_defaults_hint(exc, args) from None
     total = len(table) * args.count
     model.expect_clouds(total)
     _warn_window(model, table)
@@ -110,7 +163,8 @@ def _run_generate(args) -> int:
     lanes = getattr(model, "lanes", 1)
     engine = task_of = None
     if args.engine is not None:
-        engine = job.engine(args.engine, args.workers, args.address, job.parts_dir(args.output))
+        engine = job.engine(args.engine, engine_workers(args), args.address,
+                            job.parts_dir(args.output))
         lidar = model.lidar if getattr(args, "lidar", None) is not None else None
 
         def task_of(i, part_blocks, path):
@@ -119,8 +173,6 @@ def _run_generate(args) -> int:
                                 str(model.directory), args.runtime,
                                 getattr(model, "tau", None) if args.tau is not None else None,
                                 lidar, args.seed, sensor, fields)
-    elif args.address:
-        raise InputError("--address needs --engine dask")
     if args.resumable or args.engine is not None or total >= job.RESUMABLE_CLOUDS:
         record = job.job_record(meta, model.directory, args.conditions)
         per_part = max(1, min(BLOCK_CLOUDS, job.PART_CLOUDS) // size)

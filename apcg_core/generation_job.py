@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -173,7 +173,10 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
     n_parts = -(-len(subs) // per_part)
     parts = parts_dir(output)
     suffix = f".{os.getpid()}.part"
-    with ProcessLock(parts / ".generate.lock", f"generate into {output}"):
+    # The engine is checked (its name, its options, a cluster's address) and started before
+    # the parts directory is made: a refused request leaves nothing behind.
+    with (engine if engine is not None else nullcontext()) as run_tasks, \
+            ProcessLock(parts / ".generate.lock", f"generate into {output}"):
         job = parts / "job.json"
         if job.exists():
             if json.loads(job.read_text()) != json.loads(json_bytes(record)):
@@ -197,10 +200,9 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
                 tasks = [task_of(i, subs[i * per_part:(i + 1) * per_part],
                                  str((parts / _part_name(i)).resolve()))
                          for i in range(n_parts) if i not in done]
-                with engine as run_tasks:
-                    for _, n in run_tasks(run_part, tasks):
-                        progress.update(n)
-                        wait_point("generate.part-written")
+                for _, n in run_tasks(run_part, tasks):
+                    progress.update(n)
+                    wait_point("generate.part-written")
             else:
                 held: list = []
                 for k, cloud, n in in_order(run, todo, lanes):

@@ -125,8 +125,8 @@ def test_missing_columns_and_empty_files(model, tmp_path):
     HEAD + "A320neo,4500,3.4,2.3,13.2,0.13\nMavic 3,250,3.1,1.5,-20,2\n",
     "\ufeff" + HEAD.replace("\n", "\r\n") + "A320neo, 4500 ,3.4,2.3,13.2,0.13\r\n\r\n"
     '"Mavic 3",250,3.1,1.5,-20,2,,\r\n,,,,,\r\n',  # BOM, CRLF, quotes, spaces, blank rows
-    "Roll_deg,yaw_deg,pitch_deg,elevation_deg,range_m,type,note\n"
-    "0.13,13.2,2.3,3.4,4500,A320neo,first\n2,-20,1.5,3.1,250,Mavic 3,\n",  # any column order
+    "Roll_deg,yaw_deg,pitch_deg,elevation_deg,range_m,type\n"
+    "0.13,13.2,2.3,3.4,4500,A320neo\n2,-20,1.5,3.1,250,Mavic 3\n",  # any column order
     "sample_id,split,shard,type_code,type_name,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg\n"
     "0,train,0,9,A320neo,4500,3.4,2.3,13.2,0.13\n1,test,0,1,Mavic 3,250,3.1,1.5,-20,2\n",
 ])

@@ -96,6 +96,25 @@ def test_bad_input_is_one_clear_line(tmp_path, args, needle):
     assert not (tmp_path / "r" / "recognize.json").exists()
 
 
+def test_a_broken_model_source_is_refused_before_any_classifier_trains(tmp_path):
+    """A model whose network file is damaged is refused in one line at once, not after the
+    exact reference has trained (minutes at the default size)."""
+    import shutil
+    from pathlib import Path
+
+    import apcg_core
+    model = tmp_path / "broken"
+    shutil.copytree(Path(apcg_core.__file__).parent / "models" / "default", model)
+    data = (model / "sheets.onnx").read_bytes()
+    (model / "sheets.onnx").write_bytes(data[:len(data) // 2])
+    out = _cli("--source", str(model), "--train-per-type", "4", "--test-per-type", "2",
+               "--epochs", "1", "--networks", "1", "-o", str(tmp_path / "r"))
+    assert out.returncode == 2, out.stderr
+    assert "sheets.onnx cannot be loaded" in out.stderr and "Traceback" not in out.stderr
+    assert "training on" not in out.stderr and "exact test clouds" not in out.stderr
+    assert not (tmp_path / "r").exists()
+
+
 def test_shuffled_labels_score_chance_while_true_labels_learn():
     rep = recognize.run("exact", shuffle_labels=True, seed=1, **SMALL)
     (src,) = rep["sources"]

@@ -472,6 +472,9 @@ def run(sources=("exact",), types=DEFAULT_TYPES, train_per_type: int = TRAIN_PER
     t_all = time.perf_counter()
     draw = _seed(seed, POINTS_DRAW)
 
+    for src in srcs:  # a model's broken network file is refused now, not after the reference
+        if src.model is not None:  # has trained (minutes at the default size)
+            src.clouds(types, test_tab[:1], seed)
     log(f"exact test clouds: {len(test_tab)}")
     test_clouds, _ = simulated("embree", 1, types, test_tab, sensor, lidar,
                                _seed(seed, TEST_PHOTONS))

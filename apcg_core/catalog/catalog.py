@@ -14,6 +14,7 @@ import json
 import math
 import os
 import random
+import re
 import time
 import unicodedata
 from contextlib import contextmanager
@@ -32,6 +33,7 @@ from .mesh import Mesh, sample_surface
 
 TYPES_CSV = Path(__file__).with_name("types.csv")
 USER_INDEX_START = 1000
+USER_CATEGORY = "user"  # the category of an imported type unless one of the built-in ones
 FINE_CLOUD_POINTS = 10_000
 
 
@@ -186,8 +188,8 @@ class Catalog:
         named by a number); unknown keys name close matches."""
         if isinstance(key, AircraftType):
             return key
-        if isinstance(key, str) and key.strip().isdigit():
-            key = int(key.strip())
+        if isinstance(key, str) and re.fullmatch(r"[+-]?[0-9]+", key.strip()):
+            key = int(key.strip())  # a signed whole number is an index (names hold a letter)
         if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
             if int(key) in self._by_index:
                 return self._by_index[int(key)]
@@ -396,11 +398,22 @@ class Catalog:
                              f"another --name, or --force to replace {same.name!r}")
         return same
 
-    def check_new_type(self, name: str, kind: str, force: bool = False) -> str:
-        """Refuse a name or kind a new user type cannot have (before any file is read);
-        return the name as it will be stored (normalised: NFC, outer spaces stripped)."""
+    def categories(self) -> list[str]:
+        """The categories a type may have: the built-in types' and ``user``."""
+        return sorted({t.category for t in self._builtin}) + [USER_CATEGORY]
+
+    def check_new_type(self, name: str, kind: str, force: bool = False,
+                       category: str | None = None) -> str:
+        """Refuse a name, kind or category a new user type cannot have (before any file is
+        read); return the name as it will be stored (normalised: NFC, outer spaces
+        stripped)."""
         if kind not in ("aircraft", "drone"):
             raise InputError(f"kind must be 'aircraft' or 'drone', got {kind!r}")
+        if category is not None and category not in self.categories():
+            close = difflib.get_close_matches(str(category), self.categories(), n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise InputError(f"category {category!r} unknown{hint}; accepted: "
+                             f"{', '.join(self.categories())}")
         clean = normalize_name(name)
         if not name_key(clean) or clean.isdigit() or any(c in clean for c in "/\\\0"):
             raise InputError(f"type name {name!r} not accepted: it must have a letter or "
@@ -421,7 +434,7 @@ class Catalog:
         (``unit_scale``: the metres per file unit the mesh was scaled by), unless ``force``;
         a user type of the same name (:func:`name_key`) is refused unless ``force``, which
         replaces it (its index kept)."""
-        name = self.check_new_type(name, kind, force)
+        name = self.check_new_type(name, kind, force, category)
         if reflectivity is not None:
             from ..sensor.reflectivity import check_reflectivity
             reflectivity = check_reflectivity(reflectivity, "--reflectivity")

@@ -42,7 +42,8 @@ def size_problem(extents_m, kind: str, unit_scale_applied: float = 1.0) -> str |
     if fits:
         _, name, f = min(fits)
         msg += f"; it looks like {name}: --unit-scale {f:g}"
-    return msg + "; or give --length-m, or --force to import it as it is"
+    return msg + ("; or give its length in metres with --length-m; to add it at this size "
+                  "anyway, give --force (which also replaces your type of the same name)")
 
 
 def check_size(extents_m, kind: str, force: bool = False, unit_scale_applied: float = 1.0,
@@ -112,7 +113,7 @@ def guess_axes(mesh: Mesh, n: int = 4000) -> AxesGuess:
     span = min(errs, key=errs.get)
     fwd = b if span == a else a
     # Up is taken as +: a rotor disc or a multirotor's body on top outweighs any sign cue.
-    top = pts[pts[:, up] > pts[:, up].max() - 0.15 * ext[up]]
+    top = pts[pts[:, up] >= pts[:, up].max() - 0.15 * ext[up]]  # never empty
     fwd_sign = -1.0 if np.mean(top[:, fwd]) > np.median(pts[:, fwd]) else 1.0
     names = "XYZ"
     forward = ("-" if fwd_sign < 0 else "") + names[fwd]

@@ -57,16 +57,20 @@ def register(sub) -> None:
                     help="take only the objects whose name matches (shell patterns, "
                          "comma-separated, e.g. 'Fuselage*,Wing*')")
     ad.add_argument("--kind", choices=("aircraft", "drone"), default="aircraft")
-    ad.add_argument("--category", default="user")
+    ad.add_argument("--category", default="user",
+                    help="the type's category: one of the built-in types' ("
+                         "airliner_narrowbody, fighter, multirotor_drone, ...: `apcg catalog "
+                         "list`) or user (default)")
     ad.add_argument("--reflectivity", type=float, metavar="R",
                     help="diffuse reflectivity at the lidar's wavelength, in (0, 1], for "
                          "--sensor scans (default: the category's, SPEC section 8)")
     ad.add_argument("--dry-run", action="store_true",
                     help="import, check and report (and --preview) without adding the type")
     ad.add_argument("--force", action="store_true",
-                    help="add a model whose size is implausible for its kind (with a "
-                         "warning); replace your type of the same name (names are compared "
-                         "ignoring case, spaces, '-' and '_'); replace an existing --preview")
+                    help="two things at once: replace your type of the same name (names are "
+                         "compared ignoring case, spaces, '-' and '_') and an existing "
+                         "--preview; and add a model whose size is implausible for its kind "
+                         "(with a warning) instead of refusing it")
     add_output(ad, "--preview", kind=FILE, suffixes=PICTURE_SUFFIXES, metavar="PNG",
                help="draw top / side / front views of the imported model into PNG (or .pdf, "
                     ".svg)")
@@ -113,16 +117,27 @@ def _show(args) -> int:
     return 0
 
 
-def _add(args) -> int:
+def _warn(message: str) -> None:
+    """Every warning of `apcg catalog`, with the command's prefix, on stderr."""
     import sys
+    print(f"apcg catalog: warning: {message}", file=sys.stderr)
 
-    from .checks import axes_warning, hole_entry_share, size_problem
+
+def _add(args) -> int:
+    from .checks import axes_warning, check_size, hole_entry_share
     from .importer import _default_forward, import_model
 
-    name = _catalog().check_new_type(args.name, args.kind, args.force)
+    # the whole request is checked before anything is said or written: the name, kind and
+    # category, the reflectivity, the file and its import, the size (a dry run refuses what
+    # the real add refuses); then the report and its warnings, then the preview and the add
+    name = _catalog().check_new_type(args.name, args.kind, args.force, args.category)
+    if args.reflectivity is not None:
+        from ..sensor.reflectivity import check_reflectivity
+        check_reflectivity(args.reflectivity, "--reflectivity")
     mesh, rep = import_model(args.file, forward=args.forward, up=args.up,
                              unit_scale=args.unit_scale, length_m=args.length_m,
                              objects=args.objects, guess=args.forward is None or args.up is None)
+    problem = check_size(mesh.extents, args.kind, args.force, rep.scale, name=repr(name))
     say = print
     say(f"read {args.file}: {rep.n_faces} triangles, {rep.n_bodies} bodies, "
         f"{'closed' if rep.watertight else 'open'} (origin: {rep.centre})")
@@ -133,36 +148,35 @@ def _add(args) -> int:
     say(f"  extents: length {rep.extents_m[0]:.4g} m, span {rep.extents_m[1]:.4g} m, "
         f"height {rep.extents_m[2]:.4g} m")
     if rep.n_dropped:
-        print(f"warning: {args.file}: {rep.n_dropped} degenerate (zero-area) triangles "
-              "dropped; the rest is the model", file=sys.stderr)
+        _warn(f"{args.file}: {rep.n_dropped} degenerate (zero-area) triangle"
+              f"{'s' if rep.n_dropped != 1 else ''} dropped; the rest is the model")
     warn = axes_warning(rep.guess, rep.forward, rep.up, rep.axes,
                         forward_given=args.forward is not None, up_given=args.up is not None,
                         default_forward=None if rep.forward_declared else _default_forward)
     if warn:
-        print(f"warning: {args.file}: {warn}", file=sys.stderr)
+        _warn(f"{args.file}: {warn}")
     holes = hole_entry_share(mesh)
     if holes["share"] > 0.01:
-        print(f"warning: {holes['share']:.1%} of lidar rays enter {args.file} through holes "
-              "and return from its inside (open windows, missing panels); the scans will "
-              "show inner walls. Close the holes in a modeller, or pick the outer skin with "
-              "--objects (docs/IMPORT.md).", file=sys.stderr)
+        _warn(f"{holes['share']:.1%} of lidar rays enter {args.file} through holes and return "
+              "from its inside (open windows, missing panels); the scans will show inner "
+              "walls. Close the holes in a modeller, or pick the outer skin with --objects "
+              "(docs/IMPORT.md).")
+    if problem:  # only with --force: check_size refused it otherwise
+        _warn(f"{name!r}: {problem}; "
+              + ("it would be added anyway (--force)" if args.dry_run
+                 else "added anyway (--force)"))
     if args.preview:
         from .sheet import three_views
         say(f"wrote {three_views(mesh, args.preview, title=name)}")
-    problem = size_problem(mesh.extents, args.kind, rep.scale)
     if args.dry_run:
-        if problem:
-            print(f"warning: {name!r}: {problem}", file=sys.stderr)
         say("dry run: nothing added")
         return 0
     cat = _catalog()
-    # add_user_type refuses an implausible size unless --force, and takes the catalog's lock
+    # add_user_type checks again (name, size) under the catalog's lock
     t = cat.add_user_type(name, mesh, args.kind, args.category, source=args.file,
                           force=args.force, unit_scale=rep.scale,
                           reflectivity=args.reflectivity)
     replaced = cat.last_replaced
-    if problem:
-        print(f"warning: {name!r}: {problem}; added anyway (--force)", file=sys.stderr)
     if replaced is not None:
         say(f"replaced {replaced.name!r} by {t.name!r} as type index {t.index} (--force)")
     else:

@@ -48,6 +48,9 @@ class Format:
     suffixes: tuple[str, ...]
     via: str  # what reads it, for the user
     read: object  # callable(path: Path, patterns: list[str]) -> RawModel
+    # callable(path: Path) -> None: refuses a file whose structure is not whole (cut short,
+    # a face naming a vertex the file lacks) before the reader, which may accept it quietly
+    check: object = None
 
 
 def _trimesh():
@@ -76,18 +79,219 @@ def read_off(path: Path, patterns=()) -> RawModel:
         head, body = body[0].split(), body[1:]
     try:
         nv, nf = int(head[0]), int(head[1])
+    except (ValueError, IndexError):
+        raise InputError(f"{path}: corrupt OFF file (its counts line {' '.join(head)!r} is "
+                         "not 'VERTICES FACES EDGES')") from None
+    if len(body) < nv + nf:
+        held_v, held_f = min(len(body), nv), max(0, len(body) - nv)
+        raise InputError(f"{path}: the header declares {nv} vertices and {nf} faces, the file "
+                         f"holds {held_v} and {held_f} (truncated: the file is cut short)")
+    try:
         verts = np.array([ln.split()[:3] for ln in body[:nv]], dtype=np.float64)
+        if verts.shape != (nv, 3):
+            raise ValueError("a vertex line holds fewer than 3 coordinates")
         faces = []
         for ln in body[nv:nv + nf]:
             idx = [int(v) for v in ln.split()]
             k = idx[0]
             poly = idx[1:1 + k]
+            if len(poly) < k:
+                raise ValueError(f"the face line {ln!r} holds fewer than its {k} indices")
             faces += [[poly[0], poly[i], poly[i + 1]] for i in range(1, k - 1)]
     except (ValueError, IndexError) as exc:
         raise InputError(f"{path}: corrupt OFF file ({exc})") from exc
-    if len(verts) != nv or not faces:
-        raise InputError(f"{path}: corrupt OFF file (expected {nv} vertices and {nf} faces)")
-    return RawModel(Mesh(verts, np.array(faces)), objects=[path.stem])
+    if not faces:
+        raise InputError(f"{path}: corrupt OFF file (its {nf} faces hold no triangle)")
+    faces = np.array(faces, np.int64)
+    check_indices(faces, nv, path, base=0)
+    return RawModel(Mesh(verts, faces), objects=[path.stem])
+
+
+def check_indices(faces: np.ndarray, n_vertices: int, path, base: int = 1,
+                  where: str = "") -> None:
+    """Refuse a face that names a vertex the file does not hold, in the file's own numbering
+    (``base``: 1 for OBJ's, 0 for OFF's and PLY's)."""
+    faces = np.asarray(faces)
+    if faces.size == 0:
+        return
+    bad = (faces < 0) | (faces >= n_vertices)
+    if bad.any():
+        k = int(faces.ravel()[np.argmax(bad.ravel())])
+        raise InputError(f"{path}: a face{where} refers to vertex {k + base}, but the file "
+                         f"holds {n_vertices} vertices (numbered {base}..{n_vertices - 1 + base})"
+                         )
+
+
+_TRUNCATED = "truncated: the file is cut short"
+
+
+def check_obj(path: Path) -> None:
+    """An OBJ's ``v`` and ``f`` lines whole: a vertex has 3 numbers, a face 3 or more vertex
+    numbers, each naming a vertex the file holds (negative: counted back from the last one
+    read); a line that breaks off where the file ends is named as truncation."""
+    data = path.read_bytes()
+    lines = data.decode("utf-8", errors="replace").split("\n")
+    ends_cut = not data.endswith(b"\n")
+    n_v = 0
+    late = []  # (line number, index) of positive indices beyond the vertices read so far
+    for no, line in enumerate(lines, start=1):
+        tokens = line.split("#", 1)[0].split()
+        if not tokens or tokens[0] not in ("v", "f"):
+            continue
+        last = no == len(lines) and ends_cut
+
+        def bad(why, no=no, line=line, last=last):
+            if last:
+                return InputError(f"{path}: the file ends in the middle of line {no} "
+                                  f"({line.strip()[:60]!r}: {why}); {_TRUNCATED}")
+            return InputError(f"{path}, line {no}: {line.strip()[:60]!r}: {why}")
+        if tokens[0] == "v":
+            try:
+                [float(t) for t in tokens[1:4]]
+            except ValueError:
+                raise bad("a vertex coordinate is not a number") from None
+            if len(tokens) < 4:
+                raise bad(f"a vertex with {len(tokens) - 1} coordinates (it needs 3)")
+            n_v += 1
+            continue
+        if len(tokens) < 4:
+            raise bad(f"a face with {len(tokens) - 1} vertices (a face needs 3 or more)")
+        for t in tokens[1:]:
+            try:
+                k = int(t.split("/", 1)[0])
+            except ValueError:
+                raise bad(f"{t!r} is not a vertex number") from None
+            if k == 0 or -k > n_v:
+                raise bad(f"vertex {k} does not exist (the file has {n_v} vertices before "
+                          "this line; numbers start at 1, negative ones count back)")
+            if k > n_v:
+                late.append((no, k))
+    for no, k in late:
+        if k > n_v:
+            raise InputError(f"{path}, line {no}: a face refers to vertex {k}, but the file "
+                             f"holds {n_v} vertices (numbered 1..{n_v})")
+
+
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2,
+              "int16": 2, "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4,
+              "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _ply_header(path: Path, data: bytes):
+    """(format, [(element, count, [property: (name, is_list)])], header bytes) of a PLY."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise InputError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header)")
+    eol = data.find(b"\n", end)
+    head_len = len(data) if eol < 0 else eol + 1
+    fmt, elements = None, []
+    for line in data[:end].decode("ascii", errors="replace").splitlines():
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format" and len(words) > 1:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3:
+            try:
+                elements.append((words[1], int(words[2]), []))
+            except ValueError:
+                raise InputError(f"{path}: PLY header line {line.strip()!r}: the count is not "
+                                 "a whole number") from None
+        elif words[0] == "property" and elements:
+            elements[-1][2].append((words[-1], len(words) > 1 and words[1] == "list"))
+    return fmt, elements, head_len
+
+
+def check_ply(path: Path) -> None:
+    """An ASCII PLY holds the elements its header declares: as many lines as each count, the
+    last one whole, every face's vertices among the file's. (trimesh refuses a binary one cut
+    short itself.)"""
+    data = path.read_bytes()
+    fmt, elements, head_len = _ply_header(path, data)
+    if fmt != "ascii":
+        return
+    lines = [ln for ln in data[head_len:].decode("utf-8", errors="replace").splitlines()
+             if ln.strip()]
+    start = 0
+    counts = {name: count for name, count, _ in elements}
+    whole = len(lines) - (not data.endswith((b"\n", b"\r")))  # a last line without its end
+    for name, count, props in elements:
+        held = max(0, min(count, whole - start))
+        if len(lines) - start >= count:
+            held = count  # a last line without its end is whole when the counts add up
+        if held < count:
+            raise InputError(f"{path}: the header declares {count} {_plural(name)}, the file "
+                             f"holds {held} ({_TRUNCATED})")
+        rows = lines[start:start + count]
+        start += count
+        cut = start == len(lines) and not data.endswith((b"\n", b"\r"))
+        faces = []
+        for i, row in enumerate(rows):
+            tokens = row.split()
+            need, j, idx = 0, 0, None
+            try:
+                for pname, is_list in props:
+                    if is_list:
+                        k = int(tokens[j])
+                        if pname in ("vertex_indices", "vertex_index") and \
+                                name == "face":
+                            idx = tokens[j + 1:j + 1 + k]
+                        need, j = j + 1 + k, j + 1 + k
+                    else:
+                        need, j = j + 1, j + 1
+            except (ValueError, IndexError):
+                need = j + 2
+            if len(tokens) < need:
+                what = f"{name} {i + 1} of {count}"
+                if cut and i == len(rows) - 1:
+                    raise InputError(f"{path}: the file ends in the middle of {what} "
+                                     f"({row.strip()[:60]!r}); {_TRUNCATED}")
+                raise InputError(f"{path}: {what} ({row.strip()[:60]!r}) holds fewer values "
+                                 "than the header's properties")
+            if idx is not None:
+                faces.append(idx)
+        if faces:
+            try:
+                flat = np.array([int(t) for f in faces for t in f], np.int64)
+            except ValueError:
+                raise InputError(f"{path}: a face's vertex number is not a whole number"
+                                 ) from None
+            check_indices(flat, counts.get("vertex", 0), path, base=0)
+
+
+def check_stl(path: Path) -> None:
+    """A binary STL is 84 bytes and 50 a triangle, as many as its header says; an ASCII one
+    ends with 'endsolid'."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(84)
+    if len(head) >= 84:
+        n = int.from_bytes(head[80:84], "little")
+        if size == 84 + 50 * n:
+            return  # a whole binary STL
+    else:
+        n = None
+    if head.lstrip()[:5].lower() == b"solid":  # ASCII
+        with open(path, "rb") as f:
+            f.seek(max(0, size - 4096))
+            tail = f.read().lower()
+        if b"endsolid" in tail:
+            return
+        raise InputError(f"{path}: an ASCII STL without its closing 'endsolid' line "
+                         f"({_TRUNCATED})")
+    if n is None:
+        raise InputError(f"{path}: {size} bytes: shorter than a binary STL's 84-byte header "
+                         f"({_TRUNCATED})")
+    held = (size - 84) // 50
+    if size < 84 + 50 * n:
+        raise InputError(f"{path}: the header declares {n} triangles, the file holds {held} "
+                         f"({size} bytes, {84 + 50 * n} needed; {_TRUNCATED})")
+    raise InputError(f"{path}: the header declares {n} triangles ({84 + 50 * n} bytes), the "
+                     f"file has {size} bytes: not a whole binary STL")
+
+
+def _plural(name: str) -> str:
+    return {"vertex": "vertices", "face": "faces"}.get(name, f"'{name}' elements")
 
 
 def _scene_meshes(scene, patterns, path: Path) -> RawModel:
@@ -108,6 +312,8 @@ def _scene_meshes(scene, patterns, path: Path) -> RawModel:
         m = np.asarray(matrix, np.float64)
         with np.errstate(invalid="ignore", over="ignore"):  # non-finite: named by read_model
             verts.append(v @ m[:3, :3].T + m[:3, 3])
+        check_indices(np.asarray(geom.faces, np.int64), len(v), path, base=0,
+                      where=f" of {name}")
         faces.append(np.asarray(geom.faces, np.int64) + offset)
         offset += len(v)
         taken.append(name)
@@ -253,9 +459,9 @@ def read_blender(path: Path, patterns=()) -> RawModel:
 
 FORMATS = (
     Format("OFF", (".off",), "own reader", read_off),
-    Format("Wavefront OBJ", (".obj",), "trimesh", read_trimesh),
-    Format("STL", (".stl",), "trimesh", read_trimesh),
-    Format("PLY", (".ply",), "trimesh", read_trimesh),
+    Format("Wavefront OBJ", (".obj",), "trimesh", read_trimesh, check_obj),
+    Format("STL", (".stl",), "trimesh", read_trimesh, check_stl),
+    Format("PLY", (".ply",), "trimesh", read_trimesh, check_ply),
     Format("glTF 2.0", (".glb", ".gltf"), "trimesh", read_gltf),
     Format("COLLADA", (".dae",), "trimesh + pycollada", read_collada),
     Format("FBX", (".fbx",), "Blender", read_blender),
@@ -277,13 +483,16 @@ def format_of(path) -> Format:
 def read_model(path, objects: str | None = None) -> RawModel:
     """Read ``path`` as stored; ``objects``: comma-separated name patterns to keep."""
     path = Path(path)
-    fmt = format_of(path)
     if not path.exists():
         raise InputError(f"{path}: no such file")
     if path.is_dir():
-        raise InputError(f"{path}: is a directory, not a model file")
+        raise InputError(f"{path}: is a directory, not a model file; accepted: a file "
+                         f"ending {', '.join(SUFFIXES)}")
+    fmt = format_of(path)
     if path.stat().st_size == 0:
         raise InputError(f"{path}: the file is empty")
+    if fmt.check is not None:
+        fmt.check(path)
     patterns = [p.strip() for p in (objects or "").split(",") if p.strip()]
     if fmt.read is read_off and patterns:
         raise InputError(f"{path}: an OFF file holds one object; --objects does not apply")

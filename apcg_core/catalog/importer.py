@@ -81,9 +81,10 @@ def _merge_close(mesh: Mesh) -> Mesh:
 DEGENERATE_AREA = 1e-12  # a triangle's area, relative to the model's size squared
 
 
-def drop_degenerate(mesh: Mesh, path) -> tuple[Mesh, int]:
+def drop_degenerate(mesh: Mesh, path, n_read: int | None = None) -> tuple[Mesh, int]:
     """The mesh without its zero-area triangles (three points on a line, or two in one
-    place), and how many were dropped; a mesh with nothing else is refused by name.
+    place), and how many were dropped; a mesh with nothing else is refused by name
+    (``n_read``: the triangles the file held, where some were already merged away).
     Non-finite coordinates are refused too (docs/IMPORT.md)."""
     bad = ~np.isfinite(mesh.vertices).all(axis=1)
     if bad.any():
@@ -100,10 +101,28 @@ def drop_degenerate(mesh: Mesh, path) -> tuple[Mesh, int]:
         raise InputError(f"{path}: coordinates too large to compute with (up to "
                          f"{float(np.abs(used).max()):.3g}); scale the model down in a modeller")
     if not keep.any():
-        raise InputError(f"{path}: every one of its {len(mesh.faces)} triangles has zero area "
-                         "(its points lie on a line or a point): there is no surface to "
-                         "import")
+        n = len(mesh.faces) if n_read is None else n_read
+        which = "its one triangle has" if n == 1 else f"every one of its {n} triangles has"
+        raise InputError(f"{path}: {which} zero area (its points lie on a line or a point): "
+                         "there is no surface to import")
     return used_only(Mesh(mesh.vertices, mesh.faces[keep])), int((~keep).sum())
+
+
+FLAT_THICKNESS = 1e-6  # the thinnest direction, relative to the largest: below it, flat
+
+
+def check_not_flat(mesh: Mesh, path) -> None:
+    """Refuse a model whose triangles all lie in one plane (a sheet of zero thickness in
+    every direction of that plane's normal): no aircraft or drone is, its extents and
+    centre of volume are undefined, and a lidar sees it edge-on as nothing."""
+    v = mesh.vertices - mesh.vertices.mean(axis=0)
+    s = np.linalg.svd(v, compute_uv=False) if len(v) >= 3 else np.zeros(3)
+    if len(s) < 3 or s[-1] <= FLAT_THICKNESS * s[0]:
+        n = len(mesh.faces)
+        which = "its one triangle lies" if n == 1 else f"its {n} triangles all lie"
+        raise InputError(f"{path}: the model is flat: {which} in one plane (zero "
+                         "thickness); an aircraft or drone model needs "
+                         "three dimensions (a fuselage, a fin): there is no body to import")
 
 
 def used_only(mesh: Mesh) -> Mesh:
@@ -136,7 +155,8 @@ def import_model(path, forward: str | None = None, up: str | None = None,
     raw = read_model(path, objects)
     n_read = len(raw.mesh.faces)
     mesh = _merge_close(used_only(raw.mesh))
-    mesh, _ = drop_degenerate(mesh, path)
+    mesh, _ = drop_degenerate(mesh, path, n_read)
+    check_not_flat(mesh, path)
     n_dropped = n_read - len(mesh.faces)
     guessed = None
     if guess:

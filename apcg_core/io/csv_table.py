@@ -13,12 +13,43 @@ import csv
 import io
 import itertools
 import math
+import re
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+
+# A number in a CSV: plain ASCII decimal or scientific notation (what spreadsheets and
+# programs write), or inf / nan (then refused as not finite where a finite one is needed);
+# not Python's own extras (``1_000``, other scripts' digits, which float() reads).
+_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|[+-]?(?:inf|infinity|nan)",
+                     re.ASCII | re.IGNORECASE)
+NUMBER_FORMS = "a plain decimal number, e.g. 12, -3.5 or 1.2e3"
+
+
+def parse_number(text: str) -> float:
+    """``text`` (outer spaces allowed) as a float when it is a plain ASCII number
+    (:data:`NUMBER_FORMS`); ValueError otherwise. Every number of every CSV goes through it."""
+    text = text.strip()
+    if not _NUMBER.fullmatch(text):
+        raise ValueError(f"not a plain number: {text!r}")
+    return float(text)
+
+
+def header_names(path) -> list[str] | None:
+    """The lower-case column names of a CSV's header (its first line with a value), or None
+    when the file cannot be read that far (its reader then says why)."""
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as f:
+            for cells in csv.reader(f, skipinitialspace=True):
+                names = [c.strip().lower() for c in cells]
+                if any(names):
+                    return names
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return None
+    return None
 
 
 def column_letter(i: int) -> str:
@@ -76,10 +107,11 @@ class CSVRow(Mapping):
                 return None
             raise self.error(column, "is empty; a number is needed here")
         try:
-            number = float(value)
+            number = parse_number(value)
         except ValueError:
             hint = " (use a point as the decimal mark)" if "," in value else ""
-            raise self.error(column, f"is not a number{hint}") from None
+            raise self.error(column, f"is not a number{hint}; accepted: {NUMBER_FORMS}"
+                             ) from None
         if finite and not math.isfinite(number):
             raise self.error(column, "is not a finite number")
         return number
@@ -131,11 +163,13 @@ def _text(path: Path, what: str) -> str:
 
 
 def read_csv(path, required: Iterable[str] = (), what: str = "CSV file",
-             any_of: Iterable[Iterable[str]] = ()) -> CSVTable:
+             any_of: Iterable[Iterable[str]] = (),
+             allowed: Iterable[str] | None = None) -> CSVTable:
     """Read ``path`` whole. ``required``: column names the header must have (any case);
-    ``any_of``: groups of names of which the header must have one. Blank lines and rows of
-    empty cells are skipped; a row with fewer values than the header, or with values past its
-    last column, is refused by line. ``what`` names the file's role in messages."""
+    ``any_of``: groups of names of which the header must have one; ``allowed``: when given,
+    every column the header may have (another is refused, not ignored). Blank lines and rows
+    of empty cells are skipped; a row with fewer values than the header, or with values past
+    its last column, is refused by line. ``what`` names the file's role in messages."""
     path = Path(path)
     text = _text(path, what)
     reader = csv.reader(io.StringIO(text, newline=""), skipinitialspace=True)
@@ -168,6 +202,13 @@ def read_csv(path, required: Iterable[str] = (), what: str = "CSV file",
                          f"{', '.join(missing)}; a {what} needs the columns "
                          f"{','.join(need + ['|'.join(g) for g in groups])} (found: "
                          f"{','.join(h for h in table.header if h) or 'none'})")
+    if allowed is not None:
+        accepted = [c.strip().lower() for c in allowed]
+        unknown = [h for h in table.header if h and h not in accepted]
+        if unknown:
+            raise InputError(f"{path}, line {table.header_line}, column {unknown[0]} "
+                             f"({table.letter(unknown[0])}): a {what} has no column "
+                             f"{unknown[0]!r}; accepted columns: {','.join(accepted)}")
     return table
 
 
@@ -219,13 +260,13 @@ def read_columns(path, columns: Iterable[str], batch: int = 65536, numbers: Iter
     through the csv module), a dict of the wanted ``columns`` (header names,
     lower case; a tuple of names: the first the header has, under the tuple's first name):
     lists of their stripped texts, except the columns named in ``numbers`` (by their first
-    names), which come as float64 arrays of ``float()``'s values. Memory holds one batch.
-    It raises :class:`NeedsCare` at the first thing that needs read_csv's care (a file that is
-    not plain UTF-8, a header naming a column twice or lacking a wanted one, a row of another
-    length, a value under an empty header name, an empty wanted cell, a number ``float()``
-    refuses): the caller then reads the file with :func:`read_csv`, which accepts or refuses
-    it with its one message naming the file, line and column. The rows yielded are the rows
-    read_csv returns, in order.
+    names), which come as float64 arrays of :func:`parse_number`'s values. Memory holds one
+    batch. It raises :class:`NeedsCare` at the first thing that needs read_csv's care (a file
+    that is not plain UTF-8, a header naming a column twice or lacking a wanted one, a row of
+    another length, a value under an empty header name, an empty wanted cell, a number
+    :func:`parse_number` refuses): the caller then reads the file with :func:`read_csv`, which
+    accepts or refuses it with its one message naming the file, line and column. The rows
+    yielded are the rows read_csv returns, in order.
 
     Two ways, the same rows and values: a file of printable ASCII without quotes (what
     programs write: 10^5 rows in about a fifth of a second) is split where its bytes are, in
@@ -293,7 +334,7 @@ def _batch(rows: list, n: int, at: list, names: list, unnamed: list, numbers) ->
             raise NeedsCare
         if c in numbers:
             try:
-                vals = np.fromiter(map(float, vals), np.float64, len(vals))
+                vals = np.fromiter(map(parse_number, vals), np.float64, len(vals))
             except ValueError:
                 raise NeedsCare from None
         out[c] = vals
@@ -377,7 +418,7 @@ def _line_ends(text: bytes):
 def _plain_block(text: bytes, n: int, at: list, names: list, unnamed: list, numbers):
     """The wanted columns of whole plain lines ``text`` (LF ends, the last line ended): split
     where its bytes are when every line is a row of ``n`` cells under named columns; through
-    the csv module otherwise (blank rows, extra cells, a value float() alone reads)."""
+    the csv module otherwise (blank rows, extra cells, a value numpy's reader refuses)."""
     a = np.frombuffer(text, np.uint8)
     ends = np.flatnonzero(a == 10)
     starts = np.concatenate(([0], ends[:-1] + 1))
@@ -400,7 +441,7 @@ def _plain_block(text: bytes, n: int, at: list, names: list, unnamed: list, numb
             values = np.loadtxt(io.StringIO(text.decode("ascii")), dtype=np.float64,
                                 delimiter=",", comments=None, usecols=[i for _, i in number_cols],
                                 ndmin=2)
-        except ValueError:  # a value numpy's reader refuses: float() may read it ("1_000")
+        except ValueError:  # a value numpy's reader refuses: parse_number decides
             return _csv_block(text, n, at, names, unnamed, numbers)
         if len(values) != len(ends):
             raise NeedsCare

@@ -29,7 +29,7 @@ def sensor_of(args):
     ref = args.sensor
     if ref is None:
         ref = lidar_sensor_file(getattr(args, "lidar", None))
-    sensor = load_sensor(ref)
+    sensor = load_sensor(ref, lidar_file=args.sensor is None)
     if sensor is not None and getattr(args, "backend", None) == "points":
         raise InputError("--sensor needs a ray-casting backend (the photon stage takes every "
                          "sub-ray's range and incidence); accepted: embree, blender, "

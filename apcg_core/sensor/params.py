@@ -99,7 +99,11 @@ def check_sensor(table: dict, source: str = "", name: str = "") -> SensorParams:
         raise InputError(f"the [sensor] table{' in ' + source if source else ''} must be a "
                          f"table of keys, got {table!r}")
     table = dict(table)
-    name = str(table.pop("name", name) or "custom")
+    given = table.pop("name", name)
+    if not isinstance(given, str):
+        raise InputError(f"sensor value name{' in ' + source if source else ''} must be text "
+                         f"(a quoted string), got {given!r}")
+    name = given or "custom"
     unknown = sorted(set(table) - set(KEYS))
     if unknown:
         raise InputError(f"unknown sensor key(s) {', '.join(map(repr, unknown))}"
@@ -130,9 +134,11 @@ def preset_names() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
 
 
-def load_sensor(ref: str | Path | None) -> SensorParams | None:
+def load_sensor(ref: str | Path | None, lidar_file: bool = False) -> SensorParams | None:
     """A sensor from a preset name or a TOML file (its ``[sensor]`` table); None for the ideal
-    lidar (no ``ref``, ``ideal``, or a file whose table says ``model = "ideal"``)."""
+    lidar (no ``ref``, ``ideal``, or a file whose table says ``model = "ideal"``). The file
+    holds nothing else (another table is refused, not ignored), unless ``lidar_file``: a
+    ``--lidar`` file, whose own reader has checked its ``[lidar]`` table and its others."""
     if ref is None:
         return None
     ref_s = str(ref).strip()
@@ -151,7 +157,19 @@ def load_sensor(ref: str | Path | None) -> SensorParams | None:
         raise InputError(f"{path}: cannot be read ({exc.strerror})") from exc
     if "sensor" not in doc:
         raise InputError(f"{path} has no [sensor] table; see the presets in {PRESET_DIR}")
+    others = [k for k in doc if k != "sensor" and not (lidar_file and k == "lidar")]
+    if "lidar" in others:
+        raise InputError(f"{path} holds a [lidar] table, which a sensor file does not take: "
+                         f"give the file to --lidar (it reads its [lidar] and [sensor] tables) "
+                         "instead of --sensor")
+    if others:
+        raise InputError(f"{path}: {', '.join(_toml_key(k, doc[k]) for k in others)} unknown "
+                         "in a sensor file; accepted: the [sensor] table alone")
     return sensor_from_table(doc["sensor"], source=str(path), name=path.stem)
+
+
+def _toml_key(key: str, value) -> str:
+    return f"table [{key}]" if isinstance(value, dict) else f"key {key!r}"
 
 
 def sensor_from_table(table, source: str = "", name: str = "") -> SensorParams | None:
