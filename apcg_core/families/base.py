@@ -58,8 +58,10 @@ class ModelTypes:
         try:
             self.space = ConditionSpace.from_dict(self.meta["condition_space"])
             self.lidar = LidarParams.from_dict(self.meta["lidar"])
-        except (KeyError, TypeError) as exc:
+        except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{self.directory / 'model.json'} is incomplete ({exc!r})") from exc
+        except InputError as exc:  # a value refused: say which file holds it
+            raise InputError(f"{self.directory / 'model.json'}: {exc}") from exc
         self.types = TypeTable.from_records(self.meta["types"],
                                             owner=f"model {self.directory}")
 
