@@ -105,10 +105,10 @@ def _run(argv, registrars, command: list) -> int:
     command.append(args.command)
     from .options import problems
     from .outputs import guarding, output_problems
-    refused = problems(vars(args)) + output_problems(args)
-    for message in refused:
-        print(f"apcg {args.command}: error: {message}", file=sys.stderr)
+    # one line, the first problem: an option's value before the outputs it would name
+    refused = problems(vars(args)) or output_problems(args)
     if refused:
+        print(f"apcg {args.command}: error: {refused[0]}", file=sys.stderr)
         return 2
     with guarding(args):  # every file written goes through its guard (outputs.py)
         return int(args.func(args) or 0)

@@ -38,7 +38,9 @@ ANGLE = Rule("a finite angle in degrees from -360 to 360", lo=-360, hi=360)
 # dest (the option's name with "_" for "-") -> Rule.
 RULES: dict[str, Rule] = {
     # sizes and counts
-    "count": COUNT, "steps": COUNT, "samples": COUNT,
+    "count": COUNT, "steps": COUNT,
+    # teach: fewer than 8 conditions leave too few held out to score the type
+    "samples": Rule("an integer >= 8", lo=8),
     # beyond these a request only exhausts the machine (processes, memory) before failing
     "batch_size": Rule("an integer from 1 to 65536", lo=1, hi=65536),
     "pairs": Rule("an integer >= 0 (0: every held-out pair)", lo=0),
@@ -52,8 +54,10 @@ RULES: dict[str, Rule] = {
     "memory_steps": Rule("an integer >= 0 (0: skip)", lo=0), "tasks_per_process": COUNT,
     "dpi": Rule("an integer from 10 to 1200", lo=10, hi=1200),
     "supersample": Rule("an integer from 1 to 16", lo=1, hi=16),
-    "voxel_res": Rule("an integer from 4 to 256", lo=4, hi=256),
-    "sheet": Rule("an integer from 8 to 512", lo=8, hi=512),
+    "voxel_res": Rule("an integer 4 x 2^k from 8 to 256 (8, 16, 32, 64, 128, 256)", lo=8,
+                      hi=256),
+    "sheet": Rule("an integer 4 x 2^k from 8 to 256 (8, 16, 32, 64, 128, 256)", lo=8,
+                  hi=256),
     "number": ANY,  # a figure number: argparse's choices check it
     "seed": SEED,
     # amounts of time and training

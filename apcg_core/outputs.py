@@ -41,6 +41,7 @@ FILE, DIRECTORY = "file", "directory"
 ANY = "*"
 # What matplotlib writes for the pictures (figures, contact sheets, previews).
 PICTURE_SUFFIXES = (".png", ".pdf", ".svg")
+_EXISTS = "; choose another name, or --force to replace it"
 
 
 @dataclass(frozen=True)
@@ -160,6 +161,7 @@ class Guard:
         self.input_dirs = [p for p in inputs if os.path.isdir(p)]
         self.file_outputs: set[str] = set()
         self.dir_outputs: list[tuple[str, Output]] = []
+        self.dir_values: list[tuple[Output, str]] = []  # (declaration, value as given)
         for o in self.specs:
             value = getattr(args, o.dest, None)
             if value is None or value == "-":
@@ -168,6 +170,7 @@ class Guard:
                 self.file_outputs.update(real(p) for _, p in o.planned(args))
             else:
                 self.dir_outputs.append((real(value), o))
+                self.dir_values.append((o, str(value)))
         self.written: set[str] = set()
         self.allowed: set[str] = set()
         self.pending: dict[str, str] = {}  # final name -> temporary name, until commit
@@ -218,7 +221,7 @@ class Guard:
                     "replaced, even with --force: choose another output")
         if self.owned(r) or self.force:
             return None
-        return f"{label} already exists; choose another name, or --force to replace it"
+        return f"{label} already exists{_EXISTS}"
 
     def claim(self, path) -> bool:
         """Before a file appears under ``path``: refuse (InputError) what may not be replaced;
@@ -326,16 +329,63 @@ def allow_update(path) -> None:
 
 # --- before the command runs ---------------------------------------------------------------
 
+def where_inputs(flag: str, value, inputs) -> str | None:
+    """Why the directory output ``flag value`` may not be written as it is, given the
+    command's ``inputs`` (real paths, files or directories): it is one of them, or lies inside
+    one (the dataset, model or run the command reads would change under it). The one rule
+    of every directory output, checked before any work; a file output may be a new name
+    inside an input directory (``choose-tau --model M -o M/tau.json``), never an input."""
+    r = real(value)
+    for i in inputs:
+        if r == i:
+            return (f"{flag} {value} is an input of this command; it is never written into, "
+                    "even with --force: choose another directory")
+        if _inside(r, i):
+            return (f"{flag} {value} is inside {i}, an input of this command; it is never "
+                    "written into, even with --force: choose a directory outside it")
+    return None
+
+
+def add_inputs(paths, what: str = "an input of this command") -> None:
+    """Inputs a command learns of only as it runs (the dataset a run trained on, the model a
+    run was initialised from): the running command's directory outputs are checked against
+    them by the rule of :func:`where_inputs` (InputError), and its guard keeps them as it
+    keeps the inputs it was given. Nothing to do outside a command."""
+    g = active()
+    if g is None:
+        return
+    found = [real(p) for p in paths if p and os.path.lexists(p)]
+    for spec, value in g.dir_values:
+        if (why := where_inputs(spec.flag, value, found)) is not None:
+            raise InputError(why.replace("an input of this command", what))
+    g.input_files.update(p for p in found if not os.path.isdir(p))
+    g.input_dirs.extend(p for p in found if os.path.isdir(p))
+
+
 def output_problems(args: argparse.Namespace) -> list[str]:
-    """Messages for output paths the command must not write to as they are."""
+    """Messages for output paths the command must not write to as they are (the first is the
+    one shown: one line per refusal)."""
     out = []
     guard = Guard(args)
+    inputs = [*guard.input_dirs, *guard.input_files]
     planned: list[tuple[str, Path]] = []
+    dirs: list[tuple[str, str, str]] = []  # (real, flag, value) of each directory output
     for o in declared_outputs(args):
         value = getattr(args, o.dest, None)
         if value is None or value == "-":
             continue
         path = Path(value)
+        if o.kind != FILE:
+            if (why := where_inputs(o.flag, value, inputs)) is not None:
+                out.append(why)
+                continue
+            other = next((d for d in dirs if _inside(real(value), d[0])
+                          or _inside(d[0], real(value))), None)
+            if other is not None:
+                out.append(f"{other[1]} {other[2]} and {o.flag} {value} are one directory "
+                           "or one inside the other; give each output its own directory")
+                continue
+            dirs.append((real(value), o.flag, str(value)))
         if o.kind == FILE:
             if o.suffixes and path.suffix.lower() not in o.suffixes:
                 out.append(f"{o.flag} {value}: unsupported format "
@@ -354,15 +404,13 @@ def output_problems(args: argparse.Namespace) -> list[str]:
                 continue
             names = o.files(args) if callable(o.files) else o.files
             if names == ANY and path.is_dir():
-                if real(path) in guard.input_dirs:
-                    out.append(f"{o.flag} {value} is also an input of this command; write to "
-                               "another directory")
-                elif any(path.iterdir()) and not guard.force:
+                if any(path.iterdir()) and not guard.force:
                     out.append(f"{o.flag} {value} already holds files; choose a new "
                                "directory, or --force to write into it (files of the same "
                                "names are replaced, others kept)")
         planned += o.planned(args)
     seen: dict[str, tuple[str, Path]] = {}
+    existing: list[str] = []  # files kept without --force: named in one line
     for label, path in planned:
         key = real(path)
         other = seen.get(key) or next((s for s in seen.values()
@@ -373,7 +421,13 @@ def output_problems(args: argparse.Namespace) -> list[str]:
             continue
         seen[key] = (label, path)
         if os.path.lexists(path) and (message := guard.refusal(path, label)):
-            out.append(message)
+            if message.endswith(_EXISTS):
+                existing.append(label)
+            else:
+                out.append(message)
+    if existing:
+        out.append(f"{', '.join(existing)} already exist{'s' if len(existing) == 1 else ''}"
+                   f"{_EXISTS}")
     return out
 
 

@@ -30,7 +30,10 @@ from apcg_core.errors import InputError
 from apcg_core.io.dataset import (
     FORMAT_VERSION,
     Shard,
+    check_complete,
     json_bytes,
+    load_shard,
+    read_condition_index,
     read_header,
     read_manifest,
     sha256_file,
@@ -42,7 +45,7 @@ from apcg_core.progress import Progress
 
 from .backends import check_backend
 from .engine import RunSettings, get_engine, worker_init  # noqa: F401 (benches import it here)
-from .plan import Plan, ShardPlan, load_config, make_plan
+from .plan import Plan, ShardPlan, check_plan, config_path, load_config, make_plan
 from .rays import bounding_radius
 from .shards import ShardTask, close_simulators, part_suffix, run_task
 
@@ -132,9 +135,13 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
     from apcg_core.catalog.catalog import default_catalog
     catalog = catalog or default_catalog()
     cfg = load_config(config) if isinstance(config, str) else dict(config)
+    source = (f"dataset config {config_path(config)}" if isinstance(config, str)
+              else "dataset config")
     if backend:
         check_backend(backend)
-    plan = make_plan(cfg, catalog, backend, sensor, lidar)
+    # the whole plan, every condition, before anything is written or warned of
+    plan = make_plan(cfg, catalog, backend, sensor, lidar, source=source)
+    check_plan(plan, catalog, source)
     check_backend(plan.config["backend"])
     if warn is not None:  # before the work: a window too small for the plan's targets
         from apcg_core.plausibility import WINDOW_CHECK_ROWS, window_fit, window_warning
@@ -250,21 +257,37 @@ def _task(plan: Plan, catalog, s: ShardPlan, out: Path) -> ShardTask:
 
 
 def dataset_info(directory, verify: bool = False, require_complete: bool = False) -> dict:
-    """Summary of a dataset directory; ``verify`` loads every shard and checks its hash;
-    ``require_complete`` raises unless every shard and the manifest are there."""
+    """Summary of a dataset directory; ``verify`` checks the header against the config it
+    records (the plan made again: counts, types, shards, condition space), conditions.csv
+    against the same plan, and loads every shard, checking its hash and that it holds the
+    samples the header and conditions.csv place in it; ``require_complete`` raises unless
+    every shard and the manifest are there. A damaged manifest is named; a finished dataset
+    (one with a manifest) missing a shard it lists is refused when verified."""
     out = Path(directory)
     head = read_header(out)
     shards = head["shards"]
     present = [s for s in shards if (out / s["file"]).exists()]
-    if require_complete and (len(present) < len(shards)
-                             or not (out / "manifest.json").exists()):
+    has_manifest = (out / "manifest.json").exists()
+    if has_manifest:
+        read_manifest(out)  # a damaged one is named, whatever else is asked
+    if require_complete and (len(present) < len(shards) or not has_manifest):
         raise InputError(f"dataset {out} is not complete: {len(present)} of {len(shards)} "
                          "shards present; run the same `apcg dataset build` again to finish it")
+    complete = False
+    if has_manifest:
+        try:
+            check_complete(out, head)
+            complete = True
+        except InputError:
+            if verify or require_complete:
+                raise
+            if len(present) == len(shards):  # the manifest itself is wrong: name it
+                raise
     info = {"directory": str(out), "name": head["name"], "format_version": head["format_version"],
             "backend": head["config"].get("backend"), "n_types": len(head["types"]),
             "n_samples": head["n_samples"], "n_train": head["n_train"], "n_test": head["n_test"],
             "shards_total": len(shards), "shards_present": len(present),
-            "complete": (out / "manifest.json").exists() and len(present) == len(shards),
+            "complete": complete,
             "sensor": head.get("sensor", {}).get("name", "ideal"),
             "incidence": bool(head["config"].get("incidence", False)),
             "bytes_on_disk": sum((out / s["file"]).stat().st_size for s in present)}
@@ -272,17 +295,30 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
     info["samples_present"] = n_done
     if verify:
         from apcg_core.catalog.catalog import default_catalog
+        cfg = dict(head["config"])
+        if "sensor" in head:  # the sensor as recorded: its file need not exist any more
+            cfg["sensor"] = dict(head["sensor"])
+        plan = make_plan(cfg, default_catalog())
+        _check_header(out, head, plan)
         sums = {m.get("file"): m.get("sha256") for m in read_manifest(out)["shards"]
                 if isinstance(m, dict)}
-        n_points = clipped = clamped = empty = signal = 0
         bad = []
+        if (out / "conditions.csv").exists() and (out / "conditions.csv").read_bytes() != \
+                conditions_csv(plan):
+            bad.append("conditions.csv")  # a pure function of the config: made again, compared
+        index = read_condition_index(out, head) if not bad else None
+        n_points = clipped = clamped = empty = signal = 0
         for s in present:
             p = out / s["file"]
             if sums.get(s["file"]) not in (None, sha256_file(p)):
                 bad.append(s["file"])
                 continue
-            sh = Shard.load(p)
-            if len(sh) != s["n_samples"] or (sh.cos_incidence is None) == info["incidence"]:
+            try:
+                sh = load_shard(out, s, index) if index is not None else Shard.load(p)
+            except InputError:
+                bad.append(s["file"])
+                continue
+            if (sh.cos_incidence is None) == info["incidence"]:
                 bad.append(s["file"])
                 continue
             n_points += len(sh.pixel)
@@ -290,12 +326,6 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
             clamped += int(sh.n_clamped.sum())
             empty += int((np.diff(sh.offsets) == 0).sum())
             signal += int(sh.label.sum()) if sh.label is not None else 0
-        cfg = dict(head["config"])
-        if "sensor" in head:  # the sensor as recorded: its file need not exist any more
-            cfg["sensor"] = dict(head["sensor"])
-        if (out / "conditions.csv").exists() and (out / "conditions.csv").read_bytes() != \
-                conditions_csv(make_plan(cfg, default_catalog())):
-            bad.append("conditions.csv")  # a pure function of the config: made again, compared
         if bad:
             raise InputError(f"corrupt files in {out}: {bad}; delete them and run the same "
                              "build again to remake them")
@@ -307,6 +337,28 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
     return info
 
 
+def _check_header(out: Path, head: dict, plan: Plan) -> None:
+    """dataset.json against the plan of the config it records: what it says of the samples,
+    types and shards must be what that config makes (an edited header is named)."""
+    expect = {"n_samples": plan.n_samples,
+              "n_train": int((plan.split == "train").sum()),
+              "n_test": int((plan.split == "test").sum()),
+              "shards": [{"index": s.index, "file": s.file, "split": s.split,
+                          "type_code": s.type_code, "n_samples": len(s.rows)}
+                         for s in plan.shards],
+              "types": [{"code": i, "name": t.name, "kind": t.kind, "range_band": t.range_band}
+                        for i, t in enumerate(plan.types)],
+              "condition_space": plan.space.to_dict(), "lidar": plan.lidar.to_dict(),
+              "grid_values": plan.values}
+    found = dict(head)
+    found["types"] = [{k: t.get(k) for k in ("code", "name", "kind", "range_band")}
+                      if isinstance(t, dict) else t for t in head.get("types", [])]
+    differ = [k for k, v in expect.items()
+              if json_bytes(found.get(k)) != json_bytes(v)]
+    if differ:
+        raise InputError(f"{out / 'dataset.json'} does not match the config it records: "
+                         f"{', '.join(differ)} differ from what that config makes (the header "
+                         "was edited, or is another build's); build the dataset again")
 def time_engine_build(config, engine: str = "dask", workers: int = 2, out_dir=None,
                       shard_spec: str | None = None) -> dict:
     """Build ``config`` with ``engine`` and ``workers`` into ``out_dir`` (a fresh temporary

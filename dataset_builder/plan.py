@@ -33,11 +33,17 @@ def builtin_configs() -> list[str]:
     return sorted(p.stem for p in CONFIG_DIR.glob("*.toml"))
 
 
-def load_config(ref: str) -> dict:
-    """A config by file path or by the name of a committed one (``demo``, ``paper-table1``...)."""
+def config_path(ref: str) -> Path:
+    """The file of a config given by path or by the name of a committed one."""
     path = Path(ref)
     if not path.is_file():  # a folder called "demo" in the working directory is not a config
         path = CONFIG_DIR / f"{ref}.toml"
+    return path
+
+
+def load_config(ref: str) -> dict:
+    """A config by file path or by the name of a committed one (``demo``, ``paper-table1``...)."""
+    path = config_path(ref)
     if not path.is_file():
         raise InputError(f"no dataset config {ref!r}: give a TOML file or one of "
                          f"{', '.join(builtin_configs())}")
@@ -114,8 +120,59 @@ def _check_size(n: int, what: str) -> None:
                          f"{MAX_SAMPLES:,}: split it into several configs (other seeds)")
 
 
+# Each [ranges] key's physical bounds (edge units): (lo, hi, lo open, hi open, accepted).
+RANGE_BOUNDS = {
+    "aircraft_range_m": (0.0, 1e6, True, False, "metres > 0 and <= 1e6"),
+    "drone_range_m": (0.0, 1e6, True, False, "metres > 0 and <= 1e6"),
+    "elevation_deg": (-90.0, 90.0, True, True, "degrees between -90 and 90, both excluded "
+                      "(+-90: the target overhead)"),
+    "pitch_deg": (-90.0, 90.0, False, False, "degrees from -90 to 90"),
+    "yaw_deg": (-180.0, 180.0, False, False, "degrees from -180 to 180"),
+    "roll_deg": (-180.0, 180.0, False, False, "degrees from -180 to 180"),
+}
+
+
+def check_ranges(ranges: dict, source: str = "dataset config") -> None:
+    """Every [ranges] pair within its key's physical bounds with lo < hi (nu is scaled over
+    it), named with ``source`` and the key: refused before anything is planned or written."""
+    for key, (lo, hi, lo_open, hi_open, what) in RANGE_BOUNDS.items():
+        if key not in ranges:
+            continue
+        a, b = (float(v) for v in ranges[key])
+        inside = all((v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+                     for v in (a, b))
+        if not (inside and a < b):
+            raise InputError(f"{source}: ranges.{key} = {list(ranges[key])!r} not accepted: "
+                             f"[lo, hi] with lo < hi (each condition's vector nu is scaled over "
+                             f"it), both in {what}")
+
+
+def check_plan(plan: Plan, catalog, source: str = "dataset config") -> None:
+    """Every condition of the plan one the simulator takes (the lidar outside the target's
+    bounding sphere, each angle physical), checked before anything is written: the first
+    refused names ``source``, the [ranges] key to change and what it accepts."""
+    from .rays import bounding_radius, check_conditions, start_margin_m
+    codes = plan.table[:, 0].astype(np.int64)
+    for code, t in enumerate(plan.types):
+        rows = plan.table[codes == code]
+        if not len(rows):
+            continue
+        radius = bounding_radius(catalog.mesh(t).vertices)
+        key = "drone_range_m" if plan.space.is_drone(code) else "aircraft_range_m"
+        need = radius + 2.0 * start_margin_m(radius)
+        if rows[:, 1].min() <= need:
+            raise InputError(f"{source}: ranges.{key} reaches {rows[:, 1].min():.6g} m, which "
+                             f"puts the lidar inside {t.name}'s bounding sphere (radius "
+                             f"{radius:.3f} m); accepted: ranges above {need:.3f} m")
+        try:
+            check_conditions(rows, radius)
+        except InputError as exc:
+            raise InputError(f"{source}: {t.name}: {exc}") from None
+
+
 def make_plan(cfg: dict, catalog, backend: str | None = None,
-              sensor: str | None = None, lidar: str | None = None) -> Plan:
+              sensor: str | None = None, lidar: str | None = None,
+              source: str = "dataset config") -> Plan:
     """The plan of a config (see the committed configs for every key, and ``schema``);
     ``backend``, ``sensor`` (a preset or file) and ``lidar`` (a lidar preset or file, whose
     ``[sensor]`` table counts unless ``sensor`` is given) override the config's. The config
@@ -134,6 +191,7 @@ def make_plan(cfg: dict, catalog, backend: str | None = None,
     lidar = LidarParams.from_dict(cfg["lidar"]) if "lidar" in cfg else LidarParams()
     types = _resolve_types(cfg, catalog)
     ranges = cfg.get("ranges", {})
+    check_ranges(ranges, source)
     space = ConditionSpace(
         n_types=len(types),
         drone_types=tuple(i for i, t in enumerate(types) if t.range_band == "near"),

@@ -76,7 +76,8 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
         bands = protocol.score(model, test_pairs, floor=False, pointflow=False)["mean"]
         fresh = protocol.score(protocol.untrained(model, run / "untrained", seed=seed),
                                test_pairs, floor=False, pointflow=False)["mean"]
-        fd = fd_depth(encoder, model, data_dir, n_pairs=max(pairs, 400), seed=seed)
+        fd_pairs = None if pairs is None else max(pairs, 400)  # None: every held-out pair
+        fd = fd_depth(encoder, model, data_dir, n_pairs=fd_pairs, seed=seed)
         from apcg_core.io.csv_table import read_csv
         log = read_csv(run / "log.csv", required=("seconds",), what="training log").rows
         rows.append({"variant": name, "norm": True, **v, "steps": tr.step,

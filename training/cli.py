@@ -24,9 +24,9 @@ def register_train(sub) -> None:
     add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="run directory",
                files=("train_config.json", "checkpoint.pt", "log.csv"),
                record=("train_config.json",))
-    p.add_argument("--preset", default="cpu", choices=["paper", "cpu", "tiny"],
+    p.add_argument("--preset", default=None, choices=["paper", "cpu", "tiny"],
                    help="paper: full width for a GPU; cpu: quarter width, bf16 (default); "
-                        "tiny: for tests")
+                        "tiny: for tests (a resumed run keeps its own)")
     p.add_argument("--resume", action="store_true", help="continue the run in -o")
     p.add_argument("--steps", type=int, help="generator steps (overrides --epochs)")
     p.add_argument("--epochs", type=float, help="epochs over the training split")
@@ -107,7 +107,7 @@ def _run_train(args) -> int:
 
 
 def _train(args) -> int:
-    from .trainer import Trainer, config_from, read_checkpoint
+    from .trainer import RESUMABLE, Trainer, config_from, read_checkpoint
     over = {"steps": args.steps, "epochs": args.epochs, "seed": args.seed, "width": args.width,
             "n_critic": args.n_critic, "batch_size": args.batch_size,
             "checkpoint_every": args.checkpoint_every, "threads": args.threads,
@@ -141,9 +141,9 @@ def _train(args) -> int:
         from .trainer import TrainConfig
         cfg = TrainConfig.from_dict(saved)
     else:
-        cfg = config_from(args.preset, **over)
+        cfg = config_from(args.preset or "cpu", **over)
     trainer = Trainer(args.data, args.output, cfg, resume=args.resume,
-                      progress=not args.no_progress)
+                      progress=not args.no_progress, preset=args.preset or "cpu")
     max_s = args.max_minutes * 60 if args.max_minutes else None
     summary = trainer.fit(max_seconds=max_s)
     if trainer.world > 1:
@@ -168,10 +168,15 @@ def _train(args) -> int:
     return 0
 
 
-# What a resumed run may change (its length, budget and bookkeeping); every other setting is
-# the run's own, and a different value given on resume is refused rather than ignored.
-RESUMABLE = ("steps", "epochs", "checkpoint_every", "threads", "keep_every", "diverge_gp",
-             "ema", "hours", "bf16")
+
+
+def __getattr__(name: str):
+    """``RESUMABLE`` (what a resumed run may change) lives with the trainer, which exports
+    check it too; read from here without importing torch for every command."""
+    if name == "RESUMABLE":
+        from .trainer import RESUMABLE
+        return RESUMABLE
+    raise AttributeError(name)
 
 
 def _check_resume_matches(args, saved: dict, over: dict) -> None:
@@ -179,7 +184,7 @@ def _check_resume_matches(args, saved: dict, over: dict) -> None:
 
     from apcg_core.errors import InputError
 
-    from .trainer import TrainConfig, read_run_record
+    from .trainer import RESUMABLE, TrainConfig, read_run_record
 
     # against the run's value, or the default it ran with when its record predates the setting
     ran = TrainConfig.from_dict(saved)
@@ -188,6 +193,8 @@ def _check_resume_matches(args, saved: dict, over: dict) -> None:
               if v is not None and k not in RESUMABLE and k != "family" and hasattr(ran, k)
               and getattr(ran, k) != v]
     record = read_run_record(args.output)
+    if args.preset is not None:
+        _check_resume_preset(args.preset, ran, over, (record or {}).get("preset"), differ)
     if record is not None:
         ran_on = record.get("data")
         if ran_on and Path(ran_on).resolve() != Path(args.data).resolve():
@@ -196,6 +203,26 @@ def _check_resume_matches(args, saved: dict, over: dict) -> None:
         raise InputError("a resumed run keeps its own settings; these differ from it: "
                          + "; ".join(differ) + ". Leave them out to resume, or train a new "
                          "run with another -o")
+
+
+def _check_resume_preset(preset: str, ran, over: dict, recorded: str | None,
+                         differ: list) -> None:
+    """A --preset given on resume: the run's own (as recorded), or, for a run that predates
+    the record, one whose settings are the run's (those not given otherwise)."""
+    from .trainer import config_from
+    if recorded is not None:
+        if recorded != preset:
+            differ.append(f"--preset {preset} (the run's: {recorded})")
+        return
+    asked = config_from(preset, family=ran.family)
+    # what a preset's network is (a run's batch size may have been given on its own)
+    shape = ("width", "conv", "attention", "loss", "norm", "sheet", "head", "n_points",
+             "voxel_res", "diffusion_steps")
+    keys = [k for k in shape if hasattr(ran, k) and over.get(k) is None
+            and getattr(asked, k) != getattr(ran, k)]
+    if keys:
+        differ.append(f"--preset {preset} (" + ", ".join(
+            f"{k} {getattr(asked, k)!r}, the run's {getattr(ran, k)!r}" for k in keys[:4]) + ")")
 
 
 def _check_family_options(family: str, asked: str | None, over: dict) -> None:
@@ -266,6 +293,12 @@ def add_model_argument(p, many: bool = False) -> None:
     else:
         p.add_argument("--model", metavar="DIR",
                        help="model directory, any family (default: the shipped default model)")
+
+
+def _pairs(args) -> int | None:
+    """--pairs as the protocol takes it: 0 is every held-out pair (None), for every command
+    (apcg_core/options.py states the rule once)."""
+    return args.pairs or None
 
 
 def add_protocol_arguments(p, pairs: bool = True) -> None:
@@ -346,7 +379,7 @@ def _run_evaluate(args) -> int:
                      (json.dumps(study, indent=1) + "\n").encode())
         print(json.dumps({"best": study["best"], "min_gap": study["min_gap"]}))
         return 0
-    report = evaluate(model, args.data, n_pairs=args.pairs or None, seed=args.seed,
+    report = evaluate(model, args.data, n_pairs=_pairs(args), seed=args.seed,
                       with_untrained=args.with_untrained, progress=True,
                       faithfulness=args.faithfulness)
     report["command"] = command
@@ -396,7 +429,7 @@ def _run_choose_tau(args) -> int:
         except ValueError as exc:
             raise InputError(f"--taus takes comma-separated numbers, got {args.taus!r}") from exc
     model = load_model(args.model, runtime=args.runtime)
-    rep = choose_tau(model, args.data, taus=taus, n_pairs=args.pairs, seed=args.seed)
+    rep = choose_tau(model, args.data, taus=taus, n_pairs=_pairs(args), seed=args.seed)
     rep["command"] = "apcg choose-tau " + " ".join(sys.argv[2:])
     text = json.dumps(rep, indent=1)
     print(text)
@@ -471,7 +504,7 @@ def _run_figure(args) -> int:
                 else (Path(r).name, r) for r in args.run]
         if len({n for n, _ in runs}) < len(runs):
             raise InputError(f"figure 14: run names must differ, got {[n for n, _ in runs]}")
-        fig14(runs, args.data, args.output, n_pairs=args.pairs, tau=args.tau,
+        fig14(runs, args.data, args.output, n_pairs=_pairs(args), tau=args.tau,
               max_checkpoints=args.max_checkpoints)
     else:
         from apcg_core.families import load_model
@@ -481,7 +514,7 @@ def _run_figure(args) -> int:
         elif args.number == 18:
             fig18(model, args.output)
         else:
-            fig19(model, args.data, args.output, n_pairs=args.pairs)
+            fig19(model, args.data, args.output, n_pairs=_pairs(args))
     print(f"wrote {args.output} and its .json")
     return 0
 
@@ -522,7 +555,7 @@ def _run_fd_score(args) -> int:
 
     from .fd_depth import fd_depth
     print(json.dumps(fd_depth(args.encoder, load_model(args.model), args.data,
-                              n_pairs=args.pairs, seed=args.seed)))
+                              n_pairs=_pairs(args), seed=args.seed)))
     return 0
 
 
@@ -551,7 +584,7 @@ def register_ablation(sub) -> None:
 def _run_ablation(args) -> int:
     from .ablation import markdown, run_ablation
     rep = run_ablation(args.data, args.output, steps=args.steps, width=args.width,
-                       encoder=args.encoder, pairs=args.pairs, seed=args.seed,
+                       encoder=args.encoder, pairs=_pairs(args), seed=args.seed,
                        no_norm=not args.skip_no_norm)
     print(markdown(rep))
     return 0
@@ -593,7 +626,7 @@ def _run_compare(args) -> int:
               for name, path in method_names(args.model)]
     for _, model in models:
         warn_other_lidar("compare", args.data, model)
-    report = compare(models, args.data, n_pairs=args.pairs or None, seed=args.seed,
+    report = compare(models, args.data, n_pairs=_pairs(args), seed=args.seed,
                      memory_steps=args.memory_steps, with_untrained=not args.no_untrained,
                      progress=True, faithfulness=args.faithfulness)
     report["command"] = "apcg compare " + " ".join(sys.argv[2:])

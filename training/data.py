@@ -16,7 +16,12 @@ from apcg_core.condition import scale_ratio
 from apcg_core.depth import BACKGROUND, norm
 from apcg_core.errors import InputError
 from apcg_core.frames import spherical_to_cartesian
-from apcg_core.io.dataset import Shard, read_header
+from apcg_core.io.dataset import (
+    check_complete,
+    load_shard,
+    read_condition_index,
+    read_header,
+)
 from apcg_core.lidar import LidarParams
 from apcg_core.typetable import Conditions, TypeTable
 
@@ -25,12 +30,13 @@ class DepthDataset:
     def __init__(self, directory, split: str = "train") -> None:
         self.directory = Path(directory)
         self.header = read_header(self.directory)
-        if not (self.directory / "manifest.json").exists():
-            raise InputError(f"dataset {directory} is not complete (no manifest.json); finish it "
-                             "with the same `apcg dataset build` command first")
         if split not in ("train", "test"):
             raise InputError(f"split must be 'train' or 'test', got {split!r}")
-        shards = [Shard.load(self.directory / s["file"]) for s in self.header["shards"]
+        # the dataset whole (manifest, every shard there) and each shard the one its header
+        # and conditions.csv describe: a shard copied from elsewhere is refused by name
+        check_complete(self.directory, self.header)
+        index = read_condition_index(self.directory, self.header)
+        shards = [load_shard(self.directory, s, index) for s in self.header["shards"]
                   if s["split"] == split]
         if not shards:
             raise InputError(f"dataset {directory} has no {split} samples")

@@ -48,38 +48,44 @@ def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
     complete (``apcg_core.outputs.staged_directory``: each file whole, none on failure or
     Ctrl-C). An ``out_dir`` that holds anything is refused unless ``force``; then the files of
     the model replace those of the same names, and nothing else there is touched (a directory
-    is never deleted). The run directory itself is refused."""
+    is never deleted). Everything is checked before anything is written: the run directory,
+    the dataset it trained on and what its family's export reads are inputs (never -o, nor
+    around it), and a ``checkpoint`` must be the run's own."""
+    from apcg_core.errors import check_int
+    check_int("log_every", log_every, 1)
     run, out = Path(run_dir), Path(out_dir)
     if out.resolve() == run.resolve():
         raise InputError(f"-o {out} is the run directory itself; export to another directory")
     if out.exists() and not out.is_dir():
         raise InputError(f"-o {out} is a file, not a directory")
+    job = _read_run(run, checkpoint, data_dir)
+    _refuse_inputs(out, [job["data"], *job["reads"]])  # --run: the command's own input
     if out.is_dir() and any(out.iterdir()) and not force:
         raise InputError(f"-o {out} already holds files; choose a new directory, or --force to "
                          "replace it")
     from apcg_core.outputs import staged_directory
     with staged_directory(out) as staging:
         _export(run, staging, tau, data_dir, checkpoint, raw, sampling_steps, log_every,
-                target=out)
+                job=job)
     return out
 
 
-def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
-            checkpoint=None, raw: bool = False, sampling_steps: int | None = None,
-            log_every: int = 1, target=None) -> Path:
-    """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest.
-    The generator's moving average is exported when the run kept one, the raw weights when
-    ``raw`` or when it did not. ``sampling_steps`` (families that sample on a schedule) records
-    how many of the schedule's steps generation takes by default (fewer: faster, coarser); a
-    family without a schedule refuses it. What the model directory holds is the run's family's
-    (``training/families/<family>.py``); nothing is written when the family refuses.
-    ``log_every`` keeps every n-th step of the log (and the last), for a model that ships in the
-    package. ``target`` (the directory the model is published into) is refused when it is a
-    directory the family's export reads (``export_reads``: an incidence run's ``--init``
-    model), which is an input even though the command line does not name it."""
-    from apcg_core.errors import check_int
-    check_int("log_every", log_every, 1)
-    run = Path(run_dir)
+def _refuse_inputs(out: Path, inputs) -> None:
+    """-o is, or lies inside, none of ``inputs`` (the one rule, apcg_core.outputs), inside a
+    command as outside one."""
+    from apcg_core.outputs import active, add_inputs, real, where_inputs
+    if active() is not None:
+        add_inputs(inputs, "an input of this export")
+        return
+    why = where_inputs("-o", out, [real(p) for p in inputs if Path(p).exists()])
+    if why:
+        raise InputError(why.replace("an input of this command", "an input of this export"))
+
+
+def _read_run(run: Path, checkpoint=None, data_dir=None) -> dict:
+    """The run's checkpoint (the latest, or ``checkpoint``, which must be the run's own: in
+    the run directory, of the run's family, network and settings), its record, the dataset it
+    trained on and the family that exports it."""
     ck = Path(checkpoint) if checkpoint else run / "checkpoint.pt"
     if not ck.exists():
         raise InputError(f"{ck} does not exist: nothing to export")
@@ -87,15 +93,54 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     record = read_run_record(run)
     if record is None and data_dir is None:
         raise InputError(f"{run} has no train_config.json to say which dataset it trained on")
-    data = data_dir or record["data"]
-    head = read_header(data)
+    if checkpoint:
+        _check_own_checkpoint(run, ck, st, record)
     family = get_family(st["train"].get("family", "cgan"), need="export")
-    if target is not None:
-        for read in getattr(family, "export_reads", lambda state: [])(st):
-            if Path(read).resolve() == Path(target).resolve():
-                raise InputError(f"-o {target} is the model this run was trained from (its "
-                                 "--init), which the export reads; export to another "
-                                 "directory")
+    reads = list(getattr(family, "export_reads", lambda state: [])(st))
+    return {"checkpoint": ck, "state": st, "record": record, "family": family,
+            "data": data_dir or record["data"], "reads": reads}
+
+
+def _check_own_checkpoint(run: Path, ck: Path, st: dict, record: dict | None) -> None:
+    from apcg_core.outputs import real
+
+    from .trainer import RESUMABLE
+    mine = real(run)
+    if not real(ck).startswith(mine.rstrip("/") + "/"):
+        raise InputError(f"--checkpoint {ck} is not in the run directory {run}; give one of "
+                         f"the run's own ({run}/checkpoint.pt or {run}/checkpoints/*.pt), or "
+                         "--run the run that wrote it")
+    if record is None:
+        return
+    ran = record["train"]
+    st_train = json.loads(json.dumps(st["train"], default=str))  # tuples as the record's lists
+    differ = [k for k in sorted(set(st["train"]) | set(ran)) if k not in RESUMABLE
+              and st_train.get(k) != ran.get(k)]
+    net = json.loads(json.dumps(st.get("net"), default=str))
+    if ("net" in record and net != record["net"]) or differ:
+        what = ", ".join(f"{k} {st_train.get(k)!r} (the run's: {ran.get(k)!r})"
+                         for k in differ[:4]) or "its network"
+        raise InputError(f"--checkpoint {ck} is not {run}'s own: its {what} differ from the "
+                         f"run's train_config.json; give the run that wrote it as --run")
+
+
+def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
+            checkpoint=None, raw: bool = False, sampling_steps: int | None = None,
+            log_every: int = 1, job: dict | None = None) -> Path:
+    """``checkpoint``: a kept copy (e.g. checkpoints/step-001000.pt) instead of the latest.
+    The generator's moving average is exported when the run kept one, the raw weights when
+    ``raw`` or when it did not. ``sampling_steps`` (families that sample on a schedule) records
+    how many of the schedule's steps generation takes by default (fewer: faster, coarser); a
+    family without a schedule refuses it. What the model directory holds is the run's family's
+    (``training/families/<family>.py``); nothing is written when the family refuses.
+    ``log_every`` keeps every n-th step of the log (and the last), for a model that ships in the
+    package. ``job``: what :func:`_read_run` read (read here when not given)."""
+    from apcg_core.errors import check_int
+    check_int("log_every", log_every, 1)
+    run = Path(run_dir)
+    job = job or _read_run(run, checkpoint, data_dir)
+    st, record, family, data = job["state"], job["record"], job["family"], job["data"]
+    head = read_header(data)
     averaged = st.get("G_ema") is not None and not raw
     if averaged:
         st["G"] = st["G_ema"]
@@ -104,7 +149,7 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
             "types": TypeTable.from_records(head["types"]).to_records(),
             "tau": getattr(family, "default_tau", TAU_DEFAULT) if tau is None else tau,
             "trained_steps": st["step"],
-            "trained_epochs": trained_epochs(st, data, record.get("world", 1)),
+            "trained_epochs": trained_epochs(st, data, (record or {}).get("world", 1)),
             "dataset": head.get("name"), "train": st["train"],
             "norm": bool(st["train"].get("norm", True)),
             "generator_weights": (f"moving average (decay {st['train']['ema']:g}) since step "

@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from apcg_core.condition import NOISE_DIM
+from apcg_core.depth import norm, pc2im
 from apcg_core.errors import InputError
 
 from .data import DepthDataset
@@ -135,8 +136,23 @@ def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
     return float(((mu_a - mu_b) ** 2).sum() + np.trace(s_a) + np.trace(s_b) - 2 * cross)
 
 
+def cloud_images(model, ds: DepthDataset, idx: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Normalised depth images (N, H, W) of the clouds ``model`` generates at samples ``idx``
+    of ``ds``: PC2Im (eq. 15) at the dataset's lidar and each type's depth length, then Norm
+    (eq. 17), as the dataset's own images are made."""
+    res = model.generate(ds.condition_rows(idx), count=1, seed=seed)
+    cloud = res.cloud
+    n = len(idx)
+    sample = cloud.sample if cloud.sample is not None else np.zeros(len(cloud.xyz), np.int64)
+    codes = ds.conditions[idx, 0].astype(np.int64)
+    length = ds.types.column("depth_length_m").astype(np.float64)[codes]
+    img, _ = pc2im(cloud.xyz, ds.conditions[idx, 1], ds.conditions[idx, 2], length,
+                   ds.lidar, sample=sample, n_samples=n)
+    return norm(np.asarray(img, np.float32).reshape(n, ds.height, ds.width), ds.q[idx])
+
+
 def fd_depth(encoder, model, data_dir, n_pairs: int = 2000, seed: int = 0) -> dict:
-    """FD-depth of ``model`` (a cGAN model) on the protocol's test pairs, beside the distance
+    """FD-depth of ``model`` (any family) on the protocol's test pairs, beside the distance
     between two halves of the real images (what a perfect generator would score at this sample
     size). The conditions reach the model by type name, encoded in its own condition space."""
     from .protocol import draw_pairs
@@ -145,12 +161,18 @@ def fd_depth(encoder, model, data_dir, n_pairs: int = 2000, seed: int = 0) -> di
     ds, idx = pairs.ds, pairs.idx
     rng = np.random.default_rng(seed)
     real = ds.images(idx)
+    if tuple(enc.shape) != (ds.height, ds.width):
+        raise InputError(f"the encoder reads {enc.shape[0]} x {enc.shape[1]} depth images; "
+                         f"dataset {ds.directory} has {ds.height} x {ds.width}: train an "
+                         "encoder on a dataset of this lidar (`apcg fd-depth train`)")
     noise = rng.standard_normal((len(idx), NOISE_DIM)).astype(np.float32)
-    nu = model.space.encode(model.repeated_conditions(ds.condition_rows(idx), 1))
-    fake = model.images_from(noise, nu)
-    if not model.norm:  # a model trained without Norm: compare in the encoder's (Norm) space
-        from apcg_core.depth import norm
-        fake = norm(fake, ds.q[idx])
+    if callable(getattr(model, "images_from", None)):  # a family that draws depth images
+        nu = model.space.encode(model.repeated_conditions(ds.condition_rows(idx), 1))
+        fake = model.images_from(noise, nu)
+        if not getattr(model, "norm", True):  # trained without Norm: into the encoder's space
+            fake = norm(fake, ds.q[idx])
+    else:  # every other family draws clouds: their depth images are PC2Im of them
+        fake = cloud_images(model, ds, idx, seed)
     fr, fg = features(enc, real), features(enc, fake)
     half = rng.permutation(len(idx))
     floor = frechet_distance(fr[half[: len(idx) // 2]], fr[half[len(idx) // 2:]])

@@ -145,7 +145,9 @@ def step_generator(seed: int, step: int, phase: int, rank: int) -> torch.Generat
 
 class Trainer:
     def __init__(self, data_dir, run_dir, cfg: TrainConfig, resume: bool = False,
-                 progress: bool = True) -> None:
+                 progress: bool = True, preset: str | None = None) -> None:
+        """``preset``: the preset ``cfg`` was made from, recorded with a new run (a resume
+        that names another is refused)."""
         self.cfg = cfg
         self.run = Path(run_dir)
         self.progress = progress
@@ -210,7 +212,8 @@ class Trainer:
             self.run.mkdir(parents=True, exist_ok=True)
             write_atomic(self.run / "train_config.json", json.dumps(
                 {"train": asdict(cfg), "net": net.to_dict(), "data": self.data_dir,
-                 "dataset": self.data.header.get("name"), "world": self.world},
+                 "dataset": self.data.header.get("name"), "world": self.world}
+                | ({"preset": preset} if preset else {}),
                 indent=1).encode())
         if self.world > 1:
             _broadcast(self.G)
@@ -448,6 +451,12 @@ class _StopOnSignal:
 
     def __exit__(self, *exc) -> None:
         self._restore()
+
+
+# What a resumed run may change (its length, budget and bookkeeping); every other setting is
+# the run's own, and a different value given on resume is refused rather than ignored.
+RESUMABLE = ("steps", "epochs", "checkpoint_every", "threads", "keep_every", "diverge_gp",
+             "ema", "hours", "bf16")
 
 
 def read_checkpoint(path) -> dict:

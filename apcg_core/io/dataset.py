@@ -152,6 +152,9 @@ class Shard:
                     raise InputError(f"dataset shard {path} lacks arrays {missing}; it is not "
                                      "an APCG shard or is from another format version")
                 arrays = {k: z[k] for k in SHARD_KEYS + OPTIONAL_KEYS if k in z.files}
+        except FileNotFoundError:
+            raise InputError(f"dataset shard {path} is missing; run the same `apcg dataset "
+                             "build` again to remake it") from None
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
             if isinstance(exc, InputError):
                 raise
@@ -241,6 +244,101 @@ def read_manifest(directory) -> dict:
         raise InputError(f"{path} is not an APCG manifest (no shard list); delete it and run "
                          "the same `apcg dataset build` again to remake it")
     return manifest
+
+
+def check_complete(directory, head: dict | None = None) -> dict:
+    """A finished dataset, as every reader of one takes it: its header, a manifest.json
+    that lists every shard of the header (in its order, each with a hash) and every listed
+    shard on disk. Returns the manifest; raises InputError naming what is not so."""
+    directory = Path(directory)
+    head = head if head is not None else read_header(directory)
+    path = directory / "manifest.json"
+    if not path.exists():
+        raise InputError(f"dataset {directory} is not complete (no manifest.json); finish it "
+                         "with the same `apcg dataset build` command first")
+    manifest = read_manifest(directory)
+    files = [s.get("file") for s in head["shards"] if isinstance(s, dict)]
+    listed = [m.get("file") if isinstance(m, dict) else None for m in manifest["shards"]]
+    if listed != files or not all(isinstance(m, dict) and isinstance(m.get("sha256"), str)
+                                  for m in manifest["shards"]):
+        raise InputError(f"{path} is corrupt: it lists {len(listed)} shards where dataset.json "
+                         f"has {len(files)} (or not the same files, or without their hashes); "
+                         "delete it and run the same `apcg dataset build` again to remake it")
+    missing = [f for f in files if not (directory / f).exists()]
+    if missing:
+        raise InputError(f"dataset {directory} lacks {len(missing)} of its {len(files)} shards "
+                         f"({', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''}); run "
+                         "the same `apcg dataset build` again to remake them")
+    return manifest
+
+
+# conditions.csv's columns that say where each sample is and what it is
+_INDEX_COLUMNS = ("sample_id", "shard", "type_code", "range_m", "elevation_deg", "pitch_deg",
+                  "yaw_deg", "roll_deg")
+
+
+@dataclass
+class ConditionIndex:
+    """conditions.csv as arrays: each sample's shard, type code and condition (angles in
+    radians, as in a shard): what a shard read from the dataset is checked against."""
+
+    shard: np.ndarray  # (N,) int64
+    table: np.ndarray  # (N, 6) float64 [type_code, range_m, elevation, pitch, yaw, roll]
+
+
+def read_condition_index(directory, head: dict) -> ConditionIndex:
+    """The dataset's conditions.csv, checked against its header (one row per sample, in
+    sample_id order)."""
+    from .csv_table import NeedsCare, read_columns, read_csv
+    directory = Path(directory)
+    path = directory / head.get("conditions_file", "conditions.csv")
+    if not path.exists():
+        raise InputError(f"dataset {directory} has no {path.name}; run the same `apcg dataset "
+                         "build` again to remake it")
+    try:
+        parts = list(read_columns(path, _INDEX_COLUMNS, numbers=_INDEX_COLUMNS))
+        cols = {c: np.concatenate([p[c] for p in parts]) if parts else np.zeros(0)
+                for c in _INDEX_COLUMNS}
+    except NeedsCare:
+        rows = read_csv(path, required=_INDEX_COLUMNS, what="dataset conditions table")
+        cols = {c: np.array([r.float(c) for r in rows], np.float64) for c in _INDEX_COLUMNS}
+    n = int(head["n_samples"])
+    if len(cols["sample_id"]) != n or not np.array_equal(cols["sample_id"], np.arange(n)):
+        raise InputError(f"{path} does not list samples 0 .. {n - 1} in order, one a row, as "
+                         f"{directory / 'dataset.json'} says (n_samples {n}; found "
+                         f"{len(cols['sample_id'])} rows); the two are from different builds: "
+                         "build the dataset again")
+    deg = np.pi / 180.0
+    table = np.stack([cols["type_code"], cols["range_m"], *(cols[c] * deg for c in
+                      ("elevation_deg", "pitch_deg", "yaw_deg", "roll_deg"))], axis=1)
+    return ConditionIndex(cols["shard"].astype(np.int64), table)
+
+
+def load_shard(directory, entry: dict, index: ConditionIndex) -> Shard:
+    """The shard of header ``entry`` (dataset.json's ``shards``), checked to be that shard of
+    this dataset: its sample count and type code are the header's, and its samples are the
+    ones conditions.csv places in it, at their conditions. A shard copied over another, or
+    from another dataset, is refused by name instead of being read as this one."""
+    path = Path(directory) / entry["file"]
+    shard = Shard.load(path)
+    ids = shard.sample_id.astype(np.int64)
+    code = int(entry["type_code"])
+    why = None
+    if len(shard) != int(entry["n_samples"]):
+        why = f"{len(shard)} samples where dataset.json lists {entry['n_samples']}"
+    elif len(ids) and (ids.min() < 0 or ids.max() >= len(index.shard)):
+        why = f"sample ids outside 0 .. {len(index.shard) - 1}"
+    elif not np.all(index.shard[ids] == int(entry["index"])):
+        why = f"samples that conditions.csv places in other shards than {entry['index']}"
+    elif not (np.all(shard.conditions[:, 0] == code) and np.all(index.table[ids, 0] == code)):
+        why = f"samples of another type than code {code}"
+    elif not np.allclose(shard.conditions, index.table[ids], rtol=1e-9, atol=1e-9):
+        why = "other conditions than conditions.csv lists for its samples"
+    if why:
+        raise InputError(f"dataset shard {path} is not this dataset's {entry['file']}: it holds "
+                         f"{why}; it was copied from another shard or dataset. Delete it and "
+                         "run the same `apcg dataset build` again to remake it")
+    return shard
 
 
 # What every reader of a dataset header relies on (dataset_builder.build.header_of writes it).

@@ -54,8 +54,9 @@ class PlusConfig:
             raise InputError(f"width must be in (0, 4], got {self.width}")
         k = math.log2(self.sheet / 4) if self.sheet >= 8 else -1
         if k != int(k) or not 1 <= k <= len(BASE_CHANNELS) - 1:
+            top = 4 * 2 ** (len(BASE_CHANNELS) - 1)
             raise InputError(f"sheet must be 4 x 2^k with 1 <= k <= {len(BASE_CHANNELS) - 1} "
-                             f"(8, 16, ... 512), got {self.sheet}")
+                             f"(8, 16, ... {top}), got {self.sheet}")
         if self.outputs not in (1, 2):
             raise InputError(f"outputs (the sheet's channels) must be 1 or 2, got "
                              f"{self.outputs!r}")
