@@ -352,3 +352,26 @@ def test_teach_simulates_fits_and_scores_at_the_lidar_asked(tmp_path):
     assert LidarParams.from_dict(head["lidar"]) == want
     rep = json.loads((tmp_path / "taught" / "teach.json").read_text())
     assert LidarParams.from_dict(rep["lidar"]) == want
+
+
+def test_every_figure_refuses_the_options_it_does_not_read(tmp_path, capsys):
+    """Each figure and each option it does not read (training/cli.py FIGURE_OPTIONS): exit 2,
+    one line naming the option, no file; an option was once silently ignored (figure 16
+    --run, photons --model)."""
+    from training.cli import FIGURE_OPTIONS
+    value = {"run": tmp_path, "tau": "0.5", "model": DEFAULT_MODEL, "data": tmp_path,
+             "pairs": "3", "lidar": "half-cells", "max_checkpoints": "2"}
+    assert set(FIGURE_OPTIONS["all"]) == set(value)
+    refused = 0
+    for number, takes in FIGURE_OPTIONS.items():
+        if number == "all":
+            continue
+        for option in set(value) - set(takes):
+            flag = "--" + option.replace("_", "-")
+            rc, _, err = run(["figure", number, flag, value[option], "-o",
+                              tmp_path / "f.png"], capsys)
+            assert rc == 2, (number, option, err)
+            lines = err.strip().splitlines()
+            assert len(lines) == 1 and f"does not take {flag}" in lines[0], (number, err)
+            refused += 1
+    assert refused >= 25 and not (tmp_path / "f.png").exists()

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from apcg_core.lidar_options import add_lidar_argument, lidar_or_default, model_at_lidar
+from apcg_core.options import option_name
 from apcg_core.outputs import ANY, DIRECTORY, FILE, PICTURE_SUFFIXES, add_output
 
 
@@ -465,7 +466,8 @@ def register_figure(sub) -> None:
                         "export default; use the shipped model's tau to match it)")
     p.add_argument("--model", help="model directory (16, 18, 19; default: the default model)")
     p.add_argument("--data", help="dataset directory (figure 14)")
-    p.add_argument("--pairs", type=int, default=400, help="test pairs per checkpoint (14)")
+    p.add_argument("--pairs", type=int, default=None,
+                   help="test pairs per checkpoint (14, 19; default 400; 0: every test pair)")
     add_lidar_argument(p, default_help="the model's own (16, 18, 19), the paper's (photons); "
                                        "13 and 14 take none")
     p.add_argument("--max-checkpoints", type=int, metavar="K",
@@ -476,20 +478,33 @@ def register_figure(sub) -> None:
     p.set_defaults(func=_run_figure)
 
 
+# The options each figure reads (the others are refused by name); --output it always takes.
+FIGURE_OPTIONS = {"13": ("run",), "14": ("run", "tau", "data", "pairs", "max_checkpoints"),
+                  "16": ("model", "lidar"), "18": ("model", "lidar"),
+                  "19": ("model", "lidar", "data", "pairs"), "photons": ("lidar",),
+                  "all": ("run", "tau", "model", "data", "pairs", "lidar", "max_checkpoints")}
+FIGURE_PAIRS = 400  # test pairs per checkpoint (figure 14) or in all (19) unless --pairs
+
+
 def _run_figure(args) -> int:
     from pathlib import Path
 
     from apcg_core.errors import InputError
 
     from .figures import fig13, fig14, fig16, fig18, fig19, fig_photons
+    given = [k for k in FIGURE_OPTIONS["all"] if getattr(args, k) is not None]
+    extra = [k for k in given if k not in FIGURE_OPTIONS[args.number]]
+    if extra:  # an option the figure does not read is refused, not ignored
+        takes = ", ".join(option_name(k) for k in FIGURE_OPTIONS[args.number]) or "none of them"
+        raise InputError(f"figure {args.number} does not take "
+                         f"{', '.join(option_name(k) for k in extra)}; it takes {takes}")
+    if args.pairs is None:
+        args.pairs = FIGURE_PAIRS
     if args.number == "photons":
         fig_photons(args.output, lidar=lidar_or_default(args))
         print(f"wrote {args.output} and its .json")
         return 0
     args.number = int(args.number)
-    if args.number in (13, 14) and args.lidar is not None:
-        raise InputError(f"figure {args.number} draws a run's log or checkpoints at their own "
-                         "lidar; --lidar applies to figures 16, 18, 19 and photons")
     if args.number in (13, 14) and not args.run:
         raise InputError(f"figure {args.number} needs --run (a training run directory)")
     if args.number in (14, 19) and not args.data:
