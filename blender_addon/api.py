@@ -41,6 +41,7 @@ from .objects import (
     guess_axes,
     is_lidar,
     is_target,
+    leaves_nothing_on_error,
     lidar_of,
     lidar_params,
     make_target,
@@ -98,7 +99,7 @@ def sensor_of(lidar):
     ideal lidar."""
     from apcg_core.sensor import load_sensor
     ref = getattr(getattr(lidar, "apcg_lidar", None), "sensor", "") or "ideal"
-    return load_sensor(ref)
+    return load_sensor(ref, lidar_file=True)  # Read Lidar sets a lidar file as the Sensor
 
 
 def read_lidar_file(lidar, ref):
@@ -109,14 +110,21 @@ def read_lidar_file(lidar, ref):
     require_lidar(lidar)
     path, doc = read(ref)
     params = lidar_from_table(doc["lidar"], source=str(path))
-    p = lidar.apcg_lidar
-    p.r_alpha_deg = math.degrees(params.r_alpha)
-    p.r_beta_deg = math.degrees(params.r_beta)
-    p.range_resolution_m = params.r_r
-    p.width, p.height = params.width, params.height
     if "sensor" in doc:
         from apcg_core.sensor import load_sensor
-        load_sensor(path)  # refused here, named, rather than at the next Scan
+        load_sensor(path, lidar_file=True)  # refused here, named, rather than at the next Scan
+    p = lidar.apcg_lidar
+    values = {"r_alpha_deg": math.degrees(params.r_alpha),
+              "r_beta_deg": math.degrees(params.r_beta),
+              "range_resolution_m": params.r_r, "width": params.width, "height": params.height}
+    for name, v in values.items():  # what the lidar object holds; Blender would clamp the rest
+        prop = p.bl_rna.properties[name]
+        if not prop.hard_min <= v <= prop.hard_max:
+            raise InputError(f"{path}: {name} = {v:g} is more than a lidar object holds; "
+                             f"accepted: {prop.hard_min:g} .. {prop.hard_max:g}")
+    for name, v in values.items():  # every check passed: only now is the object changed
+        setattr(p, name, v)
+    if "sensor" in doc:
         p.sensor = str(path)
     return lidar
 
@@ -154,6 +162,7 @@ def reflectivity_of_target(target) -> float:
         return DEFAULT_REFLECTIVITY
 
 
+@leaves_nothing_on_error
 def scan_target(target, backend: str = "blender", quantize: bool = True,
                 supersample: int | None = None, occlusion: bool = True, simulator=None,
                 name: str | None = None, sensor="lidar", seed: int = 0):
@@ -208,6 +217,7 @@ def scan_target(target, backend: str = "blender", quantize: bool = True,
                         meta=meta)
 
 
+@leaves_nothing_on_error
 def scan(lidar, targets=None, backend: str = "blender", quantize: bool = True,
          supersample: int | None = None, occlusion: bool = True, progress=None,
          sensor="lidar", seed: int = 0) -> list:
@@ -277,6 +287,7 @@ def load_model(path=None, runtime: str = "auto"):
     return load(path, runtime=runtime)
 
 
+@leaves_nothing_on_error
 def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "auto",
              name: str | None = None):
     """APCG point clouds for a target's condition (the default model unless ``model``, a model
@@ -336,7 +347,8 @@ def check_model_knows(model, target) -> str:
         "make the target with the name of a catalog type the model knows")
 
 
-def add_to_catalog(target, kind: str = "aircraft", category: str = "other",
+@leaves_nothing_on_error
+def add_to_catalog(target, kind: str = "aircraft", category: str = "user",
                    name: str | None = None, force: bool = False, catalog=None,
                    reflectivity: float | None = None):
     """Save a target's body mesh as a new type of the user catalog (``apcg catalog list`` shows
@@ -353,6 +365,8 @@ def add_to_catalog(target, kind: str = "aircraft", category: str = "other",
     if not is_target(target):
         raise InputError(f"{named(target)} is not an APCG target: make one "
                          "with apcg.make_target first")
+    from .objects import _check_unit_scale
+    _check_unit_scale(target)  # a scaled target is not the mesh that would be added
     catalog = catalog or default_catalog()
     name = (name or str(target.get(TYPE_KEY, target.name))).strip()
     mesh = body_mesh(target)
@@ -375,9 +389,13 @@ def _pose_in_lidar(lidar, target) -> dict:
     """The target's pose at the current frame as the lidar sees it, from the evaluated world
     matrices (keyframes, parents, constraints such as Follow Path all included)."""
     from apcg_core.frames import pose_from_lidar_local
+
+    from .objects import check_unit_scale
     lw = np.array([list(r) for r in lidar.matrix_world], dtype=np.float64)
     tw = np.array([list(r) for r in target.matrix_world], dtype=np.float64)
-    return pose_from_lidar_local(np.linalg.inv(lw) @ tw)
+    rel = np.linalg.inv(lw) @ tw
+    check_unit_scale(target.name, rel[:3, :3])  # a scaled target is not what is cast
+    return pose_from_lidar_local(rel)
 
 
 def scan_animation(lidar, directory, targets=None, frame_start: int | None = None,
@@ -405,6 +423,9 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     from dataset_builder.scene import SceneScanner, write_sequence
     targets = _lidar_and_targets(lidar, targets)
     _check_seed_and_sizes(seed=seed, supersample=supersample)
+    if not isinstance(directory, (str, Path)) or not str(directory).strip():
+        raise InputError(f"directory = {directory!r}: give the directory to write the "
+                         "sequence into (a new one, or one holding this same sequence)")
     scene = bpy.context.scene
     start = scene.frame_start if frame_start is None else _frame("frame_start", frame_start)
     end = scene.frame_end if frame_end is None else _frame("frame_end", frame_end)
@@ -482,6 +503,7 @@ def _frame(name: str, value) -> int:
 VISIBILITY = ("hide_viewport", "hide_render")
 
 
+@leaves_nothing_on_error
 def import_sequence(directory, lidar=None, name: str | None = None):
     """A sequence directory (`apcg scene sequence`'s or Scan Animation's) as an animated point
     cloud: one cloud object per frame, in a collection of its own, each shown on its own
@@ -497,7 +519,10 @@ def import_sequence(directory, lidar=None, name: str | None = None):
 
     from .clouds import _add_attr
     seq = load_sequence(directory)
-    first = seq.header.get("blender", {}).get("frame_start", bpy.context.scene.frame_start)
+    blender = seq.header.get("blender") or {}
+    first = blender.get("frame_start", bpy.context.scene.frame_start) if isinstance(
+        blender, dict) else None
+    first = _frame(f"{directory}: sequence.json's blender.frame_start", first)
     coll = bpy.data.collections.new(name or f"APCG sequence {Path(directory).name}")
     bpy.context.scene.collection.children.link(coll)
     for f in seq:

@@ -22,6 +22,8 @@ from apcg_core.errors import InputError
 from apcg_core.frames import lidar_local_to_observation, observation_to_lidar_local
 from apcg_core.io.clouds import read_cloud_attributes, write_cloud
 
+from .objects import leaves_nothing_on_error
+
 CLOUD_KEY = "apcg_cloud"  # JSON: source, r0, beta0, azimuth, origin (lidar-local, m), meta
 GROUP_NAME = "APCG Points"
 MATERIAL_NAME = "APCG Range"
@@ -49,6 +51,18 @@ def cloud_info(obj) -> dict:
     if missing:
         raise InputError(f"{obj.name!r}: its {CLOUD_KEY} record lacks {', '.join(missing)}; "
                          "import or make the cloud again")
+
+    def real(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    origin = info["origin"]
+    bad = [k for k, ok in (
+        ("origin", isinstance(origin, list) and len(origin) == 3 and all(map(real, origin))),
+        ("azimuth", real(info["azimuth"])),
+        ("r0", info["r0"] is None or real(info["r0"]))) if not ok]
+    if bad:
+        raise InputError(f"{obj.name!r}: its {CLOUD_KEY} record's {', '.join(bad)} "
+                         f"{'is' if len(bad) == 1 else 'are'} damaged (origin: 3 numbers, "
+                         "azimuth and r0: numbers); import or make the cloud again")
     return info
 
 
@@ -171,6 +185,7 @@ def _add_attr(me, name: str, kind: str, values) -> None:
     attr.data.foreach_set("value", np.ascontiguousarray(values).ravel())
 
 
+@leaves_nothing_on_error
 def cloud_object(cloud: PointCloud, name: str, lidar=None, source: str = "scan",
                  r0: float | None = None, beta0: float = 0.0, azimuth: float = 0.0,
                  meta: dict | None = None, radius: float | None = None, collection=None):
@@ -254,6 +269,7 @@ def cloud_from_object(obj) -> tuple[PointCloud, dict]:
                       sample, **photon), info
 
 
+@leaves_nothing_on_error
 def import_cloud(path, lidar=None, name: str | None = None):
     """A PLY / NPZ / LAS / LAZ cloud, written by apcg or another lidar tool, as an object. Every
     other per-point value of the file (intensity, classification, normals, extra bytes...)
@@ -261,15 +277,43 @@ def import_cloud(path, lidar=None, name: str | None = None):
     the colour attribute "Col". The attributes' names are kept in the info's "attributes"."""
     from pathlib import Path
     cloud, meta, attrs = read_cloud_attributes(path)
-    cond = meta.get("condition") or {}
-    r0 = cond.get("range_m")
-    beta0 = math.radians(cond["elevation_deg"]) if "elevation_deg" in cond else 0.0
+    r0, beta0 = _pose_of_file(path, meta)
     obj = cloud_object(cloud, name or Path(path).stem, lidar=lidar, source="imported",
                        r0=r0, beta0=beta0, meta=meta)
     info = cloud_info(obj)
     info["attributes"] = _add_file_attrs(obj.data, attrs)
     obj[CLOUD_KEY] = json.dumps(info)
     return obj
+
+
+def _number(path, what: str, v, lo: float, hi: float) -> float:
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and lo < v < hi
+    if not ok:
+        raise InputError(f"{path}: its metadata's {what} = {v!r} is not a number in "
+                         f"({lo:g}, {hi:g})")
+    return float(v)
+
+
+def _pose_of_file(path, meta) -> tuple:
+    """(r0 or None, beta0) from a cloud file's metadata (an apcg file's condition), checked:
+    the object is placed and its points sized from them."""
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: its metadata is not a JSON object (got {type(meta).__name__})")
+    cond = meta.get("condition") or {}
+    lidar = meta.get("lidar") or {}
+    for what, v in (("condition", cond), ("lidar", lidar)):
+        if not isinstance(v, dict):
+            raise InputError(f"{path}: its metadata's {what} is not a JSON object")
+    if "r_alpha_deg" in lidar:
+        _number(path, "lidar.r_alpha_deg", lidar["r_alpha_deg"], 0.0, 180.0)
+    r0 = cond.get("range_m")
+    if r0 is not None:
+        r0 = _number(path, "condition.range_m", r0, 0.0, 1e7)
+    beta0 = 0.0
+    if "elevation_deg" in cond:
+        beta0 = math.radians(_number(path, "condition.elevation_deg", cond["elevation_deg"],
+                                     -90.0, 90.0))
+    return r0, beta0
 
 
 def _new_attr(me, name: str, kind: str):

@@ -10,7 +10,9 @@ matrix still agrees with them, and the matrix once the user has moved the object
 
 from __future__ import annotations
 
+import functools
 import math
+from contextlib import contextmanager
 
 import bpy
 import numpy as np
@@ -39,6 +41,57 @@ AXIS_NAMES = ("X", "-X", "Y", "-Y", "Z", "-Z")
 # difference means the user moved the object.
 _MOVED_TOL_M = 1e-3
 _MOVED_TOL_REL = 1e-6
+
+
+# What the add-on makes in bpy.data, removed again when the call that made it fails (objects
+# first: they use the meshes).
+MADE_KINDS = ("objects", "collections", "meshes", "node_groups", "materials")
+
+
+def _data_now() -> dict:
+    return {k: {x.as_pointer() for x in getattr(bpy.data, k)} for k in MADE_KINDS}
+
+
+def _remove_made_since(before: dict) -> None:
+    for k in MADE_KINDS:
+        store = getattr(bpy.data, k)
+        for x in [x for x in store if x.as_pointer() not in before[k]]:
+            store.remove(x)
+
+
+@contextmanager
+def nothing_left_on_error():
+    """A block whose failure leaves bpy.data as it found it: every object, collection, mesh,
+    node group and material made inside is removed again before the error goes on (a refused
+    import, a scan that fails on its second target...)."""
+    before = _data_now()
+    try:
+        yield
+    except BaseException:
+        _remove_made_since(before)
+        raise
+
+
+def leaves_nothing_on_error(fn):
+    """:func:`nothing_left_on_error` around every call of ``fn`` (the API's functions)."""
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        with nothing_left_on_error():
+            return fn(*args, **kwargs)
+    return call
+
+
+def cancelled_leaves_nothing(execute):
+    """An operator's ``execute`` whose {'CANCELLED'} (an error it reported) also removes what
+    it made on the way (a lidar it added for a target it then refused)."""
+    @functools.wraps(execute)
+    def run(self, context):
+        before = _data_now()
+        result = execute(self, context)
+        if "CANCELLED" in result:
+            _remove_made_since(before)
+        return result
+    return run
 
 
 def is_lidar(obj) -> bool:
@@ -87,6 +140,7 @@ def lidar_params(lidar) -> LidarParams:
                                     int(p.height))
 
 
+@leaves_nothing_on_error
 def add_lidar(name: str = "APCG Lidar", params: LidarParams | None = None,
               location=(0.0, 0.0, 0.0), rotation_euler=(0.0, 0.0, 0.0), collection=None):
     """A lidar Empty in ``collection`` (default: the scene's), looking along its local +Y."""
@@ -218,7 +272,10 @@ def pose_of(obj) -> dict:
     _check_unit_scale(obj)
     if not pose_moved(obj):
         return _stored_pose(obj)
-    return pose_from_lidar_local(_matrix_of(obj))
+    try:
+        return pose_from_lidar_local(_matrix_of(obj))
+    except ValueError as exc:  # on the lidar: no range or direction
+        raise InputError(f"target {obj.name!r}: {exc}; move it away from its lidar") from None
 
 
 # A target's size is its mesh's (its type's, or the mesh it was made from): the float32 matrix
@@ -229,11 +286,18 @@ _SCALE_TOL = 1e-4
 def _check_unit_scale(obj) -> None:
     """Refuse a target whose object scale is not 1: the simulator and the models cast its
     mesh as it is, so a scaled target would not be what Blender shows."""
-    scale = [float(v) for v in obj.matrix_basis.to_scale()]
-    det = float(obj.matrix_basis.to_3x3().determinant())
-    if max(abs(v - 1.0) for v in scale) > _SCALE_TOL or det < 0:
+    check_unit_scale(obj.name, np.array([list(r) for r in obj.matrix_basis.to_3x3()]))
+
+
+def check_unit_scale(name: str, m3) -> None:
+    """Refuse target ``name`` when its matrix's 3 x 3 part ``m3`` (in its lidar's frame)
+    scales or mirrors it."""
+    m3 = np.asarray(m3, dtype=np.float64)
+    scale = np.linalg.norm(m3, axis=0)
+    det = float(np.linalg.det(m3))
+    if not np.all(np.isfinite(scale)) or np.abs(scale - 1.0).max() > _SCALE_TOL or det < 0:
         raise InputError(
-            f"target {obj.name!r} has scale ({', '.join(f'{v:.6g}' for v in scale)})"
+            f"target {name!r} has scale ({', '.join(f'{v:.6g}' for v in scale)})"
             f"{', mirrored' if det < 0 else ''}: a target is scanned at its mesh's own size, "
             "so its scale must be 1. Set its scale to 1; for another size, scale the mesh "
             "object it was made from and make the target again (apcg.make_target)")
@@ -244,9 +308,10 @@ def sync_pose(obj) -> bool:
     if is_target(obj) and pose_moved(obj):
         try:
             _check_unit_scale(obj)
-        except InputError:  # a scaled target keeps its last pose; a scan names its scale
-            return False
-        obj[POSE_KEY] = pose_from_lidar_local(_matrix_of(obj))
+            pose = pose_from_lidar_local(_matrix_of(obj))
+        except (InputError, ValueError):  # scaled, or on the lidar: it keeps its last pose,
+            return False  # and a scan names why
+        obj[POSE_KEY] = pose
         return True
     return False
 
@@ -259,6 +324,7 @@ def simulator_row(obj) -> np.ndarray:
     return np.array([[0.0, p["range_m"], p["elevation"], p["pitch"], p["yaw"], p["roll"]]])
 
 
+@leaves_nothing_on_error
 def add_aircraft(lidar, type_name: str, range_m: float, elevation_deg: float,
                  pitch_deg: float = 0.0, yaw_deg: float = 0.0, roll_deg: float = 0.0,
                  azimuth_deg: float = 0.0, catalog=None, name: str | None = None):
@@ -370,6 +436,7 @@ def default_range_m(extents) -> float:
     return 300.0 if float(max(extents[0], extents[1])) < 5.0 else 4500.0
 
 
+@leaves_nothing_on_error
 def make_target(lidar, obj, range_m: float | None = None, elevation_deg: float = 3.4,
                 pitch_deg: float = 0.0, yaw_deg: float = 0.0, roll_deg: float = 0.0,
                 azimuth_deg: float = 0.0, depth_length_m: float | None = None, *,

@@ -16,7 +16,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 from apcg_core.errors import APCGError
 
 from . import api
-from .objects import AXES_KEY, TYPE_KEY, is_lidar, lidar_of, targets_of
+from .objects import AXES_KEY, TYPE_KEY, cancelled_leaves_nothing, is_lidar, lidar_of, targets_of
 
 _TYPE_ITEMS = []  # kept alive: Blender does not copy enum items returned by a callback
 _OLD_TYPE_ITEMS = []  # earlier lists, kept alive too (a menu may still show them)
@@ -39,15 +39,23 @@ _AXIS_ITEMS = [(a, a, f"The model's {a} axis (in its world orientation)")
 def _report_error(op, exc: Exception) -> set:
     if isinstance(exc, APCGError):
         op.report({"ERROR"}, str(exc))
+    elif isinstance(exc, OSError):  # the file system's answer, in one line
+        where = f" {exc.filename}" if exc.filename else ""
+        op.report({"ERROR"}, f"cannot write or read{where}: {exc.strerror or exc}")
     else:
         traceback.print_exc()
         op.report({"ERROR"}, f"{type(exc).__name__}: {exc}")
     return {"CANCELLED"}
 
 
-def _active_lidar(context, create: bool = False):
+def _active_lidar(context, create: bool = False, strict: bool = True):
+    """The active object's lidar, else the scene's first (``create``: a new one); ``strict``:
+    an active target of no lidar is refused (polls ask with strict=False: they never raise)."""
     obj = context.active_object
     lidar = lidar_of(obj) if obj is not None else None
+    if lidar is None and strict and api.is_target(obj):  # not another lidar's targets instead of it
+        raise APCGError(f"target {obj.name!r} is not parented to an APCG lidar: parent it to "
+                        "one (its lidar is the one it is scanned and generated from)")
     if lidar is None:
         lidar = next((o for o in context.scene.objects if is_lidar(o)), None)
     if lidar is None and create:
@@ -237,9 +245,10 @@ class APCG_OT_add_to_catalog(bpy.types.Operator):
     kind: EnumProperty(name="Kind", items=[
         ("aircraft", "Aircraft", "Largest extent 1-100 m"),
         ("drone", "Drone", "Largest extent 0.02-10 m")])
-    category: StringProperty(name="Category", default="other",
-                             description="e.g. airliner_narrowbody, business_jet, fighter, "
-                                         "helicopter, light_GA, multirotor_drone, other")
+    category: StringProperty(name="Category", default="user",
+                             description="A built-in type's category (e.g. "
+                                         "airliner_narrowbody, business_jet, fighter, "
+                                         "helicopter, light_GA, multirotor_drone) or user")
     force: BoolProperty(name="Force", default=False,
                         description="Add it even when its size is implausible for its kind")
     reflectivity: FloatProperty(name="Reflectivity", default=0.0, min=0.0, max=1.0,
@@ -263,7 +272,7 @@ class APCG_OT_add_to_catalog(bpy.types.Operator):
         from apcg_core.errors import InputError
         obj = context.active_object
         try:
-            t = api.add_to_catalog(obj, self.kind, self.category or "other",
+            t = api.add_to_catalog(obj, self.kind, self.category or "user",
                                    name=self.type_name or None, force=self.force,
                                    reflectivity=self.reflectivity or None)
         except InputError as exc:
@@ -385,9 +394,12 @@ def _targets(context, lidar, selected_only: bool):
     if lidar is None:
         raise APCGError("no APCG lidar in the scene: add one with Add APCG Lidar")
     ts = targets_of(lidar, selected_only=selected_only)
+    if not ts and selected_only and targets_of(lidar):
+        raise APCGError(f"none of lidar {lidar.name!r}'s targets is selected: select the "
+                        "targets to use, or untick Selected targets only")
     if not ts:
-        raise APCGError(f"lidar {lidar.name!r} has no {'selected ' if selected_only else ''}"
-                        "targets: add one with Add APCG Aircraft")
+        raise APCGError(f"lidar {lidar.name!r} has no targets: add one with Add APCG "
+                        "Aircraft")
     return ts
 
 
@@ -504,7 +516,7 @@ class APCG_OT_read_lidar(bpy.types.Operator, ImportHelper):
 
     @classmethod
     def poll(cls, context):
-        return _active_lidar(context) is not None
+        return _active_lidar(context, strict=False) is not None
 
     def execute(self, context):
         try:
@@ -525,7 +537,7 @@ class APCG_OT_write_lidar(bpy.types.Operator, ExportHelper):
 
     @classmethod
     def poll(cls, context):
-        return _active_lidar(context) is not None
+        return _active_lidar(context, strict=False) is not None
 
     def execute(self, context):
         try:
@@ -560,7 +572,7 @@ class APCG_OT_scan_animation(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _active_lidar(context) is not None
+        return _active_lidar(context, strict=False) is not None
 
     def invoke(self, context, event):
         context.window_manager.fileselect_add(self)
@@ -614,6 +626,11 @@ CLASSES = (APCG_OT_add_lidar, APCG_OT_add_aircraft, APCG_OT_make_target,
            APCG_OT_add_to_catalog, APCG_OT_scan, APCG_OT_generate, APCG_OT_import_cloud,
            APCG_OT_export_cloud, APCG_OT_read_lidar, APCG_OT_write_lidar,
            APCG_OT_scan_animation, APCG_OT_import_sequence)
+
+for _cls in CLASSES:  # a cancelled operator leaves the scene as it found it
+    if "execute" in _cls.__dict__:
+        _cls.execute = cancelled_leaves_nothing(_cls.execute)
+_ChunkedOperator.execute = cancelled_leaves_nothing(_ChunkedOperator.execute)
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)
 

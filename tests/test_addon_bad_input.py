@@ -116,7 +116,7 @@ def test_every_function_taking_an_object_refuses_what_is_not_one(scene, tmp_path
     (lambda lidar, jet: api.generate(jet, count=2.5), "count = 2.5"),
     (lambda lidar, jet: api.generate(jet, seed=-1), "seed = -1"),
     (lambda lidar, jet: api.generate(jet, model=5), "got 5"),
-    (lambda lidar, jet: api.generate(jet, model=__file__), "is a file, not"),
+    (lambda lidar, jet: api.generate(jet, model=__file__), "is a file, not a directory"),
     (lambda lidar, jet: api.scan_animation(lidar, "seq", frame_start=float("nan")),
      "frame_start = nan"),
     (lambda lidar, jet: api.scan_animation(lidar, "seq", seed=2**40), "seed = "),
@@ -165,3 +165,105 @@ def test_files_the_api_cannot_use_are_named(scene, tmp_path):
     cloud["apcg_cloud"] = "{broken"
     with pytest.raises(InputError, match="apcg_cloud"):
         api.cloud_from_object(cloud)
+
+
+def test_a_cancelled_operator_leaves_the_scene_as_it_found_it(scene, tmp_path):
+    """Operators that fail half-way remove what they made: Make Target's new lidar for a mesh
+    it then refuses, Import Cloud's object for metadata it then refuses, Import Sequence's
+    collection and frames before a damaged frame."""
+    lidar, jet = scene
+    bpy.data.objects.remove(lidar)  # no lidar: Make Target would add one
+    me = bpy.data.meshes.new("pts")
+    me.vertices.add(3)
+    pts = bpy.data.objects.new("Pts", me)
+    bpy.context.scene.collection.objects.link(pts)
+    bpy.context.view_layer.objects.active = pts
+    before = _state()
+    with pytest.raises(RuntimeError, match="no faces"):
+        bpy.ops.apcg.make_target()
+    assert _state() == before
+    np.savez(tmp_path / "r.npz", xyz=np.random.default_rng(0).random((10, 3)) + [0, 3000, 0],
+             range_m=np.full(10, np.nan))
+    with pytest.raises(RuntimeError, match="'range_m' values are not finite"):
+        bpy.ops.apcg.import_cloud(filepath=str(tmp_path / "r.npz"))
+    import json
+    np.savez(tmp_path / "m.npz", xyz=np.ones((4, 3)) * 3000.0,
+             meta=np.array(json.dumps({"condition": {"range_m": float("nan")}})))
+    with pytest.raises(RuntimeError, match="condition.range_m"):
+        bpy.ops.apcg.import_cloud(filepath=str(tmp_path / "m.npz"))
+    assert _state() == before
+
+
+def test_a_damaged_sequence_imports_nothing(scene, tmp_path):
+    lidar, jet = scene
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 3
+    seq = tmp_path / "seq"
+    api.scan_animation(lidar, seq)
+    frame = seq / "frames" / "000001.npz"
+    frame.write_bytes(frame.read_bytes()[:200])
+    before = _state() + (len(bpy.data.collections),)
+    with pytest.raises(InputError, match="000001.npz"):
+        api.import_sequence(seq)
+    assert _state() + (len(bpy.data.collections),) == before
+    (seq / "sequence.json").write_text("{broken")
+    with pytest.raises(InputError, match="sequence.json"):
+        api.import_sequence(seq)
+
+
+def test_scan_animation_refuses_a_scaled_target_and_an_empty_directory(scene, tmp_path,
+                                                                      monkeypatch):
+    lidar, jet = scene
+    monkeypatch.chdir(tmp_path)
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 2
+    with pytest.raises(InputError, match="give the directory"):
+        api.scan_animation(lidar, "")
+    jet.scale = (2.0, 2.0, 2.0)
+    with pytest.raises(InputError, match="has scale"):
+        api.scan_animation(lidar, tmp_path / "seq")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_read_lidar_reads_what_write_lidar_wrote_and_refuses_before_changing(scene, tmp_path):
+    """Write Lidar's file, with its [sensor] table, reads back (it was refused as a sensor
+    file); a value the lidar object cannot hold is refused with nothing changed (it was
+    clamped, or half the file applied)."""
+    lidar, jet = scene
+    lidar.apcg_lidar.sensor = "1550nm-day"
+    bpy.context.view_layer.objects.active = lidar
+    out = tmp_path / "rt.toml"
+    assert bpy.ops.apcg.write_lidar(filepath=str(out)) == {"FINISHED"}
+    lidar.apcg_lidar.sensor = "ideal"
+    assert bpy.ops.apcg.read_lidar(filepath=str(out)) == {"FINISHED"}
+    assert lidar.apcg_lidar.sensor == str(out) and api.sensor_of(lidar).name == "1550nm-day"
+    assert len(api.cloud_from_object(api.scan(lidar)[0])[0]) > 0
+    big = tmp_path / "big.toml"
+    big.write_text(out.read_text().replace("width = 256", "width = 20000"))
+    assert "width = 20000" in big.read_text()
+    with pytest.raises(RuntimeError, match="width = 20000 is more than a lidar object holds"):
+        bpy.ops.apcg.read_lidar(filepath=str(big))
+    assert lidar.apcg_lidar.width == 256 and lidar.apcg_lidar.sensor == str(out)
+
+
+def test_operators_name_the_target_and_the_file(scene, tmp_path):
+    lidar, jet = scene
+    empty = bpy.data.objects.new("Not a lidar", None)
+    bpy.context.scene.collection.objects.link(empty)
+    jet.parent = empty
+    bpy.context.view_layer.objects.active = jet
+    with pytest.raises(RuntimeError, match="'A320neo' is not parented to an APCG lidar"):
+        bpy.ops.apcg.scan()
+    jet.parent = lidar
+    cloud = api.scan(lidar)[0]
+    bpy.context.view_layer.objects.active = cloud
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(RuntimeError, match="is a file, so"):
+        bpy.ops.apcg.export_cloud(filepath=str(tmp_path / "file" / "a.ply"))
+    with pytest.raises(RuntimeError) as e:
+        bpy.ops.apcg.export_cloud(filepath="/proc/apcg-test.ply")
+    assert "cannot write or read /proc/apcg-test.ply:" in str(e.value) and ".part" not in str(
+        e.value)
+    bpy.context.view_layer.objects.active = jet
+    # its default category is accepted (the add-on's "other" was not a category)
+    assert bpy.ops.apcg.add_to_catalog(type_name="My A320neo") == {"FINISHED"}
+    from apcg_core.catalog import default_catalog
+    assert default_catalog().get("My A320neo").category == "user"

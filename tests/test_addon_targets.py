@@ -258,7 +258,7 @@ def test_add_to_catalog_for_the_command_line(scene, tmp_path):
     lidar = api.add_lidar()
     target = api.make_target(lidar, box.add_box_aircraft(), **POSE)
     n_items = len(_type_items(None, None))
-    t = api.add_to_catalog(target, "aircraft", "other")
+    t = api.add_to_catalog(target, "aircraft", "user")
     assert t.name == "Box jet" and t.length_m == pytest.approx(30.0, abs=1e-4)
     assert t.source.startswith("Blender object 'Box jet'")
     names = [item[0] for item in _type_items(None, None)]
@@ -331,7 +331,7 @@ def test_add_to_catalog_keeps_a_reflectivity_and_scans_use_it(scene, tmp_path):
     command line lists it, and a scan with a sensor records it in the cloud's metadata."""
     lidar = api.add_lidar()
     target = api.make_target(lidar, box.add_box_aircraft(name="White box"), **POSE)
-    t = api.add_to_catalog(target, "aircraft", "other", reflectivity=0.8)
+    t = api.add_to_catalog(target, "aircraft", "user", reflectivity=0.8)
     assert t.reflectivity == pytest.approx(0.8) and target["apcg_reflectivity"] == 0.8
     env = dict(os.environ, APCG_DATA_DIR=str(tmp_path / "data"))
     r = subprocess.run([*APCG, "catalog", "list", "--json"], capture_output=True, text=True,
@@ -342,4 +342,4 @@ def test_add_to_catalog_keeps_a_reflectivity_and_scans_use_it(scene, tmp_path):
     (cloud,) = api.scan(lidar, sensor="1064nm-night", seed=2)
     assert api.cloud_from_object(cloud)[1]["meta"]["reflectivity"] == pytest.approx(0.8)
     with pytest.raises(Exception, match="reflectivity"):
-        api.add_to_catalog(target, "aircraft", "other", name="Too white", reflectivity=1.7)
+        api.add_to_catalog(target, "aircraft", "user", name="Too white", reflectivity=1.7)

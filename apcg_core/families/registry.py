@@ -91,7 +91,7 @@ def read_model_meta(directory) -> dict:
     d = Path(directory)
     meta = d / "model.json"
     if not d.is_dir():
-        what = "is a file, not" if d.exists() else "does not exist"
+        what = "is a file, not a directory" if d.exists() else "does not exist"
         raise InputError(f"model directory {d} {what} (a model is a directory made by "
                          "`apcg export`)")
     if not meta.is_file():

@@ -37,10 +37,17 @@ def scratch(path) -> Path:
 
 
 def refuse_directory(path) -> None:
-    """A file is never written over a directory (nor is its temporary name made for one)."""
-    if Path(path).is_dir():
-        from ..errors import InputError
+    """A file is never written over a directory (nor is its temporary name made for one), nor
+    under a file taken for a directory."""
+    from ..errors import InputError
+    path = Path(path)
+    if path.is_dir():
         raise InputError(f"{path} is a directory; give a file name")
+    up = path.parent
+    while not up.exists() and up != up.parent:
+        up = up.parent
+    if up.exists() and not up.is_dir():
+        raise InputError(f"{up} is a file, so {path} cannot be made under it")
 
 
 def publish(tmp, path, held: bool | None = None) -> None:
@@ -76,13 +83,15 @@ def atomic_path(path, suffix: str = ".part"):
         yield tmp
     except BaseException as exc:
         tmp.unlink(missing_ok=True)
-        name_the_file(exc, path)
+        name_the_file(exc, path, tmp)
         raise
     publish(tmp, path, held)
 
 
-def name_the_file(exc: BaseException, path) -> None:
+def name_the_file(exc: BaseException, path, tmp=None) -> None:
     """A write that failed on a file object (a full disk) raises an OSError with no file
-    name: give it the final name, so the message says which output could not be written."""
-    if isinstance(exc, OSError) and exc.filename is None:
+    name, one on the temporary file names that: give it the final name, so the message says
+    which output could not be written."""
+    if isinstance(exc, OSError) and (exc.filename is None or (
+            tmp is not None and str(exc.filename) == str(tmp))):
         exc.filename = str(path)

@@ -438,11 +438,11 @@ class CloudWriter:
                 self.close()
             except BaseException as failed:
                 self.abort()
-                name_the_file(failed, self.path)
+                name_the_file(failed, self.path, self.tmp)
                 raise
         else:
             self.abort()
-            name_the_file(exc, self.path)
+            name_the_file(exc, self.path, self.tmp)
 
 
 def _las_header(laspy, cloud: PointCloud, meta: dict):
@@ -503,6 +503,17 @@ def read_cloud_attributes(path) -> tuple[PointCloud, dict, dict[str, np.ndarray]
                          f"have a coordinate that is not a finite number (the first: point "
                          f"{int(np.argmax(bad))}, {xyz[np.argmax(bad)].tolist()})")
     own = {k: cols.pop(k, None) for k in _OWN}
+    for k, v in own.items():  # the cloud's own columns: numbers, whole where they count cells
+        if v is None:
+            continue
+        v = np.asarray(v)
+        finite = v.dtype.kind in "biu" or (v.dtype.kind == "f" and np.isfinite(v).all())
+        whole = k == "range_m" or v.dtype.kind in "biu" or (finite and (v == np.round(v)).all())
+        if v.shape != (n,) or not finite or not whole:
+            raise InputError(f"cannot read point cloud {path}: its {k!r} values are not "
+                             f"{'finite numbers' if k == 'range_m' else 'whole numbers'}, "
+                             f"one per point ({n} points; got shape {v.shape}, "
+                             f"type {v.dtype})")
     r = own["range_m"] if own["range_m"] is not None else np.linalg.norm(xyz, axis=1)
     zeros = np.zeros(n, np.int32)
     cloud = PointCloud(xyz, r, own["cell_w"] if own["cell_w"] is not None else zeros,

@@ -26,6 +26,7 @@ in this frame), ``in_window`` and ``clipped`` (and, in a scene with a generated 
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -122,10 +123,15 @@ def read_frame(path) -> Frame:
             for f in optional:
                 kw[f] = z[f] if f in z.files else None
             kw["meta"] = json.loads(str(z["meta"])) if "meta" in z.files else None
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"{path}: cannot be read as a scene frame file ({exc})") from None
+    xyz = np.asarray(kw["xyz"])
+    if xyz.ndim != 2 or xyz.shape[1:] != (3,) or xyz.dtype.kind != "f" or not np.isfinite(
+            xyz).all():
+        raise InputError(f"{path}: its xyz is not (n, 3) finite numbers (shape {xyz.shape}, "
+                         f"type {xyz.dtype}): a damaged frame; make the sequence again")
     return Frame(**kw)
 
 
@@ -154,14 +160,23 @@ class Sequence:
         if not head.is_file():
             raise InputError(f"{self.directory} is not a scene sequence (no {HEADER}); make "
                              "one with `apcg scene sequence SCENE.toml -o DIR`")
-        self.header = json.loads(head.read_text())
+        try:
+            self.header = json.loads(head.read_text())
+        except (ValueError, OSError) as exc:
+            raise InputError(f"{head}: not a readable sequence header ({exc}); make the "
+                             "sequence again") from None
+        if not isinstance(self.header, dict):
+            raise InputError(f"{head}: not a sequence header (a JSON object)")
         if self.header.get("format") != FORMAT:
             raise InputError(f"{head}: format {self.header.get('format')!r} is not "
                              f"{FORMAT!r}")
         if self.header.get("version", 0) > FORMAT_VERSION:
             raise InputError(f"{head}: version {self.header['version']} is newer than this "
                              f"reader's ({FORMAT_VERSION}); update apcg")
-        self.n_frames = int(self.header["frames"])
+        frames = self.header.get("frames")
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
+            raise InputError(f"{head}: frames = {frames!r} is not a count of frames")
+        self.n_frames = frames
         self.complete = (self.directory / MANIFEST).is_file()
 
     def __len__(self) -> int:
