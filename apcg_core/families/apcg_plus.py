@@ -310,6 +310,15 @@ class PlusModel(ModelTypes):
         if (compiled and table.dtype == np.float64
                 and sheets.dtype in (np.float32, np.float64)):
             return self._clouds_compiled(table, sheets)
+        sample, w, h, read = self.box_reads(table, sheets, self.tau)
+        keep = read[:, 0] > self.tau
+        return self.cloud_of_cells(table, sample[keep], w[keep], h[keep], read[keep, 1])
+
+    def box_reads(self, table: np.ndarray, sheets: np.ndarray, span_tau: float):
+        """Every box cell of each live row (a row with a sheet column whose hit read exceeds
+        ``span_tau``) within the interval those columns bound, as (sample, w, h, the cell's
+        (hit logit, range offset) read off the sheet): the numpy reader's cells, which it
+        keeps above tau (``bench/plus_draw.py`` draws them other ways)."""
         lidar = self.lidar
         codes = table[:, 0].astype(np.int64)
         r0, b0, rad = table[:, 1], table[:, 2], self.radius[codes]
@@ -324,7 +333,7 @@ class PlusModel(ModelTypes):
         y0 = np.minimum(np.floor(y).astype(np.int64), s - 2)
         fy = (y - y0)[:, None, None]
         rows = sheets[row_n, :, y0, :] * (1 - fy) + sheets[row_n, :, y0 + 1, :] * fy  # (R,C,S)
-        active = rows[:, 0, :] > self.tau
+        active = rows[:, 0, :] > span_tau
         live = np.flatnonzero(active.any(axis=1))
         first = np.argmax(active[live], axis=1)
         last = s - 1 - np.argmax(active[live, ::-1], axis=1)
@@ -340,9 +349,14 @@ class PlusModel(ModelTypes):
         x0 = np.minimum(np.floor(x).astype(np.int64), s - 2)
         fx = (x - x0)[:, None]
         read = rows[cell_row, :, x0] * (1 - fx) + rows[cell_row, :, x0 + 1] * fx
-        keep = read[:, 0] > self.tau
-        sample, w, h = sample[keep], w[keep], h[cell_row[keep]]
-        r = r0[sample] + read[keep, 1].astype(np.float64) * rad[sample]
+        return sample, w, h[cell_row], read
+
+    def cloud_of_cells(self, table: np.ndarray, sample, w, h, offset) -> PointCloud:
+        """The points of the kept cells (sample, w, h) at their range offsets (read off the
+        sheet, in units of the type's radius)."""
+        codes = table[:, 0].astype(np.int64)
+        r0, b0, rad = table[:, 1], table[:, 2], self.radius[codes]
+        r = r0[sample] + offset.astype(np.float64) * rad[sample]
         if self.quantize:
             r = self.lidar.quantize_range(r)
         alpha, beta = self.lidar.cell_centre_angles(w, h, b0[sample])
