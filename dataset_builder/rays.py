@@ -106,11 +106,31 @@ def angular_boxes(vertices: np.ndarray, table: np.ndarray, lidar: LidarParams,
     w_lo, h_lo = w_lo - BOX_PAD_CELLS, h_lo - BOX_PAD_CELLS
     w_hi, h_hi = w_hi + BOX_PAD_CELLS, h_hi + BOX_PAD_CELLS
     W2, H2 = lidar.width // 2, lidar.height // 2
+    # A target whose bounding sphere reaches the zenith or the nadir: the window's rows past
+    # the pole (elevation beyond +-90 deg: rays over the top, azimuth turned half a turn) meet
+    # it too, but no vertex has such an elevation; every column and every row on that side
+    # is cast instead.
+    north, south = _reaches_pole(vertices, c)
+    w_lo = np.where(north | south, np.minimum(w_lo, -W2), w_lo)
+    w_hi = np.where(north | south, np.maximum(w_hi, W2 - 1), w_hi)
+    h_hi = np.where(north, np.maximum(h_hi, H2 - 1), h_hi)
+    h_lo = np.where(south, np.minimum(h_lo, -H2), h_lo)
     clipped = (w_lo < -W2) | (w_hi > W2 - 1) | (h_lo < -H2) | (h_hi > H2 - 1)
     outside = (w_hi < -W2) | (w_lo > W2 - 1) | (h_hi < -H2) | (h_lo > H2 - 1)
     return AngularBoxes(np.clip(w_lo, -W2, W2 - 1), np.clip(w_hi, -W2, W2 - 1),
                         np.clip(h_lo, -H2, H2 - 1), np.clip(h_hi, -H2, H2 - 1), clipped,
                         outside)
+
+
+def _reaches_pole(vertices, c) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample: whether the target's bounding sphere (about its centre ``c``) reaches the
+    zenith, and the nadir (the centre's elevation +- the sphere's angular radius)."""
+    radius = float(np.sqrt((np.asarray(vertices) ** 2).sum(axis=1).max())) if len(
+        vertices) else 0.0
+    dist = np.linalg.norm(c, axis=1)
+    reach = np.arcsin(np.minimum(1.0, radius / np.maximum(dist, 1e-300)))
+    beta = np.arctan2(c[:, 1], np.hypot(c[:, 0], c[:, 2]))
+    return beta + reach >= np.pi / 2, beta - reach <= -np.pi / 2
 
 
 def _exact_angles(m, vertices, c):

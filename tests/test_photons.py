@@ -295,6 +295,23 @@ def test_a_gate_shorter_than_a_bin_is_refused():
         photon_cloud(one_cell(5000.0), [5000.0], [1.0], s, LIDAR, seed=0)
 
 
+@pytest.mark.parametrize("output, dead_time_ns", [("points", 2000.0), ("points", 20.0),
+                                                  ("events", 20.0)])
+def test_a_gate_longer_than_twice_the_range_opens_when_the_pulse_leaves(output, dead_time_ns):
+    """A drone at 100 m under a 250 m gate: no event behind the lidar (negative range, a
+    point behind it), the gate runs from range 0 with its length kept, and the target's
+    signal is still where it is."""
+    s = sensor(gate_m=250.0, background_hz=5e6, output=output, dead_time_ns=dead_time_ns)
+    pc = photon_cloud(one_cell(100.0), [100.0], [1.0], s, LIDAR, seed=0)
+    assert len(pc.range_m) > 20
+    assert pc.range_m.min() > 0 and pc.range_m.max() < 250.0
+    bins = np.floor(pc.range_m / LIDAR.r_r).astype(int)
+    assert bins.min() >= 0 and bins.max() < math.ceil(250.0 / LIDAR.r_r)
+    if dead_time_ns < 100:  # a detector that re-arms within the gate sees the target too
+        near = np.abs(pc.range_m - 100.0) < 1.0
+        assert pc.label[near].any()
+
+
 def test_presets_and_files(tmp_path):
     assert {"ideal", "1064nm-day", "1064nm-night", "1550nm-day", "1550nm-night"} <= set(
         preset_names())

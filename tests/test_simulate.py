@@ -251,3 +251,39 @@ def test_points_backend_is_close_but_not_exact():
         overlaps.append(same)
         assert np.median(dr) < 1.0, name  # same surface, to within metres
     assert 0.2 < np.mean(overlaps) < 0.995
+
+
+@pytest.mark.parametrize("elevation_deg", [-89.999, 89.999])
+def test_rows_past_the_zenith_or_nadir_are_cast(elevation_deg):
+    """A drone straight overhead or below: the window's rows beyond +-90 deg (rays over the
+    pole) meet it too, though no vertex has such an elevation; every row a brute-force
+    float64 cast (Moller-Trumbore on every face) finds a hit in is in the cloud (they were
+    dropped: rows -2, -6..-15 at -89.999 deg)."""
+    from apcg_core.frames import body_to_observation, spherical_to_cartesian
+    from apcg_core.lidar import DEG
+    cat = default_catalog()
+    mesh = cat.mesh("Phantom 4 Pro")
+    cond = Condition.from_degrees(0, 100.0, elevation_deg, 0.0, 33.0, 70.0)
+    got = Simulator("embree", quantize=False).simulate(mesh, [cond.as_array()]).cloud
+    v = body_to_observation(mesh.vertices, 100.0, elevation_deg * DEG, 0.0, 33.0 * DEG,
+                            70.0 * DEG)
+    v0, v1, v2 = (v[mesh.faces[:, i]] for i in range(3))
+    e1, e2 = v1 - v0, v2 - v0
+    lidar = LidarParams()
+    hit_rows = set()
+    for h in range(-lidar.height // 2, lidar.height // 2):
+        for w in range(-lidar.width // 2, lidar.width // 2, 8):
+            d = spherical_to_cartesian(w * lidar.r_alpha, cond.elevation + h * lidar.r_beta,
+                                       1.0)
+            p = np.cross(d, e2)
+            det = (p * e1).sum(axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                inv = 1.0 / det
+                u = (p * -v0).sum(axis=1) * inv
+                q = np.cross(-v0, e1)
+                s = (q @ d) * inv
+                t = (e2 * q).sum(axis=1) * inv
+            if ((u >= 0) & (s >= 0) & (u + s <= 1) & (t > 0)).any():
+                hit_rows.add(h)
+    assert len(hit_rows) > 10
+    assert hit_rows <= set(got.cell_h.tolist()), sorted(hit_rows - set(got.cell_h.tolist()))

@@ -116,9 +116,10 @@ def sample_rng(seed: int, sample_id: int) -> np.random.Generator:
 
 def gate_first_bin(r0: np.ndarray, sensor: SensorParams, lidar: LidarParams) -> np.ndarray:
     """Global index (floor(r / R_r), the ideal quantizer's bins) of each gate's first bin: the
-    gate of ``gate_m`` metres is centred on the target's range r0."""
-    return np.floor((np.asarray(r0, np.float64) - sensor.gate_m / 2.0) / lidar.r_r).astype(
-        np.int64)
+    gate of ``gate_m`` metres is centred on the target's range r0, but opens no earlier than
+    the pulse leaves (bin 0): a gate longer than 2 r0 runs from range 0, its length kept."""
+    first = np.floor((np.asarray(r0, np.float64) - sensor.gate_m / 2.0) / lidar.r_r)
+    return np.maximum(first, 0.0).astype(np.int64)
 
 
 def signal_bins(cell: np.ndarray, range_m: np.ndarray, mean: np.ndarray, first_bin,
