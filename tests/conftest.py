@@ -113,3 +113,19 @@ class Hold:
 @pytest.fixture
 def hold(tmp_path_factory) -> Hold:
     return Hold(tmp_path_factory.mktemp("test-points"))  # not in tmp_path: tests list that
+
+
+@pytest.fixture
+def addon_scene(tmp_path, monkeypatch):
+    """An empty Blender scene (the bpy module) with the add-on registered, and a user catalog
+    of its own (APCG_DATA_DIR)."""
+    bpy = pytest.importorskip("bpy")
+    import blender_addon
+    from apcg_core.catalog import default_catalog
+    monkeypatch.setenv("APCG_DATA_DIR", str(tmp_path / "data"))
+    default_catalog.cache_clear()
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    blender_addon.register()
+    yield bpy.context.scene
+    blender_addon.unregister()
+    default_catalog.cache_clear()

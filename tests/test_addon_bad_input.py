@@ -9,7 +9,6 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-import blender_addon  # noqa: E402
 from apcg_core.catalog import default_catalog  # noqa: E402
 from apcg_core.errors import InputError  # noqa: E402
 from blender_addon import api  # noqa: E402
@@ -18,16 +17,10 @@ GOOD = dict(range_m=4500.0, elevation_deg=3.4, pitch_deg=2.3)
 
 
 @pytest.fixture
-def scene(tmp_path, monkeypatch):
-    monkeypatch.setenv("APCG_DATA_DIR", str(tmp_path / "data"))
-    default_catalog.cache_clear()
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    blender_addon.register()
+def scene(addon_scene):
+    """conftest.py's scene with a lidar and an A320neo target."""
     lidar = api.add_lidar()
-    jet = api.add_aircraft(lidar, "A320neo", **GOOD)
-    yield lidar, jet
-    blender_addon.unregister()
-    default_catalog.cache_clear()
+    return lidar, api.add_aircraft(lidar, "A320neo", **GOOD)
 
 
 def _state():
@@ -265,5 +258,4 @@ def test_operators_name_the_target_and_the_file(scene, tmp_path):
     bpy.context.view_layer.objects.active = jet
     # its default category is accepted (the add-on's "other" was not a category)
     assert bpy.ops.apcg.add_to_catalog(type_name="My A320neo") == {"FINISHED"}
-    from apcg_core.catalog import default_catalog
     assert default_catalog().get("My A320neo").category == "user"

@@ -14,7 +14,6 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-import blender_addon  # noqa: E402
 from apcg_core.catalog import default_catalog  # noqa: E402
 from apcg_core.catalog.importer import axis_matrix  # noqa: E402
 from apcg_core.catalog.mesh import Mesh  # noqa: E402
@@ -33,15 +32,9 @@ GEN_POSE = dict(POSE, range_m=4500.0)  # inside the model's condition space
 
 
 @pytest.fixture
-def scene(tmp_path, monkeypatch):
-    """An empty scene with the add-on, and a user catalog of its own (APCG_DATA_DIR)."""
-    monkeypatch.setenv("APCG_DATA_DIR", str(tmp_path / "data"))
-    default_catalog.cache_clear()
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    blender_addon.register()
-    yield bpy.context.scene
-    blender_addon.unregister()
-    default_catalog.cache_clear()
+def scene(addon_scene):
+    """An empty scene with the add-on, and a user catalog of its own (conftest.py)."""
+    return addon_scene
 
 
 def _expected_body() -> Mesh:
