@@ -149,18 +149,23 @@ def register_condition(sub) -> None:
                         "shipped default model)")
     add_pose_arguments(p)
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.set_defaults(func=_run_condition)
+    # None: not given (0 deg), so a refusal of that 0 says it is the default
+    p.set_defaults(func=_run_condition, pitch_deg=None, yaw_deg=None, roll_deg=None)
 
 
 def _run_condition(args) -> int:
     from .condition import Condition
+    from .errors import InputError
     from .families import ModelTypes
     from .frames import observation_to_blender, target_centre
+    from .generation_cli import pose_defaults_hint
     from .lidar import DEG
-
     model = ModelTypes(args.model)  # its type table and ranges; its network is not needed
-    cond = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
-                           args.pitch_deg * DEG, args.yaw_deg * DEG, args.roll_deg * DEG)
+    attitude = [(getattr(args, k) or 0.0) * DEG for k in ("pitch_deg", "yaw_deg", "roll_deg")]
+    try:
+        cond = model.condition(args.type, args.range_m, args.elevation_deg * DEG, *attitude)
+    except InputError as exc:
+        raise pose_defaults_hint(exc, args) from None
     one = Condition.from_array(cond.table[0])
     centre = target_centre(one.range_m, one.elevation)
     out = {"type": cond.names[0], "model": str(model.directory),

@@ -92,7 +92,7 @@ def engine_workers(args) -> int:
     return 1 if args.address else DEFAULT_WORKERS
 
 
-def _pose_defaults_hint(exc, args):
+def pose_defaults_hint(exc, args):
     """A refusal of the pose that names a default (pitch, yaw, roll: 0 deg when not given),
     with that said: the user did not write the value."""
     from .errors import InputError
@@ -125,7 +125,7 @@ def _run_generate(args) -> int:
             table = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
                                     *attitude)
         except InputError as exc:
-            raise _pose_defaults_hint(exc, args) from None
+            raise pose_defaults_hint(exc, args) from None
     total = len(table) * args.count
     model.expect_clouds(total)
     _warn_window(model, table)

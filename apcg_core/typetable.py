@@ -9,6 +9,8 @@ add-on -> model) maps by name and a type the other side does not know is refused
 
 from __future__ import annotations
 
+import difflib
+import unicodedata
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +20,19 @@ from .errors import InputError
 # What a table records of each type (dataset.json and model.json "types" entries).
 RECORD_KEYS = ("name", "catalog_index", "kind", "category", "range_band", "depth_length_m",
                "bounding_radius_m")
+
+
+def normalize_name(name) -> str:
+    """A type name as it is stored and shown: Unicode NFC, outer whitespace stripped."""
+    return unicodedata.normalize("NFC", str(name)).strip()
+
+
+def name_key(name) -> str:
+    """What two names must differ in to be two types: the name normalised, case folded, and
+    without whitespace, dashes or underscores ("Jet_A", "Jet A", "jet-a" are one name). Every
+    lookup of a type by name (the catalog, a dataset's or a model's table) goes through it."""
+    return "".join(c for c in normalize_name(name).casefold()
+                   if not c.isspace() and unicodedata.category(c) not in ("Pd", "Pc"))
 
 
 def _listing(names, limit: int = 12) -> str:
@@ -51,9 +66,10 @@ class TypeTable:
                 raise InputError(f"{self.owner}: a type entry lacks {missing}: {r}")
         seen: dict = {}
         for r in recs:
-            key = str(r["name"]).lower()
+            key = name_key(r["name"])
             if key in seen:
-                raise InputError(f"{self.owner} lists type {r['name']!r} twice")
+                raise InputError(f"{self.owner} lists type {r['name']!r} twice (names that "
+                                 "differ in case, spaces, '-' or '_' are one type)")
             seen[key] = len(seen)
         object.__setattr__(self, "records", recs)
         object.__setattr__(self, "_code", seen)
@@ -82,16 +98,19 @@ class TypeTable:
         return [r["name"] for r in self.records]
 
     def __contains__(self, name) -> bool:
-        return isinstance(name, str) and name.strip().lower() in self._code
+        return isinstance(name, str) and name_key(name) in self._code
 
     def code(self, name: str) -> int:
-        """The code of type ``name`` (case-insensitive); refuses a type this table lacks."""
+        """The code of type ``name`` (any spelling the catalog takes: :func:`name_key`);
+        refuses a type this table lacks, with the nearest name it knows."""
         if not isinstance(name, str):
             raise InputError(f"a type is given by its catalog name, got {name!r}; "
                              f"{self.owner} knows: {_listing(self.names)}")
-        code = self._code.get(name.strip().lower())
+        code = self._code.get(name_key(name))
         if code is None:
-            raise InputError(f"type {name!r} is not one {self.owner} knows; it knows: "
+            close = difflib.get_close_matches(name_key(name), list(self._code), n=1)
+            hint = f" (did you mean {self.names[self._code[close[0]]]!r}?)" if close else ""
+            raise InputError(f"type {name!r} is not one {self.owner} knows{hint}; it knows: "
                              f"{_listing(self.names)}")
         return code
 
@@ -123,7 +142,8 @@ class TypeTable:
             raise InputError(f"type codes {np.unique(codes)[:8].tolist()} are not all codes "
                              f"of {self.owner} (0 .. {len(self) - 1})")
         codes = codes.astype(np.int64)
-        to_code = np.array([to._code.get(n.lower(), -1) for n in self.names], dtype=np.int64)
+        to_code = np.array([to._code.get(name_key(n), -1) for n in self.names],
+                           dtype=np.int64)
         out = to_code[codes]
         if (out < 0).any():
             lacking = sorted({self.names[c] for c in codes[out < 0]})

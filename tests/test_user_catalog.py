@@ -273,3 +273,19 @@ def test_a_catalog_written_before_name_keys_still_reads(tmp_path):
     reg = _good_registry(tmp_path)
     os.replace(reg.parent / "jeta.npz", reg.parent / "Jet_A.npz")
     assert Catalog(user_path=reg.parent).mesh("Jet A").extents[0] == pytest.approx(10.0)
+
+
+@pytest.mark.parametrize("spelling", ["a320 neo", "A320-NEO", " A320_neo ", "a320neo"])
+def test_every_command_finds_a_type_by_any_spelling_the_catalog_takes(spelling):
+    """The catalog, simulate and teach take "A320-NEO" for A320neo; a model's and a
+    dataset's type tables (generate, condition, evaluate) take it too, by one rule
+    (typetable.name_key), and an unknown name is answered with the nearest one."""
+    from apcg_core.families import ModelTypes
+    from apcg_core.typetable import name_key
+    model = ModelTypes()
+    assert spelling in model.types and model.types.code(spelling) == model.types.code(
+        "A320neo")
+    assert Catalog().get(spelling).name == "A320neo" == model.type_name(spelling)
+    assert name_key(spelling) == name_key("A320neo")
+    with pytest.raises(InputError, match=r"did you mean 'A320neo'\?"):
+        model.types.code("A320neoo")

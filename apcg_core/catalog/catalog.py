@@ -28,6 +28,7 @@ from ..errors import InputError
 from ..io.atomic import atomic_path
 from ..io.csv_table import read_csv
 from ..lock import ProcessLock
+from ..typetable import name_key, normalize_name
 from .checks import check_size
 from .mesh import Mesh, sample_surface
 
@@ -95,18 +96,6 @@ def _load_builtin() -> list[AircraftType]:
         rotor_diameter_m=row.float("rotor_diameter_m", optional=True),
         diagonal_wheelbase_m=row.float("diagonal_wheelbase_m", optional=True),
         **{k: row[k] for k in _TEXT_COLUMNS}) for row in table]
-
-
-def normalize_name(name) -> str:
-    """A type name as it is stored and shown: Unicode NFC, outer whitespace stripped."""
-    return unicodedata.normalize("NFC", str(name)).strip()
-
-
-def name_key(name) -> str:
-    """What two names must differ in to be two types: the name normalised, case folded, and
-    without whitespace, dashes or underscores ("Jet_A", "Jet A", "jet-a" are one name)."""
-    return "".join(c for c in normalize_name(name).casefold()
-                   if not c.isspace() and unicodedata.category(c) not in ("Pd", "Pc"))
 
 
 def mesh_file_stem(name) -> str:

@@ -117,13 +117,12 @@ class ModelTypes:
 
     def type_name(self, key) -> str:
         """The catalog name of ``key``: a name this model knows, or a catalog index."""
-        if isinstance(key, str) and key.strip() in self.types:
-            return key.strip()
+        if isinstance(key, str) and key in self.types:  # any spelling: its one name
+            return self.types.names[self.types.code(key)]
         if isinstance(key, (int, np.integer)) or (isinstance(key, str) and key.strip().isdigit()):
             from ..catalog.catalog import default_catalog
             return default_catalog().get(int(key)).name
-        self.types.code(key)  # refuses, naming what the model knows
-        return key
+        return self.types.names[self.types.code(key)]  # refuses, naming what it knows
 
     def conditions(self, names, pose) -> Conditions:
         """Conditions for type ``names`` (one per row; names or catalog indices) at ``pose``
