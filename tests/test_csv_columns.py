@@ -70,7 +70,7 @@ ROWS = "A320neo,4500,3.4,2.3,13.2,0.13\nMavic 3,250,3.1,1.5,-20,2\n"
     (HEAD + ROWS.rstrip("\n"), True),  # no last line end
     (HEAD.replace("type,", "TYPE ,") + ROWS, True),  # the header's case and spaces
     ("roll_deg,yaw_deg,note,range_m,type_name\n1,2,x y,3e3,A320neo\n4,5,,6.5,G650ER\n", True),
-    (HEAD + "A320neo,1_000,3,2,1,0\n", True),  # float() reads it, numpy's reader does not
+    (HEAD + "A320neo,1_000,3,2,1,0\n", False),  # not a plain number: refused, never misread
     (HEAD + "A320neo,nan,3,2,inf,0\nA320neo,-0,3,2,1e400,0\n", True),  # any number float() reads
     (HEAD + '"A320neo",4500,3.4,2.3,13.2,0.13\n', True),  # quotes: the csv module
     (HEAD + '"A320, neo",4500,3.4,2.3,13.2,0.13\n', True),

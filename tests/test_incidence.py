@@ -213,7 +213,7 @@ def test_the_incidence_output_learns_and_is_exported_beside_the_model(every_type
     assert _train(every_type, tmp_path / "again", "--steps", "2", "--no-bf16", init=out) == 0
     again_model = load_model(export_model(tmp_path / "again", tmp_path / "m2", log_every=2))
     assert again_model.meta["incidence"]["trained_steps"] == 2
-    assert again_model.meta["incidence_log"].startswith("incidence_log.csv keeps every 2th")
+    assert again_model.meta["incidence_log"].startswith("incidence_log.csv keeps every 2nd")
     assert (tmp_path / "m2" / "sheets.onnx").read_bytes() == (BASE / "sheets.onnx").read_bytes()
 
 

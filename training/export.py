@@ -59,7 +59,9 @@ def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
     if out.exists() and not out.is_dir():
         raise InputError(f"-o {out} is a file, not a directory")
     job = _read_run(run, checkpoint, data_dir)
-    _refuse_inputs(out, [job["data"], *job["reads"]])  # --run: the command's own input
+    _refuse_inputs(out, [job["data"]])  # --run: the command's own input
+    _refuse_inputs(out, job["reads"], "the model this run was trained from (its --init), an "
+                                      "input of this export")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise InputError(f"-o {out} already holds files; choose a new directory, or --force to "
                          "replace it")
@@ -70,16 +72,18 @@ def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
     return out
 
 
-def _refuse_inputs(out: Path, inputs) -> None:
+def _refuse_inputs(out: Path, inputs, what: str = "an input of this export") -> None:
     """-o is, or lies inside, none of ``inputs`` (the one rule, apcg_core.outputs), inside a
-    command as outside one."""
+    command as outside one; ``what`` says what they are."""
     from apcg_core.outputs import active, add_inputs, real, where_inputs
+    if not inputs:
+        return
     if active() is not None:
-        add_inputs(inputs, "an input of this export")
+        add_inputs(inputs, what)
         return
     why = where_inputs("-o", out, [real(p) for p in inputs if Path(p).exists()])
     if why:
-        raise InputError(why.replace("an input of this command", "an input of this export"))
+        raise InputError(why.replace("an input of this command", what))
 
 
 def _read_run(run: Path, checkpoint=None, data_dir=None) -> dict:
