@@ -158,8 +158,8 @@ def _run_condition(args) -> int:
     from .errors import InputError
     from .families import ModelTypes
     from .frames import observation_to_blender, target_centre
-    from .generation_cli import pose_defaults_hint
     from .lidar import DEG
+    from .options import pose_defaults_hint
     model = ModelTypes(args.model)  # its type table and ranges; its network is not needed
     attitude = [(getattr(args, k) or 0.0) * DEG for k in ("pitch_deg", "yaw_deg", "roll_deg")]
     try:

@@ -92,22 +92,11 @@ def engine_workers(args) -> int:
     return 1 if args.address else DEFAULT_WORKERS
 
 
-def pose_defaults_hint(exc, args):
-    """A refusal of the pose that names a default (pitch, yaw, roll: 0 deg when not given),
-    with that said: the user did not write the value."""
-    from .errors import InputError
-    for k in ("pitch_deg", "yaw_deg", "roll_deg"):
-        field = k[:-len("_deg")]
-        if getattr(args, k) is None and f"{field} = " in str(exc):
-            return InputError(f"{exc}; {field} 0 deg is the default of --{field}-deg, which "
-                              f"was not given: give --{field}-deg within that range")
-    return exc
-
-
 def _run_generate(args) -> int:
     from .errors import InputError
     from .families import conditions_from_csv, load_model
     from .lidar import DEG
+    from .options import pose_defaults_hint
 
     check_request(args)
     sensor = sensor_of(args)

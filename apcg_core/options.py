@@ -119,3 +119,15 @@ def check_values(**values) -> None:
         if (isinstance(v, bool) or isinstance(v, str) or number is None or not rule.ok(number)
                 or (integer and number != int(number))):
             raise InputError(f"{dest} = {v!r} not accepted: {rule.accepted}")
+
+
+def pose_defaults_hint(exc, args):
+    """A refusal of the pose that names a default (pitch, yaw, roll: 0 deg when not given),
+    with that said: the user did not write the value."""
+    from .errors import InputError
+    for k in ("pitch_deg", "yaw_deg", "roll_deg"):
+        field = k[:-len("_deg")]
+        if getattr(args, k) is None and f"{field} = " in str(exc):
+            return InputError(f"{exc}; {field} 0 deg is the default of --{field}-deg, which "
+                              f"was not given: give --{field}-deg within that range")
+    return exc

@@ -28,7 +28,6 @@ evaluation protocol (``training.protocol.score`` with faithfulness), tau the mod
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -121,6 +120,8 @@ class DrawnModel(PlusModel):
 
 
 def main(argv=None) -> int:
+    from bench_output import emit
+
     from training import protocol
     from training.evaluate import DepthDataset
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -155,8 +156,7 @@ def main(argv=None) -> int:
         for b, e in bands.items():
             print(f"  {b:18s} MMD {e['mmd']:.6f}  JSD {e['jsd']:.4f}  faithful "
                   f"{e['faithful']}/{e['scorable']}")
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+    emit(out, args.json, show=False)
     return 0
 
 
