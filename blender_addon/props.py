@@ -9,7 +9,9 @@ import math
 import bpy
 from bpy.props import FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from .objects import POSE_KEY, is_target, pose_of, set_pose
+from apcg_core.errors import InputError
+
+from .objects import POSE_KEY, _stored_pose, is_target, pose_of, set_pose
 
 
 class APCG_PG_lidar(bpy.types.PropertyGroup):
@@ -34,20 +36,31 @@ class APCG_PG_lidar(bpy.types.PropertyGroup):
 
 
 def _pose_prop(key: str, label: str, degrees: bool, lo: float, hi: float, descr: str):
+    def pose(obj) -> dict:
+        # the panel draws every redraw: a target Scan would refuse (scaled, on its lidar)
+        # shows its last stored pose instead of raising here; Scan names the problem
+        try:
+            return pose_of(obj)
+        except InputError:
+            return _stored_pose(obj)
+
     def get(self):
         obj = self.id_data
         if not is_target(obj):
             return 0.0
-        v = pose_of(obj)[key]
+        v = pose(obj)[key]
         return math.degrees(v) if degrees else v
 
     def set_(self, value):
         obj = self.id_data
         if not is_target(obj):
             return
-        p = pose_of(obj)
+        p = pose(obj)
         p[key] = math.radians(value) if degrees else float(value)
-        set_pose(obj, **p)
+        try:
+            set_pose(obj, **p)
+        except InputError:  # a value no pose takes (range 0...): the target stays as it was
+            return
 
     return FloatProperty(name=label, description=descr, get=get, set=set_, soft_min=lo,
                          soft_max=hi, precision=3 if degrees else 2,

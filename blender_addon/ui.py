@@ -2,6 +2,8 @@
 
 import bpy
 
+from apcg_core.errors import InputError
+
 from .clouds import cloud_info, is_cloud
 from .objects import AXES_KEY, TYPE_KEY, axes_label, is_lidar, is_target, lidar_of, source_of
 
@@ -63,9 +65,12 @@ class APCG_PT_panel(bpy.types.Panel):
                          "azimuth_deg"):
                 box.prop(t, name)
         elif is_cloud(obj):
-            info = cloud_info(obj)
             box = layout.box()
-            box.label(text=f"Cloud: {len(obj.data.vertices)} points ({info['source']})",
+            try:
+                source = cloud_info(obj)["source"]
+            except InputError:  # a damaged record: Export names it; the panel still draws
+                source = "damaged record"
+            box.label(text=f"Cloud: {len(obj.data.vertices)} points ({source})",
                       icon="POINTCLOUD_DATA")
         col = layout.column(align=True)
         col.enabled = lidar is not None or is_lidar(obj)
@@ -80,7 +85,8 @@ class APCG_PT_panel(bpy.types.Panel):
 
 def _in_catalog(name: str) -> bool:
     from apcg_core.catalog import default_catalog
-    return name.lower() in (n.lower() for n in default_catalog().names())
+    from apcg_core.typetable import name_key
+    return name_key(name) in {name_key(n) for n in default_catalog().names()}
 
 
 CLASSES = (APCG_PT_panel,)

@@ -259,3 +259,17 @@ def test_operators_name_the_target_and_the_file(scene, tmp_path):
     # its default category is accepted (the add-on's "other" was not a category)
     assert bpy.ops.apcg.add_to_catalog(type_name="My A320neo") == {"FINISHED"}
     assert default_catalog().get("My A320neo").category == "user"
+
+
+def test_the_panels_pose_fields_never_raise(scene):
+    """The panel reads a target's pose at every redraw: a scaled target shows its last pose
+    (Scan names the scale), a field set resets the scale, and a value no pose takes leaves
+    the target as it was."""
+    lidar, jet = scene
+    jet.scale = (2.0, 2.0, 2.0)
+    assert jet.apcg_target.range_m == pytest.approx(GOOD["range_m"])
+    jet.apcg_target.range_m = 5000.0
+    assert tuple(jet.scale) == pytest.approx((1.0, 1.0, 1.0))
+    assert api.pose_of(jet)["range_m"] == pytest.approx(5000.0)
+    jet.apcg_target.range_m = 0.0
+    assert api.pose_of(jet)["range_m"] == pytest.approx(5000.0)
