@@ -155,17 +155,11 @@ def register_condition(sub) -> None:
 
 def _run_condition(args) -> int:
     from .condition import Condition
-    from .errors import InputError
     from .families import ModelTypes
     from .frames import observation_to_blender, target_centre
-    from .lidar import DEG
-    from .options import pose_defaults_hint
+    from .options import model_condition
     model = ModelTypes(args.model)  # its type table and ranges; its network is not needed
-    attitude = [(getattr(args, k) or 0.0) * DEG for k in ("pitch_deg", "yaw_deg", "roll_deg")]
-    try:
-        cond = model.condition(args.type, args.range_m, args.elevation_deg * DEG, *attitude)
-    except InputError as exc:
-        raise pose_defaults_hint(exc, args) from None
+    cond = model_condition(model, args)
     one = Condition.from_array(cond.table[0])
     centre = target_centre(one.range_m, one.elevation)
     out = {"type": cond.names[0], "model": str(model.directory),

@@ -95,8 +95,7 @@ def engine_workers(args) -> int:
 def _run_generate(args) -> int:
     from .errors import InputError
     from .families import conditions_from_csv, load_model
-    from .lidar import DEG
-    from .options import pose_defaults_hint
+    from .options import model_condition
 
     check_request(args)
     sensor = sensor_of(args)
@@ -109,12 +108,7 @@ def _run_generate(args) -> int:
     if args.conditions:
         table = conditions_from_csv(args.conditions, model)
     else:
-        attitude = [(getattr(args, k) or 0.0) * DEG for k in POSE_OPTIONS[2:]]
-        try:
-            table = model.condition(args.type, args.range_m, args.elevation_deg * DEG,
-                                    *attitude)
-        except InputError as exc:
-            raise pose_defaults_hint(exc, args) from None
+        table = model_condition(model, args)
     total = len(table) * args.count
     model.expect_clouds(total)
     _warn_window(model, table)

@@ -121,6 +121,18 @@ def check_values(**values) -> None:
             raise InputError(f"{dest} = {v!r} not accepted: {rule.accepted}")
 
 
+def model_condition(model, args):
+    """``model.condition`` of a command's --type and pose options, whose attitude options
+    default to None (not given: 0 deg); a refusal of such a 0 says it was the default."""
+    from .errors import InputError
+    from .lidar import DEG
+    attitude = [(getattr(args, k) or 0.0) * DEG for k in ("pitch_deg", "yaw_deg", "roll_deg")]
+    try:
+        return model.condition(args.type, args.range_m, args.elevation_deg * DEG, *attitude)
+    except InputError as exc:
+        raise pose_defaults_hint(exc, args) from None
+
+
 def pose_defaults_hint(exc, args):
     """A refusal of the pose that names a default (pitch, yaw, roll: 0 deg when not given),
     with that said: the user did not write the value."""

@@ -22,6 +22,7 @@ import math
 import numpy as np
 
 from apcg_core.errors import InputError
+from apcg_core.options import check_values
 
 from .clouds import (
     cloud_from_object,
@@ -38,6 +39,8 @@ from .objects import (
     add_lidar,
     axes_label,
     body_mesh,
+    check_target_scale,
+    check_unit_scale,
     guess_axes,
     is_lidar,
     is_target,
@@ -79,12 +82,6 @@ def _lidar_and_targets(lidar, targets):
     for t in targets:
         require_target(t)
     return targets
-
-
-def _check_seed_and_sizes(**values) -> None:
-    """``seed``, ``count``, ``supersample``... by the command line's rules (their names)."""
-    from apcg_core.options import check_values
-    check_values(**values)
 
 
 def _pose_meta(pose: dict) -> dict:
@@ -174,7 +171,7 @@ def scan_target(target, backend: str = "blender", quantize: bool = True,
     from apcg_core.sensor import SensorParams, load_sensor, to_cloud
     from dataset_builder.simulate import SimResult, Simulator
     lidar = lidar_of(require_target(target))
-    _check_seed_and_sizes(seed=seed, supersample=supersample)
+    check_values(seed=seed, supersample=supersample)
     params = lidar_params(lidar)
     if isinstance(sensor, str) and sensor == "lidar":
         sensor = sensor_of(lidar)
@@ -228,7 +225,7 @@ def scan(lidar, targets=None, backend: str = "blender", quantize: bool = True,
     from apcg_core.sensor import SensorParams, load_sensor
     from dataset_builder.simulate import Simulator
     targets = _lidar_and_targets(lidar, targets)
-    _check_seed_and_sizes(seed=seed, supersample=supersample)
+    check_values(seed=seed, supersample=supersample)
     if isinstance(sensor, str) and sensor == "lidar":
         sensor = sensor_of(lidar_of(targets[0]))
     elif not isinstance(sensor, SensorParams):
@@ -297,7 +294,7 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
     from apcg_core.families import ModelTypes
     if not is_target(target):
         raise InputError(f"{named(target)} is not an APCG target")
-    _check_seed_and_sizes(count=count, seed=seed)
+    check_values(count=count, seed=seed)
     if not isinstance(model, ModelTypes):
         model = load_model(model, runtime=runtime)
     pose = pose_of(target)
@@ -365,8 +362,7 @@ def add_to_catalog(target, kind: str = "aircraft", category: str = "user",
     if not is_target(target):
         raise InputError(f"{named(target)} is not an APCG target: make one "
                          "with apcg.make_target first")
-    from .objects import _check_unit_scale
-    _check_unit_scale(target)  # a scaled target is not the mesh that would be added
+    check_target_scale(target)  # a scaled target is not the mesh that would be added
     catalog = catalog or default_catalog()
     name = (name or str(target.get(TYPE_KEY, target.name))).strip()
     mesh = body_mesh(target)
@@ -390,7 +386,6 @@ def _pose_in_lidar(lidar, target) -> dict:
     matrices (keyframes, parents, constraints such as Follow Path all included)."""
     from apcg_core.frames import pose_from_lidar_local
 
-    from .objects import check_unit_scale
     lw = np.array([list(r) for r in lidar.matrix_world], dtype=np.float64)
     tw = np.array([list(r) for r in target.matrix_world], dtype=np.float64)
     rel = np.linalg.inv(lw) @ tw
@@ -422,7 +417,7 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     from apcg_core.sensor import SensorParams, load_sensor
     from dataset_builder.scene import SceneScanner, write_sequence
     targets = _lidar_and_targets(lidar, targets)
-    _check_seed_and_sizes(seed=seed, supersample=supersample)
+    check_values(seed=seed, supersample=supersample)
     if not isinstance(directory, (str, Path)) or not str(directory).strip():
         raise InputError(f"directory = {directory!r}: give the directory to write the "
                          "sequence into (a new one, or one holding this same sequence)")

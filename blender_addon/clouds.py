@@ -22,7 +22,7 @@ from apcg_core.errors import InputError
 from apcg_core.frames import lidar_local_to_observation, observation_to_lidar_local
 from apcg_core.io.clouds import read_cloud_attributes, write_cloud
 
-from .objects import leaves_nothing_on_error
+from .objects import leaves_nothing_on_error, named
 
 CLOUD_KEY = "apcg_cloud"  # JSON: source, r0, beta0, azimuth, origin (lidar-local, m), meta
 GROUP_NAME = "APCG Points"
@@ -166,8 +166,7 @@ def _radius_identifier(tree) -> str:
 def set_point_radius(obj, radius: float) -> None:
     """The displayed radius of a cloud object's points (metres)."""
     if not is_cloud(obj):
-        name = repr(obj.name) if isinstance(obj, bpy.types.ID) else repr(obj)
-        raise InputError(f"{name} is not an APCG point cloud object")
+        raise InputError(f"{named(obj)} is not an APCG point cloud object")
     try:
         radius = float(radius)
     except (TypeError, ValueError):
@@ -247,8 +246,7 @@ def _get_attr(me, name: str, dtype, n: int):
 def cloud_from_object(obj) -> tuple[PointCloud, dict]:
     """The observation-frame cloud (float64) of a cloud object, and its info."""
     if not is_cloud(obj) or obj.type != "MESH":
-        name = repr(obj.name) if isinstance(obj, bpy.types.ID) else repr(obj)
-        raise InputError(f"{name} is not an APCG point cloud object")
+        raise InputError(f"{named(obj)} is not an APCG point cloud object")
     info = cloud_info(obj)
     me = obj.data
     n = len(me.vertices)

@@ -59,17 +59,28 @@ def _remove_made_since(before: dict) -> None:
             store.remove(x)
 
 
+_GUARDED = [0]  # calls inside one: the outermost takes the one snapshot and cleans up
+
+
 @contextmanager
 def nothing_left_on_error():
     """A block whose failure leaves bpy.data as it found it: every object, collection, mesh,
     node group and material made inside is removed again before the error goes on (a refused
-    import, a scan that fails on its second target...)."""
+    import, a scan that fails on its second target...). Yields the snapshot taken before, or
+    None inside another such block (scan -> scan_target), which leaves the cleaning to the
+    outermost: bpy.data is listed once per call."""
+    if _GUARDED[0]:
+        yield None
+        return
     before = _data_now()
+    _GUARDED[0] += 1
     try:
-        yield
+        yield before
     except BaseException:
         _remove_made_since(before)
         raise
+    finally:
+        _GUARDED[0] -= 1
 
 
 def leaves_nothing_on_error(fn):
@@ -86,11 +97,11 @@ def cancelled_leaves_nothing(execute):
     it made on the way (a lidar it added for a target it then refused)."""
     @functools.wraps(execute)
     def run(self, context):
-        before = _data_now()
-        result = execute(self, context)
-        if "CANCELLED" in result:
-            _remove_made_since(before)
-        return result
+        with nothing_left_on_error() as before:
+            result = execute(self, context)
+            if before is not None and "CANCELLED" in result:
+                _remove_made_since(before)
+            return result
     return run
 
 
@@ -205,28 +216,22 @@ def body_mesh(obj, depsgraph=None) -> _Mesh:
     return _Mesh(v, f)
 
 
-def _check_pose(range_m, elevation, pitch, yaw, roll, azimuth) -> list[float]:
-    """The pose as floats, checked by the command line's rules (apcg_core.options: the same
-    names, the angles in degrees) and physically (apcg_core.condition.Condition)."""
+def pose_from_degrees(range_m, elevation_deg, pitch_deg=0.0, yaw_deg=0.0, roll_deg=0.0,
+                      azimuth_deg=0.0) -> list[float]:
+    """The pose in POSE_NAMES' order (m, rad), checked by the command line's rules
+    (apcg_core.options: the same names, in degrees) and physically
+    (apcg_core.condition.Condition), before anything is made of it."""
     from apcg_core.condition import Condition
     from apcg_core.options import check_values
-    for name, v in zip(POSE_NAMES, (range_m, elevation, pitch, yaw, roll, azimuth), strict=True):
+    given = dict(zip(POSE_NAMES, (range_m, elevation_deg, pitch_deg, yaw_deg, roll_deg,
+                                  azimuth_deg), strict=True))
+    for name, v in given.items():
         if v is None:
             raise InputError(f"{name} must be a number, got None")
-    check_values(range_m=range_m)
-    check_values(**{f"{k}_deg": v if v is None or isinstance(v, (bool, str)) else
-                    _degrees(v) for k, v in zip(POSE_NAMES[1:], (elevation, pitch, yaw, roll,
-                                                                 azimuth), strict=True)})
-    vals = [float(v) for v in (range_m, elevation, pitch, yaw, roll, azimuth)]
+    check_values(**{k if k == "range_m" else f"{k}_deg": v for k, v in given.items()})
+    vals = [float(range_m), *(math.radians(float(v)) for v in list(given.values())[1:])]
     Condition(0, *vals[:5])
     return vals
-
-
-def _degrees(radians):
-    try:
-        return math.degrees(float(radians))
-    except (TypeError, ValueError):
-        return radians  # refused by check_values, by its own value
 
 
 def set_pose(obj, range_m, elevation, pitch=0.0, yaw=0.0, roll=0.0, azimuth=0.0) -> None:
@@ -235,7 +240,8 @@ def set_pose(obj, range_m, elevation, pitch=0.0, yaw=0.0, roll=0.0, azimuth=0.0)
     if not isinstance(obj, bpy.types.Object) or is_lidar(obj) or lidar_of(obj) is None:
         raise InputError(f"{named(obj)} is not a target of an APCG lidar: a pose places an "
                          "object parented to a lidar (apcg.add_aircraft, apcg.make_target)")
-    vals = _check_pose(range_m, elevation, pitch, yaw, roll, azimuth)
+    vals = pose_from_degrees(range_m, *(_degrees(v) for v in (elevation, pitch, yaw, roll,
+                                                               azimuth)))
     m = target_matrix_lidar_local(*vals)
     obj[POSE_KEY] = dict(zip(POSE_NAMES, vals, strict=True))
     obj.matrix_parent_inverse.identity()
@@ -246,7 +252,7 @@ def _matrix_of(obj) -> np.ndarray:
     return np.array([list(row) for row in obj.matrix_basis], dtype=np.float64)
 
 
-def _stored_pose(obj) -> dict:
+def stored_pose(obj) -> dict:
     stored = obj[POSE_KEY]
     if hasattr(stored, "to_dict"):
         return {k: float(stored[k]) for k in POSE_NAMES}
@@ -255,7 +261,7 @@ def _stored_pose(obj) -> dict:
 
 def pose_moved(obj) -> bool:
     """True when the object's matrix no longer agrees with its stored pose."""
-    pose = _stored_pose(obj)
+    pose = stored_pose(obj)
     p = [pose[k] for k in POSE_NAMES]
     m = target_matrix_lidar_local(*p)
     got = _matrix_of(obj)
@@ -269,9 +275,9 @@ def pose_of(obj) -> dict:
     if not is_target(obj):
         raise InputError(f"{named(obj)} is not an APCG target (add one with "
                          "apcg.add_aircraft)")
-    _check_unit_scale(obj)
+    check_target_scale(obj)
     if not pose_moved(obj):
-        return _stored_pose(obj)
+        return stored_pose(obj)
     try:
         return pose_from_lidar_local(_matrix_of(obj))
     except ValueError as exc:  # on the lidar: no range or direction
@@ -283,7 +289,7 @@ def pose_of(obj) -> dict:
 _SCALE_TOL = 1e-4
 
 
-def _check_unit_scale(obj) -> None:
+def check_target_scale(obj) -> None:
     """Refuse a target whose object scale is not 1: the simulator and the models cast its
     mesh as it is, so a scaled target would not be what Blender shows."""
     check_unit_scale(obj.name, np.array([list(r) for r in obj.matrix_basis.to_3x3()]))
@@ -307,7 +313,7 @@ def sync_pose(obj) -> bool:
     """Store the pose of a moved target as its doubles; True if it had moved."""
     if is_target(obj) and pose_moved(obj):
         try:
-            _check_unit_scale(obj)
+            check_target_scale(obj)
             pose = pose_from_lidar_local(_matrix_of(obj))
         except (InputError, ValueError):  # scaled, or on the lidar: it keeps its last pose,
             return False  # and a scan names why
@@ -331,8 +337,7 @@ def add_aircraft(lidar, type_name: str, range_m: float, elevation_deg: float,
     """A catalog type (by name or index) as a target of ``lidar`` at the given pose."""
     require_lidar(lidar)
     # every check before anything is made: a refusal leaves the scene as it was
-    pose = _check_pose(range_m, *(_radians(v) for v in (elevation_deg, pitch_deg, yaw_deg,
-                                                         roll_deg, azimuth_deg)))
+    pose = pose_from_degrees(range_m, elevation_deg, pitch_deg, yaw_deg, roll_deg, azimuth_deg)
     catalog = catalog or default_catalog()
     t = catalog.get(type_name)
     mesh = catalog.mesh(t)
@@ -346,15 +351,15 @@ def add_aircraft(lidar, type_name: str, range_m: float, elevation_deg: float,
     return obj
 
 
-def _radians(degrees):
-    """Degrees as radians for :func:`_check_pose`, which refuses what is not a number by its
-    degrees value (the value given)."""
-    if isinstance(degrees, (bool, str)):
-        return degrees
+def _degrees(radians):
+    """An angle given in radians, in degrees for :func:`pose_from_degrees`; what is not a
+    number is passed on as it is, to be refused by its own value."""
+    if isinstance(radians, (bool, str)):
+        return radians
     try:
-        return math.radians(float(degrees))
+        return math.degrees(float(radians))
     except (TypeError, ValueError, OverflowError):
-        return degrees
+        return radians
 
 
 def world_mesh(obj, depsgraph=None) -> Mesh:
@@ -463,9 +468,8 @@ def make_target(lidar, obj, range_m: float | None = None, elevation_deg: float =
     if lidar is not None:
         require_lidar(lidar)
     # every check before anything is made: a refusal leaves the scene as it was
-    _check_pose(4500.0 if range_m is None else range_m,
-                *(_radians(v) for v in (elevation_deg, pitch_deg, yaw_deg, roll_deg,
-                                        azimuth_deg)))
+    pose_from_degrees(4500.0 if range_m is None else range_m, elevation_deg, pitch_deg,
+                      yaw_deg, roll_deg, azimuth_deg)
     if depth_length_m is not None:
         from apcg_core.options import check_values
         check_values(length_m=depth_length_m)

@@ -11,7 +11,7 @@ from bpy.props import FloatProperty, IntProperty, PointerProperty, StringPropert
 
 from apcg_core.errors import InputError
 
-from .objects import POSE_KEY, _stored_pose, is_target, pose_of, set_pose
+from .objects import POSE_KEY, is_target, pose_of, set_pose, stored_pose
 
 
 class APCG_PG_lidar(bpy.types.PropertyGroup):
@@ -42,7 +42,7 @@ def _pose_prop(key: str, label: str, degrees: bool, lo: float, hi: float, descr:
         try:
             return pose_of(obj)
         except InputError:
-            return _stored_pose(obj)
+            return stored_pose(obj)
 
     def get(self):
         obj = self.id_data

@@ -125,8 +125,7 @@ def angular_boxes(vertices: np.ndarray, table: np.ndarray, lidar: LidarParams,
 def _reaches_pole(vertices, c) -> tuple[np.ndarray, np.ndarray]:
     """Per sample: whether the target's bounding sphere (about its centre ``c``) reaches the
     zenith, and the nadir (the centre's elevation +- the sphere's angular radius)."""
-    radius = float(np.sqrt((np.asarray(vertices) ** 2).sum(axis=1).max())) if len(
-        vertices) else 0.0
+    radius = bounding_radius(vertices) if len(vertices) else 0.0
     dist = np.linalg.norm(c, axis=1)
     reach = np.arcsin(np.minimum(1.0, radius / np.maximum(dist, 1e-300)))
     beta = np.arctan2(c[:, 1], np.hypot(c[:, 0], c[:, 2]))

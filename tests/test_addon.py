@@ -281,8 +281,8 @@ def test_pose_is_stored_by_name_in_the_one_angle_order(scene):
     # roll): it is read in that order, not misread in the new one
     jet["apcg_pose"] = [5000.0, math.radians(3.0), 0.0, math.radians(20.0), math.radians(1.0),
                         0.0]
-    from blender_addon.objects import _stored_pose, pose_moved
-    legacy = _stored_pose(jet)
+    from blender_addon.objects import pose_moved, stored_pose
+    legacy = stored_pose(jet)
     assert math.degrees(legacy["yaw"]) == pytest.approx(20.0)
     assert math.degrees(legacy["pitch"]) == pytest.approx(1.0)
     assert not pose_moved(jet)

@@ -63,8 +63,7 @@ OBJECT_CALLS = {
     "add_aircraft": {"type_name": "A320neo", **GOOD}, "make_target": {"obj": "cube"},
     "read_lidar_file": {"ref": "1550nm-day"}, "write_lidar_file": {"path": "x.toml"},
     "scan_animation": {"directory": "seq"}, "export_cloud": {"path": "x.ply"},
-    "set_point_radius": {"radius": 0.5}, "check_model_knows": {"target": "jet"},
-    "targets_of": {}, "world_mesh": {},
+    "set_point_radius": {"radius": 0.5}, "targets_of": {}, "world_mesh": {},
 }
 
 
@@ -77,8 +76,7 @@ def test_every_function_taking_an_object_refuses_what_is_not_one(scene, tmp_path
     bpy.ops.mesh.primitive_cube_add(size=10.0, location=(0.0, -200.0, 0.0))  # behind
     cube = bpy.context.active_object
     takes_object = sorted(n for n in api.__all__ if callable(getattr(api, n)) and next(
-        iter(inspect.signature(getattr(api, n)).parameters), "") in ("lidar", "target", "obj",
-                                                                       "model"))
+        iter(inspect.signature(getattr(api, n)).parameters), "") in ("lidar", "target", "obj"))
     predicates = {"is_lidar", "is_target", "is_cloud", "axes_label"}  # a plain answer
     assert set(takes_object) - predicates <= set(OBJECT_CALLS), takes_object
     for name in sorted(predicates):
@@ -86,9 +84,7 @@ def test_every_function_taking_an_object_refuses_what_is_not_one(scene, tmp_path
             assert not getattr(api, name)(bad)
     for name in sorted(set(takes_object) - predicates):
         fn, rest = getattr(api, name), dict(OBJECT_CALLS[name])
-        rest = {k: (cube if v == "cube" else jet if v == "jet" else v) for k, v in rest.items()}
-        if name == "check_model_knows":
-            continue  # its first argument is a model (below)
+        rest = {k: (cube if v == "cube" else v) for k, v in rest.items()}
         for bad in (None, "A320neo", 5, cube):
             if name == "make_target" and bad is None:
                 continue  # None: the scene's first lidar, by design

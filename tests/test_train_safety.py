@@ -12,8 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from training.cli import RESUMABLE
-from training.trainer import Trainer, config_from
+from training.trainer import RESUMABLE, Trainer, config_from
 
 APCG = str(Path(sys.executable).parent / "apcg")
 

@@ -169,17 +169,6 @@ def _train(args) -> int:
     return 0
 
 
-
-
-def __getattr__(name: str):
-    """``RESUMABLE`` (what a resumed run may change) lives with the trainer, which exports
-    check it too; read from here without importing torch for every command."""
-    if name == "RESUMABLE":
-        from .trainer import RESUMABLE
-        return RESUMABLE
-    raise AttributeError(name)
-
-
 def _check_resume_matches(args, saved: dict, over: dict) -> None:
     from pathlib import Path
 
@@ -481,8 +470,8 @@ def register_figure(sub) -> None:
 # The options each figure reads (the others are refused by name); --output it always takes.
 FIGURE_OPTIONS = {"13": ("run",), "14": ("run", "tau", "data", "pairs", "max_checkpoints"),
                   "16": ("model", "lidar"), "18": ("model", "lidar"),
-                  "19": ("model", "lidar", "data", "pairs"), "photons": ("lidar",),
-                  "all": ("run", "tau", "model", "data", "pairs", "lidar", "max_checkpoints")}
+                  "19": ("model", "lidar", "data", "pairs"), "photons": ("lidar",)}
+FIGURE_OPTIONS["all"] = tuple(dict.fromkeys(k for v in FIGURE_OPTIONS.values() for k in v))
 FIGURE_PAIRS = 400  # test pairs per checkpoint (figure 14) or in all (19) unless --pairs
 
 

@@ -18,7 +18,6 @@ from apcg_core.io.dataset import read_header
 from apcg_core.nn.cgan import COND_DIM, NOISE_DIM, Generator
 from apcg_core.typetable import TypeTable
 
-from .data import DepthDataset
 from .trainer import read_checkpoint, read_run_record
 
 
@@ -153,7 +152,7 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
             "types": TypeTable.from_records(head["types"]).to_records(),
             "tau": getattr(family, "default_tau", TAU_DEFAULT) if tau is None else tau,
             "trained_steps": st["step"],
-            "trained_epochs": trained_epochs(st, data, (record or {}).get("world", 1)),
+            "trained_epochs": trained_epochs(st, head, (record or {}).get("world", 1)),
             "dataset": head.get("name"), "train": st["train"],
             "norm": bool(st["train"].get("norm", True)),
             "generator_weights": (f"moving average (decay {st['train']['ema']:g}) since step "
@@ -180,10 +179,14 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     return out
 
 
-def trained_epochs(state: dict, data_dir, world: int = 1) -> float:
-    """Epochs over the training split that the checkpoint's batches made: with ``world``
-    processes (torchrun) each count of the batch counter is ``world`` batches, one per rank
-    (the trainer's own ``batches_per_epoch``)."""
-    bpe = DepthDataset(data_dir, "train").batches_per_epoch(state["train"]["batch_size"],
-                                                            int(world))
+def trained_epochs(state: dict, head: dict, world: int = 1) -> float:
+    """Epochs over the training split (``head``: its dataset.json) that the checkpoint's
+    batches made: with ``world`` processes (torchrun) each count of the batch counter is
+    ``world`` batches, one per rank (the trainer's own ``batches_per_epoch``, from the
+    header's count: the split itself need not be loaded)."""
+    batch = state["train"]["batch_size"] * int(world)
+    bpe = int(head["n_train"]) // batch
+    if bpe < 1:
+        raise InputError(f"{head['n_train']} samples are fewer than one batch of "
+                         f"{state['train']['batch_size']} x {world} process(es)")
     return round(state["batch_counter"] / bpe, 3)

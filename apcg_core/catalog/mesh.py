@@ -142,7 +142,7 @@ def sample_surface(mesh: Mesh, n: int, seed: int = 0, return_faces: bool = False
         raise InputError(f"the mesh's {len(areas)} faces have {'no' if total == 0 else 'no finite'}"
                          " area (every face degenerate, or vertices not finite): a lidar "
                          "would see nothing of it")
-    face = rng.choice(len(areas), size=n, p=areas / areas.sum())
+    face = rng.choice(len(areas), size=n, p=areas / total)
     u, v = rng.random(n), rng.random(n)
     flip = u + v > 1
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
