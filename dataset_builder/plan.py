@@ -17,6 +17,7 @@ import numpy as np
 from apcg_core.condition import ConditionSpace
 from apcg_core.errors import InputError
 from apcg_core.lidar import DEG, LidarParams
+from apcg_core.options import Rule
 
 from .schema import check_config, resolve_sensor
 
@@ -120,31 +121,29 @@ def _check_size(n: int, what: str) -> None:
                          f"{MAX_SAMPLES:,}: split it into several configs (other seeds)")
 
 
-# Each [ranges] key's physical bounds (edge units): (lo, hi, lo open, hi open, accepted).
+# Each [ranges] key's physical bounds (edge units), as the command line's rules state theirs.
 RANGE_BOUNDS = {
-    "aircraft_range_m": (0.0, 1e6, True, False, "metres > 0 and <= 1e6"),
-    "drone_range_m": (0.0, 1e6, True, False, "metres > 0 and <= 1e6"),
-    "elevation_deg": (-90.0, 90.0, True, True, "degrees between -90 and 90, both excluded "
-                      "(+-90: the target overhead)"),
-    "pitch_deg": (-90.0, 90.0, False, False, "degrees from -90 to 90"),
-    "yaw_deg": (-180.0, 180.0, False, False, "degrees from -180 to 180"),
-    "roll_deg": (-180.0, 180.0, False, False, "degrees from -180 to 180"),
+    "aircraft_range_m": Rule("metres > 0 and <= 1e6", 0.0, 1e6, lo_open=True),
+    "drone_range_m": Rule("metres > 0 and <= 1e6", 0.0, 1e6, lo_open=True),
+    "elevation_deg": Rule("degrees between -90 and 90, both excluded (+-90: the target "
+                          "overhead)", -90.0, 90.0, lo_open=True, hi_open=True),
+    "pitch_deg": Rule("degrees from -90 to 90", -90.0, 90.0),
+    "yaw_deg": Rule("degrees from -180 to 180", -180.0, 180.0),
+    "roll_deg": Rule("degrees from -180 to 180", -180.0, 180.0),
 }
 
 
 def check_ranges(ranges: dict, source: str = "dataset config") -> None:
     """Every [ranges] pair within its key's physical bounds with lo < hi (nu is scaled over
     it), named with ``source`` and the key: refused before anything is planned or written."""
-    for key, (lo, hi, lo_open, hi_open, what) in RANGE_BOUNDS.items():
+    for key, rule in RANGE_BOUNDS.items():
         if key not in ranges:
             continue
         a, b = (float(v) for v in ranges[key])
-        inside = all((v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
-                     for v in (a, b))
-        if not (inside and a < b):
+        if not (rule.ok(a) and rule.ok(b) and a < b):
             raise InputError(f"{source}: ranges.{key} = {list(ranges[key])!r} not accepted: "
                              f"[lo, hi] with lo < hi (each condition's vector nu is scaled over "
-                             f"it), both in {what}")
+                             f"it), both in {rule.accepted}")
 
 
 def check_plan(plan: Plan, catalog, source: str = "dataset config") -> None:
