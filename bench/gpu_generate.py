@@ -9,7 +9,8 @@ with random counts) and each size N, it times condition table -> point clouds on
 random conditions of the model's condition space (no two share an attitude, so nothing is
 reused across clouds), nu encoded on the CPU, the APCG+ network (torch, the model's own
 weights) drawing the sheets in batches, and the clouds read off the sheets in place
-(``apcg_core.nn.apcg_plus.read_clouds``: every box cell, float64 geometry). The clouds stay on
+(``apcg_core.nn.apcg_plus.read_clouds``: every box cell, float64 geometry, the model's draw).
+The clouds stay on
 the device, as Fig. 18's did; copying them back would be the next cost. The time is wall
 clock from the numpy table to the last point, synchronised, after one warm-up of the first
 size. Before timing, the device reader is checked against the CPU reader the package uses
@@ -98,7 +99,7 @@ class DeviceGenerator:
             sh = self.sheets(part)
             got = read_clouds(sh, part[:, 1], part[:, 2], rad[s:s + 8 * BATCH],
                               (box[0][s:s + 8 * BATCH], box[1][s:s + 8 * BATCH]), m.lidar,
-                              m.tau, m.quantize)
+                              m.tau, m.quantize, m.draw)
             points += int(got[0].shape[0])
             n += len(part)
         return points
@@ -115,7 +116,8 @@ def check_reader(model, gen: DeviceGenerator, rng) -> dict:
     rad = model.radius[table[:, 0].astype(np.int64)]
     box = box_half_cells(table[:, 1], table[:, 2], rad, model.lidar)
     xyz, r, w, h, sample = (t.cpu().numpy() for t in read_clouds(
-        sheets, table[:, 1], table[:, 2], rad, box, model.lidar, model.tau, model.quantize))
+        sheets, table[:, 1], table[:, 2], rad, box, model.lidar, model.tau, model.quantize,
+        model.draw))
     ref = model.clouds_of(table, sheets.float().cpu().numpy())
     same = (len(r) == len(ref.range_m) and (w == ref.cell_w).all() and (h == ref.cell_h).all()
             and (sample == ref.sample).all())

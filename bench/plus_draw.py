@@ -1,18 +1,17 @@
 """How an APCG+ model's cells are drawn from its calibrated hit probabilities (issue 34,
 criterion 2: faithfulness and MMD per band).
 
-The model reads a hit logit per box cell (``PlusModel.box_reads``) and keeps the cells above
-tau (``threshold``, the shipped rule). Its probabilities are calibrated (stop 45: the share of
-cells that are returns where the condition cannot tell), so a thin wing seen edge-on reads
-p ~ 0.4-0.7 along a row of cells: thresholded, the whole row is drawn, where the simulator's
-cell-centre rays meet the wing in a share of them. The other draws keep that share:
+The model reads a hit logit per box cell (``PlusModel.box_reads``) and draws its returns from
+them by its draw (``apcg_core/families/plus_draw.py``). Its probabilities are calibrated
+(stop 45: the share of cells that are returns where the condition cannot tell), so a thin
+wing seen edge-on reads p ~ 0.4-0.7 along a row of cells: thresholded, the whole row is
+drawn, where the simulator's cell-centre rays meet the wing in a share of them. Draws scored:
 
-* ``diffuse-rows``: error diffusion along each box row (w ascending): a cell is kept when its
-  p plus the error carried from the cell before reaches 0.5, and the error (p + carried - kept)
-  goes on to the next cell; every row starts at 0. Deterministic, and a row's kept count is
-  its summed p, rounded;
-* ``diffuse-2d``: Floyd-Steinberg over each cloud's box (7/16 right, 3/16, 5/16, 1/16 to the
-  next row), rows in h order.
+* ``threshold``: the cells above tau (every model before stop 49);
+* ``diffuse-rows``: the package's error diffusion along each box row (the shipped default
+  since stop 49): a row keeps round(its running sum of p) cells after each cell;
+* ``diffuse-2d`` (here only, not in the package): Floyd-Steinberg over each cloud's box
+  (7/16 right, 3/16, 5/16, 1/16 to the next row), rows in h order.
 
 Candidate cells: those of rows with a sheet column above logit ``--span`` (default -3, p 0.047)
 for the diffused draws, tau for ``threshold`` (the shipped reader's cells). Scored by the
@@ -39,23 +38,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from apcg_core.families.apcg_plus import PlusModel  # noqa: E402
 
 DRAWS = ("threshold", "diffuse-rows", "diffuse-2d")
-
-
-def _rows_kernel():
-    import numba
-
-    @numba.njit(cache=True)
-    def diffuse_rows(sample, h, p):
-        kept = np.zeros(len(p), np.bool_)
-        err = 0.0
-        for i in range(len(p)):
-            if i == 0 or sample[i] != sample[i - 1] or h[i] != h[i - 1]:
-                err = 0.0
-            v = p[i] + err
-            kept[i] = v >= 0.5
-            err = v - (1.0 if kept[i] else 0.0)
-        return kept
-    return diffuse_rows
 
 
 def _floyd_steinberg_kernel():
@@ -95,27 +77,29 @@ def diffuse_2d(sample, h, w, p, kernel):
 
 
 class DrawnModel(PlusModel):
-    """The model with its cells drawn by ``draw`` (module docstring), the numpy reader's."""
+    """The model with its cells drawn by ``draw`` (module docstring): the package's draws
+    through its own readers, ``diffuse-2d`` on the numpy reader's cells."""
 
-    draw = "threshold"
+    draw_2d = False
     span = -3.0
 
     def clouds_of(self, table, sheets, compiled=None):
-        if self.draw == "threshold":
-            return super().clouds_of(table, sheets, compiled=False)
-        sample, w, h, read = self.box_reads(table, sheets, min(self.span, self.tau))
+        if not self.draw_2d:
+            return super().clouds_of(table, sheets, compiled=compiled)
+        sample, w, h, read = self.box_reads(table, sheets, self.tau + self.span)
         p = 1.0 / (1.0 + np.exp(-(read[:, 0].astype(np.float64) - self.tau)))
-        if self.draw == "diffuse-rows":
-            kept = self._rows(sample, h, p)
-        else:
-            kept = diffuse_2d(sample, h, w, p, self._fs)
+        p[read[:, 0] - self.tau <= self.span] = 0.0
+        kept = diffuse_2d(sample, h, w, p, self._fs)
         return self.cloud_of_cells(table, sample[kept], w[kept], h[kept], read[kept, 1])
 
     @classmethod
     def with_draw(cls, directory, draw: str, span: float):
+        from apcg_core.families.plus_draw import DRAWS, Draw
         m = cls(directory)
-        m.draw, m.span = draw, span
-        m._rows, m._fs = _rows_kernel(), _floyd_steinberg_kernel()
+        if draw in DRAWS:
+            m.draw = DRAWS[draw] if not DRAWS[draw].diffused else Draw(draw, span)
+        else:
+            m.draw_2d, m.span, m._fs = True, span, _floyd_steinberg_kernel()
         return m
 
 

@@ -203,22 +203,38 @@ def test_choose_tau_sweeps_the_hit_logit_on_the_validation_half(trained, tiny_tr
 
 
 def _read_every_box_cell(model, table, sheets):
-    """The reference reader: every cell of every box, bilinear, kept above tau."""
+    """The reference reader: every cell of every box, bilinear, drawn by the model's draw
+    over whole box rows (w ascending from the box's first cell)."""
     codes = table[:, 0].astype(int)
     r0, b0, rad = table[:, 1], table[:, 2], model.radius[codes]
     sample, w, h = box_cells(r0, b0, rad, model.lidar)
+    order = np.lexsort((w, h, sample))
+    sample, w, h = sample[order], w[order], h[order]
     u, v = sheet_coords(w, h, r0[sample], b0[sample], rad[sample], model.lidar)
     read = sample_sheets(sheets, sample, u, v)
-    keep = read[:, 0] > model.tau
+    keep = model.draw.keep(sample, h, read[:, 0], model.tau)
     r = model.lidar.quantize_range(r0[sample[keep]] + read[keep, 1] * rad[sample[keep]])
     return sample[keep], w[keep], h[keep], r
 
 
+@pytest.mark.parametrize("draw", ["threshold", "diffuse-rows"])
 @pytest.mark.parametrize("kind", ["trained", "random", "speckled"])
-def test_fast_reader_finds_every_return_of_the_full_box(trained, tiny_training_data, kind):
+def test_fast_reader_finds_every_return_of_the_full_box(trained, tiny_training_data, kind,
+                                                        draw):
     """The interval reader equals reading every box cell, on trained sheets and on sheets
-    with many separate blobs per row (where one interval per row must still cover them)."""
+    with many separate blobs per row (where one interval per row must still cover them),
+    under each draw (the diffused one counts every cell outside the intervals as p = 0)."""
+    from apcg_core.families.plus_draw import DRAWS
     model, _ = trained
+    own = model.draw
+    model.draw = DRAWS[draw]
+    try:
+        _fast_reader_against_full_box(model, tiny_training_data, kind)
+    finally:
+        model.draw = own
+
+
+def _fast_reader_against_full_box(model, tiny_training_data, kind):
     ds = DepthDataset(tiny_training_data, "test")
     table = model.repeated_conditions(ds.condition_rows(np.arange(len(ds))), 1)
     sheets = model.sheets(table)
@@ -280,8 +296,9 @@ def test_figure_16_sets_generated_beside_standard(trained, tmp_path):
     assert all(p["points_standard"] > 0 for p in data["panels"])
 
 
+@pytest.mark.parametrize("draw", ["threshold", "diffuse-rows"])
 @pytest.mark.parametrize("kind", ["shipped", "speckled"])
-def test_device_reader_equals_the_package_reader(monkeypatch, kind):
+def test_device_reader_equals_the_package_reader(monkeypatch, kind, draw):
     """nn.apcg_plus.read_clouds (the reader that runs where the sheets are, bench/
     gpu_generate.py) returns the numpy reader's cells, ranges and points, in its order, on
     the shipped model's sheets at random conditions of every type (near and far, drones), and
@@ -289,8 +306,10 @@ def test_device_reader_equals_the_package_reader(monkeypatch, kind):
     import torch
 
     from apcg_core.families.apcg_plus import box_half_cells
+    from apcg_core.families.plus_draw import DRAWS
     from apcg_core.nn import apcg_plus as nn_plus
     model = load_model(None)
+    model.draw = DRAWS[draw]
     rng = np.random.default_rng(7)
     n = 96
     table = model.space.decode(rng.uniform(-1, 1, (n, 6)))
@@ -309,7 +328,7 @@ def test_device_reader_equals_the_package_reader(monkeypatch, kind):
         monkeypatch.setattr(nn_plus, "READ_CELLS", group)
         xyz, r, w, h, sample = (t.numpy() for t in nn_plus.read_clouds(
             torch.from_numpy(sheets), table[:, 1], table[:, 2], rad, box, model.lidar,
-            model.tau, model.quantize))
+            model.tau, model.quantize, model.draw))
         np.testing.assert_array_equal(sample, want.sample)
         np.testing.assert_array_equal(w, want.cell_w)
         np.testing.assert_array_equal(h, want.cell_h)

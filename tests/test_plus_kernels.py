@@ -3,7 +3,7 @@ reader they replace (PlusModel.clouds_of): the same clouds, byte for byte, on th
 model's sheets at a few hundred random conditions of its condition space (aircraft and
 drones, the nearest and the farthest ranges), at every lidar preset (half and double cells,
 anisotropic cells, other bins), on speckled and float64 sheets, without quantising, with
-nothing above tau, and for no condition and one."""
+nothing above tau, and for no condition and one; under every draw (plus_draw.py)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ pytest.importorskip("onnxruntime")
 
 from apcg_core.families import load_model, plus_kernels  # noqa: E402
 from apcg_core.families.apcg_plus import CHUNK  # noqa: E402
+from apcg_core.families.plus_draw import DRAWS  # noqa: E402
 from apcg_core.lidar import lidar_preset_names, load_lidar  # noqa: E402
 from apcg_core.typetable import Conditions  # noqa: E402
 
@@ -58,10 +59,20 @@ def _same(a, b, what):
 
 
 def _both(model, table, sheets, what):
-    want = model.clouds_of(table, sheets, compiled=False)
-    got = model.clouds_of(table, sheets, compiled=True)
-    _same(got, want, what)
-    return want
+    """Both readers, under every draw (plus_draw.DRAWS): the same bytes; returns the
+    model's own draw's cloud."""
+    own = model.draw
+    try:
+        for draw in DRAWS.values():
+            model.draw = draw
+            want = model.clouds_of(table, sheets, compiled=False)
+            got = model.clouds_of(table, sheets, compiled=True)
+            _same(got, want, (what, draw.name))
+            if draw == own:
+                mine = want
+    finally:
+        model.draw = own
+    return mine
 
 
 def test_the_kernels_are_there():

@@ -13,10 +13,12 @@ idea and changes three things, each measured (docs/evaluation/plus/):
   at their exact sheet coordinates (bilinear), not through DeNorm's nearest pixel. Far targets
   cost few reads.
 * **Two outputs.** Channel 0 is the logit of "this cell has a return", channel 1 the range
-  offset (r - r0) / R of that return. A return is kept where the logit is above ``tau``, the
-  model's output threshold as Im2PC's tau is the cGAN's (0: probability one half; chosen on the
-  validation half by `apcg choose-tau`); its range is quantised to the lidar's time bins as
-  the standard data are.
+  offset (r - r0) / R of that return. The returns are drawn from the logits by the model's
+  ``draw`` (:mod:`apcg_core.families.plus_draw`): error diffusion of the calibrated
+  probabilities logistic(logit - tau) along each box row (the default), or, for a model.json
+  without one, where the logit is above ``tau``, the model's output threshold as Im2PC's tau is
+  the cGAN's (0: probability one half; chosen on the validation half by `apcg choose-tau`);
+  its range is quantised to the lidar's time bins as the standard data are.
 
 This module is numpy (and onnxruntime to run the exported network), like the rest of the core;
 the network itself is :mod:`apcg_core.nn.apcg_plus` (torch), used for training and for the torch
@@ -38,6 +40,7 @@ from ..frames import spherical_to_cartesian
 from ..lidar import LidarParams
 from . import plus_kernels
 from .base import RUNTIMES, ModelTypes, onnx_session, onnx_weights
+from .plus_draw import draw_of
 
 FAMILY = "apcg-plus"
 CHUNK = 256  # conditions read at a time (a block of `apcg generate`): bounds memory (a sheet
@@ -159,6 +162,8 @@ class PlusModel(ModelTypes):
                              "bounding_radius_m > 0 (an APCG+ model reads its box from it)")
         self.radius = np.asarray(radius, np.float64)
         self.tau = self.check_tau(self.meta.get("tau", self.DEFAULT_TAU))
+        # how returns are drawn from the hit logits (plus_draw.py; none: the threshold)
+        self.draw = draw_of(self.meta.get("draw"), f"{self.directory / 'model.json'}")
         self.quantize = bool(self.meta.get("quantize", True))
         # chunks generated side by side, each network call on one thread: measured fastest
         # here (bench/plus_speed.py); APCG_THREADS sets the count (1: one chunk at a time)
@@ -298,9 +303,10 @@ class PlusModel(ModelTypes):
         the same returns as reading every box cell with :func:`sample_sheets`, found faster.
 
         The bilinear read is separable (u depends on w alone, v on h alone), so each box row
-        h is first interpolated between two sheet rows; a cell can then exceed tau only where
-        one of the two sheet columns it lies between does, which bounds each row's cells to
-        one interval of w. Only those cells are read (a few more than the returns).
+        h is first interpolated between two sheet rows; a cell can then exceed the draw's row
+        floor (tau, or tau + span) only where one of the two sheet columns it lies between
+        does, which bounds each row's cells to one interval of w. Only those cells are read
+        (a few more than the returns); the draw counts every cell outside them as p = 0.
 
         ``compiled`` (default: :func:`plus_kernels.use_for` these clouds) reads them in the
         compiled loops of :mod:`apcg_core.families.plus_kernels`, the same bytes; float32 or
@@ -310,15 +316,15 @@ class PlusModel(ModelTypes):
         if (compiled and table.dtype == np.float64
                 and sheets.dtype in (np.float32, np.float64)):
             return self._clouds_compiled(table, sheets)
-        sample, w, h, read = self.box_reads(table, sheets, self.tau)
-        keep = read[:, 0] > self.tau
+        sample, w, h, read = self.box_reads(table, sheets, self.draw.row_floor(self.tau))
+        keep = self.draw.keep(sample, h, read[:, 0], self.tau)
         return self.cloud_of_cells(table, sample[keep], w[keep], h[keep], read[keep, 1])
 
     def box_reads(self, table: np.ndarray, sheets: np.ndarray, span_tau: float):
         """Every box cell of each live row (a row with a sheet column whose hit read exceeds
         ``span_tau``) within the interval those columns bound, as (sample, w, h, the cell's
         (hit logit, range offset) read off the sheet): the numpy reader's cells, which it
-        keeps above tau (``bench/plus_draw.py`` draws them other ways)."""
+        draws from (the model's ``draw``: plus_draw.py)."""
         lidar = self.lidar
         codes = table[:, 0].astype(np.int64)
         r0, b0, rad = table[:, 1], table[:, 2], self.radius[codes]
@@ -379,13 +385,13 @@ class PlusModel(ModelTypes):
         s = sheets.shape[-1]
         tan_a, sin_a, cos_a, tan_b = plus_kernels.angle_tables(lidar)
         n, h, y0, fy, first, last = k.row_spans(sheets, h_lo, h_hi - h_lo + 1, r0, rad, tan_b,
-                                                lidar.h_min, self.tau)
+                                                lidar.h_min, self.draw.row_floor(self.tau))
         start, stop = _row_interval(r0, b0, rad, n, first, last, w_lo, w_hi, s, lidar)
         beta = h.astype(np.float64) * lidar.r_beta + b0[n]  # cell_centre_angles' beta
         xyz, r, w, h, sample = k.read_rows(
             sheets, n, h, y0, fy, start, stop, np.cos(beta), np.sin(beta), r0, rad,
             r0 * np.cos(b0), tan_a, sin_a, cos_a, lidar.w_min, self.tau, self.quantize,
-            lidar.r_r)
+            lidar.r_r, self.draw.quanta, float(self.draw.span or 0.0))
         return PointCloud(xyz, r, w, h, sample)
 
     def generate(self, conditions, count: int = 1, seed: int = 0):

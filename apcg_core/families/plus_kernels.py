@@ -34,6 +34,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..kernel_loader import ENV, KernelSet, Loader
+from .plus_draw import HALF, ONE, STEPS_PER_LOGIT
 
 __all__ = ["ENV", "SWITCH_CLOUDS", "angle_tables", "enabled", "expect", "loaded", "require",
            "use_for"]
@@ -140,14 +141,18 @@ def _compile() -> KernelSet:
 
     @jit
     def read_rows(sheets, row_n, row_h, row_y0, row_fy, start, stop, cos_beta, sin_beta,
-                  r0, rad, r0cb, tan_a, sin_a, cos_a, w_min, tau, quantize, r_r):
+                  r0, rad, r0cb, tan_a, sin_a, cos_a, w_min, tau, quantize, r_r, quanta, span):
         """The cells w = start .. stop of each live row (``row_spans``' rows, intervals from
         numpy's arctan): u = r0 cos(b0) tan(w r_alpha) / R, the sheet column pair
         x0 = min(floor(x), s - 2) and weight fx = x - x0 of x = clip(((u + 1) s - 1) / 2, 0,
         s - 1), and each channel read as row[x0] (1 - fx) + row[x0 + 1] fx of the row's
-        values (as row_spans interpolates them); a cell with a hit read above ``tau`` is
-        kept, its range r0 + offset R (quantised to the bin centres when ``quantize``) and its
-        point (r cos(beta) sin(alpha), r sin(beta), r cos(beta) cos(alpha)), cos(beta) and
+        values (as row_spans interpolates them); a cell is kept where its hit read is above
+        ``tau`` (``quanta`` empty: the threshold draw) or, for the diffused draw
+        (plus_draw.Draw.keep), where the row's running sum of the cells' ``quanta`` entries,
+        rounded, steps up (entry floor((read - tau - span) STEPS_PER_LOGIT), none where
+        read - tau <= span; integer sums, the numpy draw's to the quantum). Its range
+        r0 + offset R (quantised to the bin centres when ``quantize``) and its point
+        (r cos(beta) sin(alpha), r sin(beta), r cos(beta) cos(alpha)), cos(beta) and
         sin(beta) the row's. Returns xyz, range, w, h, sample, in the numpy reader's order."""
         s = sheets.shape[3]
         top = np.float64(s) - 1.0
@@ -162,8 +167,13 @@ def _compile() -> KernelSet:
         osample = np.empty(cap, np.int64)
         hit = np.empty(s)
         off = np.empty(s)
+        diffused = quanta.shape[0] > 0
+        top_k = quanta.shape[0] - 1
+        steps = np.float64(STEPS_PER_LOGIT)
         m = 0
         for i in range(start.shape[0]):
+            total = 0  # the row's running sum of quanta, and the returns it has kept
+            kept = 0
             n = row_n[i]
             y0 = row_y0[i]
             fy = row_fy[i]
@@ -185,7 +195,18 @@ def _compile() -> KernelSet:
                     x0 = s - 2
                 fx = x - np.float64(x0)
                 gx = 1.0 - fx
-                if not (hit[x0] * gx + hit[x0 + 1] * fx > tau):
+                read = hit[x0] * gx + hit[x0 + 1] * fx
+                if diffused:
+                    z = read - tau
+                    if not (z > span):
+                        continue
+                    kf = np.floor((z - span) * steps)
+                    total += quanta[top_k if kf > top_k else np.int64(kf)]
+                    now = (total + HALF) // ONE
+                    if now <= kept:
+                        continue
+                    kept = now
+                elif not (read > tau):
                     continue
                 r = r0[n] + (off[x0] * gx + off[x0 + 1] * fx) * rad[n]
                 if quantize:

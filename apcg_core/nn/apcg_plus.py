@@ -142,11 +142,26 @@ class PlusNet(nn.Module):
 
 
 # --- reading clouds off the sheets where the sheets are (a GPU): every box cell ----------------
+def _diffused_keep(z: torch.Tensor, row_start: torch.Tensor, draw) -> torch.Tensor:
+    """plus_draw.Draw.keep on the device: each cell's quanta (z: logit - tau) from the draw's
+    table, the running sums of each row (beginning at index ``row_start``) in int64."""
+    from apcg_core.families.plus_draw import HALF, ONE, STEPS_PER_LOGIT
+    quanta = torch.as_tensor(draw.quanta, device=z.device)
+    live = z > draw.span
+    k = torch.where(live, torch.floor((z - draw.span) * STEPS_PER_LOGIT), torch.zeros_like(z))
+    q = torch.where(live, quanta[k.clamp(0, len(quanta) - 1).long()], torch.zeros_like(k.long()))
+    total = torch.cumsum(q, 0)
+    before = total - q
+    base = before[row_start]
+    return (total - base + HALF) // ONE > (before - base + HALF) // ONE
+
+
+
 READ_CELLS = 2**25  # box cells read at once: bounds the reader's memory (~0.6 GB of float64)
 
 
 def read_clouds(sheets: torch.Tensor, range_m, elevation, radius_m, box, lidar, tau: float,
-                quantize: bool = True):
+                quantize: bool = True, draw=None):
     """The clouds of conditions (``range_m``, ``elevation``, ``radius_m``: numpy (N,); ``box``:
     their box_half_cells) read off their ``sheets`` (N, 2, S, S) on the sheets' device, as
     torch tensors (xyz (P, 3) and range (P,) float64; cell w, h and sample (P,) int64), in
@@ -156,7 +171,9 @@ def read_clouds(sheets: torch.Tensor, range_m, elevation, radius_m, box, lidar, 
     then columns): the same returns as the numpy reader, which reads fewer cells but is bound
     to the CPU; here the cells are read in place, so nothing but the points leaves the
     device. The box and the cells' angles are the numpy reader's own (box_half_cells, the
-    lidar's cell centres), computed on the device in float64."""
+    lidar's cell centres), computed on the device in float64. ``draw``: the model's
+    (apcg_core.families.plus_draw; None: the threshold), its quanta summed along each box row
+    as integers, as the package's readers sum them."""
     dev = sheets.device
     f64 = torch.float64
     r0 = np.asarray(range_m, np.float64)
@@ -199,7 +216,12 @@ def read_clouds(sheets: torch.Tensor, range_m, elevation, radius_m, box, lidar, 
 
         read = ((at(y0, x0) * (1 - fy) + at(y0 + 1, x0) * fy) * (1 - fx)
                 + (at(y0, x0 + 1) * (1 - fy) + at(y0 + 1, x0 + 1) * fy) * fx)
-        keep = read[:, 0] > tau
+        if draw is None or not draw.diffused:
+            keep = read[:, 0] > tau
+        else:  # plus_draw.Draw.keep; a box row is nw consecutive cells here
+            rel = sample - start
+            row_start = first[rel] + (h - t["h_lo"][sample]) * nw_j
+            keep = _diffused_keep(read[:, 0] - tau, row_start, draw)
         sample, w, h = sample[keep], w[keep], h[keep]
         r = r0_j[keep] + read[keep, 1] * rad_j[keep]
         if quantize:

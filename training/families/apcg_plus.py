@@ -259,7 +259,8 @@ class PlusFamily(Family):
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         export_sheets_onnx(net, out / "sheets.onnx")
-        meta = {**meta, "family": FAMILY,
+        from apcg_core.families.plus_draw import DEFAULT as DEFAULT_DRAW
+        meta = {**meta, "family": FAMILY, "draw": DEFAULT_DRAW.record(),
                 "quantize": bool(header.get("config", {}).get("quantize", True))}
         meta.pop("norm", None)
         (out / "model.json").write_text(json.dumps(meta, indent=1) + "\n")
