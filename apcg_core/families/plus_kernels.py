@@ -170,11 +170,39 @@ def _compile() -> KernelSet:
         diffused = quanta.shape[0] > 0
         top_k = quanta.shape[0] - 1
         steps = np.float64(STEPS_PER_LOGIT)
+        # a cell's sheet column pair and weight depend on its cloud and w only: computed once
+        # a cloud for the union of its rows' intervals (rows of a cloud are consecutive)
+        col_x0 = np.empty(tan_a.shape[0], np.int64)
+        col_fx = np.empty(tan_a.shape[0])
         m = 0
+        cloud = -1
         for i in range(start.shape[0]):
             total = 0  # the row's running sum of quanta, and the returns it has kept
             kept = 0
             n = row_n[i]
+            if n != cloud:
+                cloud = n
+                lo = start[i]
+                hi = stop[i]
+                j = i + 1
+                while j < start.shape[0] and row_n[j] == n:
+                    if start[j] < lo:
+                        lo = start[j]
+                    if stop[j] > hi:
+                        hi = stop[j]
+                    j += 1
+                for w in range(lo, hi + 1):
+                    u = r0cb[n] * tan_a[w - w_min] / rad[n]
+                    x = ((u + 1.0) * np.float64(s) - 1.0) / 2.0
+                    if x < 0.0:
+                        x = 0.0
+                    if x > top:
+                        x = top
+                    x0 = np.int64(np.floor(x))
+                    if x0 > s - 2:
+                        x0 = s - 2
+                    col_x0[w - w_min] = x0
+                    col_fx[w - w_min] = x - np.float64(x0)
             y0 = row_y0[i]
             fy = row_fy[i]
             gy = 1.0 - fy
@@ -184,16 +212,8 @@ def _compile() -> KernelSet:
                 off[x] = (np.float64(sheets[n, 1, y0, x]) * gy
                           + np.float64(sheets[n, 1, y0 + 1, x]) * fy)
             for w in range(start[i], stop[i] + 1):
-                u = r0cb[n] * tan_a[w - w_min] / rad[n]
-                x = ((u + 1.0) * np.float64(s) - 1.0) / 2.0
-                if x < 0.0:
-                    x = 0.0
-                if x > top:
-                    x = top
-                x0 = np.int64(np.floor(x))
-                if x0 > s - 2:
-                    x0 = s - 2
-                fx = x - np.float64(x0)
+                x0 = col_x0[w - w_min]
+                fx = col_fx[w - w_min]
                 gx = 1.0 - fx
                 read = hit[x0] * gx + hit[x0 + 1] * fx
                 if diffused:
