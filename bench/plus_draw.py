@@ -13,9 +13,11 @@ drawn, where the simulator's cell-centre rays meet the wing in a share of them. 
 * ``diffuse-2d`` (here only, not in the package): Floyd-Steinberg over each cloud's box
   (7/16 right, 3/16, 5/16, 1/16 to the next row), rows in h order.
 
-Candidate cells: those of rows with a sheet column above logit ``--span`` (default -3, p 0.047)
-for the diffused draws, tau for ``threshold`` (the shipped reader's cells). Scored by the
-evaluation protocol (``training.protocol.score`` with faithfulness), tau the model's:
+The diffused draws count cells below logit tau + ``--span`` as p = 0 (default -6, p 0.0025,
+the shipped default's; stop 48 measured -3 with the cells between counted); ``threshold``
+reads the shipped reader's cells. Scored by the evaluation protocol
+(``training.protocol.score`` with faithfulness, the decoys prepared once for every draw), tau
+the model's:
 
     .venv/bin/python bench/plus_draw.py --model apcg_core/models/default --data data/cpu \\
         --draw threshold --draw diffuse-rows --json bench/results/plus_draw.json
@@ -81,7 +83,7 @@ class DrawnModel(PlusModel):
     through its own readers, ``diffuse-2d`` on the numpy reader's cells."""
 
     draw_2d = False
-    span = -3.0
+    span = -6.0
 
     def clouds_of(self, table, sheets, compiled=None):
         if not self.draw_2d:
@@ -113,7 +115,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default="data/cpu")
     ap.add_argument("--draw", action="append", choices=DRAWS, help="repeatable")
     ap.add_argument("--pairs", type=int, default=2000, help="as apcg evaluate (2,001 pairs)")
-    ap.add_argument("--span", type=float, default=-3.0)
+    ap.add_argument("--span", type=float, default=-6.0)
     ap.add_argument("--json", help="write the per-band figures here")
     args = ap.parse_args(argv)
     ds = DepthDataset(args.data, "test")

@@ -156,7 +156,6 @@ def _diffused_keep(z: torch.Tensor, row_start: torch.Tensor, draw) -> torch.Tens
     return (total - base + HALF) // ONE > (before - base + HALF) // ONE
 
 
-
 READ_CELLS = 2**25  # box cells read at once: bounds the reader's memory (~0.6 GB of float64)
 
 
