@@ -168,3 +168,24 @@ def test_every_registered_draw_round_trips_its_record():
     for name, d in DRAWS.items():
         assert draw_of(d.record()) == d and d.name == name
     assert draw_of({"rule": "diffuse-rows", "span": -5}).span == -5.0
+
+
+def test_sub_rays_are_drawn_by_the_threshold():
+    """The photon stage's K x K sub-rays (sensor/generated.fine_hits) are the thresholded
+    model's, whatever the model's own draw (Draw.at_sub_rays); the model keeps its draw."""
+    import copy
+
+    from apcg_core.sensor.generated import fine_hits
+    model = load_model(None)
+    assert model.draw.diffused
+    table = np.array([[0, 4000.0, 3.5 * np.pi / 180, 0.05, 0.35, 0.02],
+                      [0, 300.0, 3.5 * np.pi / 180, 0.05, 0.1, 0.02]])
+    names = ["A320neo", "Mavic 3"]
+    got = fine_hits(model, table, names, model.lidar)
+    assert model.draw.diffused
+    thresholded = copy.copy(model)
+    thresholded.draw = THRESHOLD
+    want = fine_hits(thresholded, table, names, model.lidar)
+    assert len(got.range_m) > 1000
+    for f in ("sample", "w", "h", "range_m", "cos"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(want, f))

@@ -115,13 +115,16 @@ def sub_ray_hits(model, table: np.ndarray, names, lidar: LidarParams,
 def fine_hits(model, table: np.ndarray, names, lidar: LidarParams,
               k: int = SUB_READS) -> SubRayHits:
     """``model``'s returns of conditions ``table`` at ``sub_ray_lidar(lidar, k)``, one per
-    finer cell, unquantized; each one's incidence is the model's incidence output where it
-    has one (``draws_incidence``), else the range slope's. The model itself is left as it was
-    (a shallow copy draws)."""
+    finer cell, unquantized, drawn by the model's rule for sub-rays (APCG+: the threshold,
+    :meth:`apcg_core.families.plus_draw.Draw.at_sub_rays`); each one's incidence is the
+    model's incidence output where it has one (``draws_incidence``), else the range slope's.
+    The model itself is left as it was (a shallow copy draws)."""
     import copy
     fine_model = copy.copy(model)
     fine_model.lidar = sub_ray_lidar(lidar, k)
     fine_model.quantize = False
+    if hasattr(fine_model, "draw"):  # APCG+'s rule for sub-rays (plus_draw.Draw.at_sub_rays)
+        fine_model.draw = fine_model.draw.at_sub_rays()
     res = fine_model.generate(fine_model.conditions(list(names), table[:, 1:]))
     cos = (fine_model.incidence_of(res.table, res.cloud)
            if getattr(model, "draws_incidence", False) else None)
