@@ -140,6 +140,8 @@ def show_row(spec: str, models) -> None:
     for m in models:
         m = copy.copy(m)
         m.lidar, m.quantize = fine, False
+        if hasattr(m, "draw"):  # sub-rays are drawn as sensor/generated.fine_hits draws them
+            m.draw = m.draw.at_sub_rays()
         clouds[str(m.directory)] = m.generate(m.conditions([name], t[:, 1:])).cloud
     ex = clouds["exact"]
     rows, counts = np.unique(ex.cell_h, return_counts=True)
