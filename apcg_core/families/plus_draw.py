@@ -35,10 +35,11 @@ ONE = 1 << 24  # quanta of a certain return: p is resolved to 6e-8, far below an
 HALF = ONE >> 1
 STEPS_PER_LOGIT = 1024  # p's table steps a logit (a power of two: z * 1024 is exact)
 TOP_LOGIT = 20.0  # above span + this, p rounds to ONE (logistic(17) > 1 - 2^-25)
-# p = 0.0025 below it. Scored on the shipped default (2,001 test-half pairs, /tmp-free:
-# bench/plus_draw.py --span S): span -3 (p 0.047) left one 3-6 km pair unfaithful that
-# -6 and -9 keep (339 / 342, every band alike at -6 and -9: the draw has converged); the
-# compiled reader costs 0.0158, 0.0167, 0.0183 ms a cloud at -3, -6, -9 (threshold 0.0115)
+# p = 0.0025 below it. Scored on the shipped default (2,001 test-half pairs, the decoys
+# prepared once, as `bench/plus_draw.py --draw diffuse-rows --span S` does; stop 49): span -3
+# (p 0.047) left one 3-6 km pair unfaithful that -6 and -9 keep (339 / 342; every band alike
+# at -6 and -9: the draw has converged); the compiled reader cost 0.0158, 0.0167, 0.0183 ms
+# a cloud at -3, -6, -9 (threshold 0.0115; 4,096 random conditions, one process)
 DEFAULT_SPAN = -6.0
 # the candidate rows and columns are those above span less this: a bilinear read of values
 # at most span may round a few ulp above it, and such a cell must still be read
