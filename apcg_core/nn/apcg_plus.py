@@ -146,7 +146,7 @@ def _diffused_keep(z: torch.Tensor, row_start: torch.Tensor, draw) -> torch.Tens
     """plus_draw.Draw.keep on the device: each cell's quanta (z: logit - tau) from the draw's
     table, the running sums of each row (beginning at index ``row_start``) in int64."""
     from apcg_core.families.plus_draw import HALF, ONE, STEPS_PER_LOGIT
-    quanta = torch.as_tensor(draw.quanta, device=z.device)
+    quanta = torch.tensor(draw.quanta, device=z.device)  # a copy: the table is read-only
     live = z > draw.span
     k = torch.where(live, torch.floor((z - draw.span) * STEPS_PER_LOGIT), torch.zeros_like(z))
     q = torch.where(live, quanta[k.clamp(0, len(quanta) - 1).long()], torch.zeros_like(k.long()))
