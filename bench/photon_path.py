@@ -138,10 +138,7 @@ def show_row(spec: str, models) -> None:
     with Simulator("embree", fine, quantize=False) as sim:
         clouds = {"exact": sim.simulate_type(default_catalog(), name, t).cloud}
     for m in models:
-        m = copy.copy(m)
-        m.lidar, m.quantize = fine, False
-        if hasattr(m, "draw"):  # sub-rays are drawn as sensor/generated.fine_hits draws them
-            m.draw = m.draw.at_sub_rays()
+        m = G.sub_ray_model(m, LIDAR)
         clouds[str(m.directory)] = m.generate(m.conditions([name], t[:, 1:])).cloud
     ex = clouds["exact"]
     rows, counts = np.unique(ex.cell_h, return_counts=True)

@@ -174,9 +174,7 @@ def test_the_incidence_output_learns_and_is_exported_beside_the_model(every_type
     for k in ("sample", "w", "h", "range_m"):
         assert np.array_equal(getattr(got, k), getattr(ref, k)), k
     assert not np.allclose(got.cos, ref.cos)
-    fine = copy.copy(m)
-    fine.lidar, fine.quantize = G.sub_ray_lidar(DEFAULT_LIDAR), False
-    fine.draw = fine.draw.at_sub_rays()  # sub-rays are drawn as fine_hits draws them
+    fine = G.sub_ray_model(m, DEFAULT_LIDAR)
     conds = fine.conditions(names, table[:, 1:])
     cloud = fine.generate(conds).cloud
     want = fine.incidence_of(fine.repeated_conditions(conds, 1), cloud)

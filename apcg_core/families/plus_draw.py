@@ -112,15 +112,16 @@ class Draw:
         sample, h = np.asarray(sample), np.asarray(h)
         starts = np.ones(len(q), bool)
         starts[1:] = (sample[1:] != sample[:-1]) | (h[1:] != h[:-1])
-        return stepped_up(q, starts)
+        return stepped_up(q, np.flatnonzero(starts)[np.cumsum(starts) - 1])
 
 
-def stepped_up(q: np.ndarray, starts: np.ndarray) -> np.ndarray:
-    """The diffused draw's keep over cells of quanta ``q`` in rows beginning where ``starts``:
-    round(running sum) steps up (integers: exact, in any order of summation)."""
-    total = np.cumsum(q)
+def stepped_up(q, row_first):
+    """The diffused draw's keep over cells of quanta ``q`` (int64), each in the row whose
+    first cell is at index ``row_first``: round(running sum) steps up (integers: exact, in any
+    order of summation). numpy arrays or torch tensors alike (the device reader's)."""
+    total = q.cumsum(0)
     before = total - q
-    base = before[starts][np.cumsum(starts) - 1] if len(q) else before
+    base = before[row_first]
     return (total - base + HALF) // ONE > (before - base + HALF) // ONE
 
 

@@ -145,15 +145,12 @@ class PlusNet(nn.Module):
 def _diffused_keep(z: torch.Tensor, row_start: torch.Tensor, draw) -> torch.Tensor:
     """plus_draw.Draw.keep on the device: each cell's quanta (z: logit - tau) from the draw's
     table, the running sums of each row (beginning at index ``row_start``) in int64."""
-    from apcg_core.families.plus_draw import HALF, ONE, STEPS_PER_LOGIT
+    from apcg_core.families.plus_draw import STEPS_PER_LOGIT, stepped_up
     quanta = torch.tensor(draw.quanta, device=z.device)  # a copy: the table is read-only
     live = z > draw.span
     k = torch.where(live, torch.floor((z - draw.span) * STEPS_PER_LOGIT), torch.zeros_like(z))
     q = torch.where(live, quanta[k.clamp(0, len(quanta) - 1).long()], torch.zeros_like(k.long()))
-    total = torch.cumsum(q, 0)
-    before = total - q
-    base = before[row_start]
-    return (total - base + HALF) // ONE > (before - base + HALF) // ONE
+    return stepped_up(q, row_start)
 
 
 READ_CELLS = 2**25  # box cells read at once: bounds the reader's memory (~0.6 GB of float64)

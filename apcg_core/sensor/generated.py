@@ -112,6 +112,19 @@ def sub_ray_hits(model, table: np.ndarray, names, lidar: LidarParams,
     return cells_of_fine_hits(fine_hits(model, table, names, lidar, k), lidar, k)
 
 
+def sub_ray_model(model, lidar: LidarParams, k: int = SUB_READS):
+    """A shallow copy of ``model`` that draws ``lidar``'s K x K sub-rays: at
+    ``sub_ray_lidar(lidar, k)``, unquantized, by the model's rule for sub-rays (APCG+: the
+    threshold, :meth:`apcg_core.families.plus_draw.Draw.at_sub_rays`)."""
+    import copy
+    fine_model = copy.copy(model)
+    fine_model.lidar = sub_ray_lidar(lidar, k)
+    fine_model.quantize = False
+    if hasattr(fine_model, "draw"):
+        fine_model.draw = fine_model.draw.at_sub_rays()
+    return fine_model
+
+
 def fine_hits(model, table: np.ndarray, names, lidar: LidarParams,
               k: int = SUB_READS) -> SubRayHits:
     """``model``'s returns of conditions ``table`` at ``sub_ray_lidar(lidar, k)``, one per
@@ -119,12 +132,7 @@ def fine_hits(model, table: np.ndarray, names, lidar: LidarParams,
     :meth:`apcg_core.families.plus_draw.Draw.at_sub_rays`); each one's incidence is the
     model's incidence output where it has one (``draws_incidence``), else the range slope's.
     The model itself is left as it was (a shallow copy draws)."""
-    import copy
-    fine_model = copy.copy(model)
-    fine_model.lidar = sub_ray_lidar(lidar, k)
-    fine_model.quantize = False
-    if hasattr(fine_model, "draw"):  # APCG+'s rule for sub-rays (plus_draw.Draw.at_sub_rays)
-        fine_model.draw = fine_model.draw.at_sub_rays()
+    fine_model = sub_ray_model(model, lidar, k)
     res = fine_model.generate(fine_model.conditions(list(names), table[:, 1:]))
     cos = (fine_model.incidence_of(res.table, res.cloud)
            if getattr(model, "draws_incidence", False) else None)
