@@ -134,6 +134,32 @@ def test_a_source_of_pure_noise_scores_chance():
     assert exact["tstr"]["overall"]["ratio"] == 1.0
 
 
+def test_noise_clouds_carry_nothing_of_their_rows_range():
+    # half the rows a drone's at 300 m, half an aircraft's at 10 km: a noise cloud's range is
+    # a row drawn at random, so drone rows get aircraft ranges as often as aircraft rows do
+    table = np.zeros((400, 6))
+    table[:, 0] = np.arange(400) % 2
+    table[:, 1] = np.where(table[:, 0] == 0, 300.0, 10000.0)
+    table[:, 2] = np.radians(3.5)
+    clouds = recognize.noise_clouds(table, seed=5)
+    far = np.array([np.median(np.linalg.norm(c, axis=1)) > 3000.0 for c in clouds])
+    drone, aircraft = far[table[:, 0] == 0].mean(), far[table[:, 0] == 1].mean()
+    assert 0.35 < drone < 0.65 and 0.35 < aircraft < 0.65
+    assert far.sum() == 200  # the rows' own ranges, permuted: none lost or made up
+    again = recognize.noise_clouds(table, seed=5)
+    assert all(np.array_equal(a, b) for a, b in zip(clouds, again, strict=True))
+
+
+def test_pure_noise_scores_chance_on_a_drone_against_an_aircraft():
+    # told apart by range alone (100-600 m against 3-18 km): noise placed at its own row's
+    # range scored 100% here; placed at a random row's, it learns nothing of the type
+    two = {**SMALL, "types": ["777-300ER", "Mavic 3"], "epochs": 40}
+    for seed in (1, 3):
+        rep = recognize.run(["noise"], seed=seed, **two)
+        assert rep["trained_on_exact"]["top1"] > 0.9
+        assert rep["sources"][0]["trained_on_source"]["top1"] <= rep["chance"] + 0.2
+
+
 def test_a_classifier_trained_on_one_type_never_exceeds_one_in_k():
     rep = recognize.run("exact", train_types=["F-16C Fighting Falcon"], seed=4, **SMALL)
     assert rep["sizes"]["source_train_clouds"] == 30

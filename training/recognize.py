@@ -16,8 +16,8 @@ Sources (:data:`SIMULATORS` and a model directory):
 * ``points``: the paper's point z-buffer (with a sensor, the photon stage of a one-point-per-cell
   cloud, ``apcg_core.sensor.generated``: what ``apcg generate --sensor`` does);
 * ``embree-2x2``: embree, 2 x 2 rays per cell (the protocol's second simulator reference);
-* ``noise``: a control: clouds of uniform random points that carry nothing of the type (a
-  classifier trained on them scores chance);
+* ``noise``: a control: clouds of uniform random points that carry nothing of the type, not
+  even its range (:func:`noise_clouds`; a classifier trained on them scores chance);
 * any model directory (``apcg generate --model DIR``; with a sensor, ``apcg generate --sensor``'s
   photon stage: from the model's own sub-rays where its family draws at any lidar).
 
@@ -264,11 +264,15 @@ def _photon_run(sim, cat, name, table, sensor, lidar, seed, ids) -> list:
 
 def noise_clouds(table: np.ndarray, seed: int) -> list:
     """The control source: ``NOISE_POINTS`` points uniform in a cube of side ``NOISE_SIDE_M``
-    around the line of sight at the condition's range; nothing of the type."""
+    around the line of sight, at the range and elevation of a row of ``table`` drawn at random
+    (a seeded permutation of the rows), not of the cloud's own row: its size, place and range
+    carry nothing of the type either (a drone's row is at 100-600 m, an aircraft's at 3-18 km;
+    the classifier sees the range)."""
     rng = np.random.default_rng(_seed(seed, NOISE_DRAW))
+    at = np.asarray(table, np.float64)[rng.permutation(len(table)), 1:3]
     out = []
-    for r in table:
-        centre = np.array([0.0, r[1] * np.sin(r[2]), r[1] * np.cos(r[2])])
+    for r0, b0 in at:
+        centre = np.array([0.0, r0 * np.sin(b0), r0 * np.cos(b0)])
         out.append(centre + rng.uniform(-0.5, 0.5, (NOISE_POINTS, 3)) * NOISE_SIDE_M)
     return out
 
