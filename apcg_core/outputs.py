@@ -67,7 +67,7 @@ class Output:
     def planned(self, args) -> list[tuple[str, Path]]:
         """(label, path) of each file this output makes, for the messages."""
         value = getattr(args, self.dest, None)
-        if value is None or value == "-":
+        if not named(value):
             return []
         base = Path(value)
         if self.kind == FILE:
@@ -80,6 +80,12 @@ class Output:
         if names == ANY:
             return []
         return [(f"{base / n} (written into {self.flag} {value})", base / n) for n in names]
+
+
+def named(value) -> bool:
+    """Whether an output option's value names a path: not absent, not "-" (stdout), not empty
+    (refused by :func:`output_problems`: ``Path("")`` would be the working directory)."""
+    return value is not None and value != "-" and bool(str(value).strip())
 
 
 def add_output(parser: argparse.ArgumentParser, *flags: str, kind: str = FILE,
@@ -164,7 +170,7 @@ class Guard:
         self.dir_values: list[tuple[Output, str]] = []  # (declaration, value as given)
         for o in self.specs:
             value = getattr(args, o.dest, None)
-            if value is None or value == "-":
+            if not named(value):
                 continue
             if o.kind == FILE:
                 self.file_outputs.update(real(p) for _, p in o.planned(args))
@@ -374,6 +380,10 @@ def output_problems(args: argparse.Namespace) -> list[str]:
         value = getattr(args, o.dest, None)
         if value is None or value == "-":
             continue
+        if not str(value).strip():  # Path("") is ".": the working directory, never meant
+            out.append(f"{o.flag} {value!r}: an empty name; give a "
+                       f"{'file name' if o.kind == FILE else 'directory'}")
+            continue
         path = Path(value)
         if o.kind != FILE:
             if (why := where_inputs(o.flag, value, inputs)) is not None:
@@ -387,13 +397,13 @@ def output_problems(args: argparse.Namespace) -> list[str]:
                 continue
             dirs.append((real(value), o.flag, str(value)))
         if o.kind == FILE:
+            if path.is_dir():
+                out.append(f"{o.flag} {value} is a directory; give a file name")
+                continue
             if o.suffixes and path.suffix.lower() not in o.suffixes:
                 out.append(f"{o.flag} {value}: unsupported format "
                            f"{path.suffix.lower() or '(no suffix)'!r}; accepted: "
                            f"{', '.join(o.suffixes)}")
-                continue
-            if path.is_dir():
-                out.append(f"{o.flag} {value} is a directory; give a file name")
                 continue
             if (blocker := _file_on_the_way(path)) is not None:
                 out.append(f"{o.flag} {value}: {blocker} is a file, not a directory")

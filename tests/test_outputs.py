@@ -135,6 +135,28 @@ def test_an_existing_file_among_an_outputs_files_is_kept_without_force(tmp_path,
     assert output_problems(parse([*argv, "--force"])) == []
 
 
+@pytest.mark.parametrize("cmd,parser,action,spec", OUTPUTS, ids=IDS)
+def test_an_empty_output_name_is_refused_not_taken_for_the_working_directory(
+        tmp_path, capsys, cmd, parser, action, spec):
+    # Path("") is "."; a report written into wherever the command ran was never asked for
+    argv = argv_for(cmd, parser, tmp_path, {spec.dest: ""})
+    assert any(spec.flag in m and "empty name" in m for m in output_problems(parse(argv)))
+    rc, _, err = run(argv, capsys, cwd=tmp_path)
+    assert rc == 2 and "empty name" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("cmd,parser,action,spec", [o for o in OUTPUTS if o[3].kind == FILE],
+                         ids=[i for i, o in zip(IDS, OUTPUTS, strict=True) if o[3].kind == FILE])
+def test_a_directory_given_for_a_file_output_is_called_a_directory(tmp_path, cmd, parser,
+                                                                   action, spec):
+    d = tmp_path / "a-folder"
+    d.mkdir()
+    argv = argv_for(cmd, parser, tmp_path, {spec.dest: str(d)})
+    problems = [m for m in output_problems(parse(argv)) if spec.flag in m]
+    assert problems and "is a directory" in problems[0], problems
+
+
 @pytest.mark.parametrize("cmd,parser,action,spec",
                          [o for o in OUTPUTS if o[3].resumable],
                          ids=[i for i, o in zip(IDS, OUTPUTS, strict=True) if o[3].resumable])
