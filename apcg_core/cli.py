@@ -9,6 +9,7 @@ import argparse
 import json
 import os
 import re
+import shlex
 import sys
 from importlib.metadata import entry_points
 
@@ -58,9 +59,10 @@ def join_signed_values(argv: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None, registrars=None) -> int:
     command = ["apcg"]  # grows to "apcg COMMAND" once parsed, for the messages
+    resume_hint = [RUN_AGAIN]  # the command's own once parsed (its parser's resume_hint)
     restore = _terminate_as_interrupt()
     try:
-        return _run(argv, registrars, command)
+        return _run(argv, registrars, command, resume_hint)
     except BrokenPipeError:  # e.g. `apcg catalog list | head`
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - silence the flush at exit
         return 0
@@ -69,8 +71,7 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
         return 2
     except KeyboardInterrupt:  # Ctrl-C, even while starting: outputs go through temporary names
         print(f"{' '.join(command)}: interrupted; nothing half-written is left under a final "
-              "name. Run the same command again: a dataset build continues where it stopped "
-              "(a training run: add --resume).", file=sys.stderr)
+              f"name. {resume_hint[0]}", file=sys.stderr)
         return 130
     except OSError as exc:  # the file system said no (full disk, permissions): name the file
         print(f"{' '.join(command)}: error: {os_error_message(exc)}", file=sys.stderr)
@@ -95,14 +96,23 @@ def _terminate_as_interrupt():
     return lambda: signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def _run(argv, registrars, command: list) -> int:
-    argv = join_signed_values(list(sys.argv[1:] if argv is None else argv))
+# What Ctrl-C's message tells to do next, unless the command's parser sets ``resume_hint``
+# (a build, a resumable generation, a training run: each says how it continues).
+RUN_AGAIN = "Run the same command again to redo it."
+
+
+def _run(argv, registrars, command: list, resume_hint: list) -> int:
+    given = list(sys.argv[1:] if argv is None else argv)
+    argv = join_signed_values(given)
     parser = build_parser(registrars, argv[0] if argv else None)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
     command.append(args.command)
+    resume_hint[0] = getattr(args, "resume_hint", None) or RUN_AGAIN
+    # the command as typed, quoted so that it can be pasted back (reports record it)
+    args.command_line = shlex.join(["apcg", *given])
     from .options import problems
     from .outputs import guarding, output_problems
     # one line, the first problem: an option's value before the outputs it would name

@@ -52,7 +52,9 @@ def register_generate(sub) -> None:
     add_output(p, "-o", "--output", kind=FILE, suffixes=CLOUD_FORMATS, required=True,
                    help=".ply / .npz / .las / .laz; several clouds go in one file, told apart by "
                         "their `sample` attribute")
-    p.set_defaults(func=_run_generate)
+    p.set_defaults(func=_run_generate, resume_hint="Run the same command again: a resumable "
+                   "generation (--resumable, --engine, or 131,072 clouds or more) continues "
+                   "where it stopped; any other starts again.")
 
 
 POSE_OPTIONS = ("range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg")
@@ -64,6 +66,8 @@ def check_request(args) -> None:
     (a refused request leaves no file and no parts directory behind)."""
     from .errors import InputError
     from .options import option_name
+    if args.conditions is not None and not args.conditions.strip():
+        raise InputError(f"--conditions {args.conditions!r}: an empty name; give a CSV file")
     if args.conditions:
         if args.type:
             raise InputError("give either --conditions or --type with a pose, not both")

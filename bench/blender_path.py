@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -249,7 +250,7 @@ def measure(types: int = 4, samples: int = 2500, repeat: int = 1, binary: bool =
         rays = n_rays(emb)
         assert n_rays(bl) == rays
         best = min(rounds, key=lambda r: r["bpy_over_embree"])
-        res = {"command": "python bench/blender_path.py " + " ".join(sys.argv[1:]),
+        res = {"command": "python bench/blender_path.py " + shlex.join(sys.argv[1:]),
                "machine": {"cpus": os.cpu_count(), "bpy": bpy.app.version_string,
                            "compiled_kernels": kernels.enabled()},
                "shards": len(emb), "samples": sum(len(t.rows) for t in emb), "rays": rays,

@@ -19,6 +19,7 @@ pyinstrument profile of one more round (which sees nothing inside the compiled k
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import tempfile
 import time
@@ -210,7 +211,7 @@ def main() -> int:
                     help="print each stage's wall and CPU seconds (one more round)")
     ap.add_argument("--json", help="write the results here too")
     args = ap.parse_args()
-    res = {"command": "python bench/build_floor.py " + " ".join(sys.argv[1:]),
+    res = {"command": "python bench/build_floor.py " + shlex.join(sys.argv[1:]),
            **measure(args.types, args.samples, args.repeat, args.profile, args.stages)}
     profile = res.pop("profile", None)
     emit(res, args.json)

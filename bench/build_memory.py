@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import sys
 import tempfile
 import time
@@ -179,7 +180,7 @@ def main() -> int:
     if args.backend == "blender":
         import bpy
         version = bpy.app.version_string
-    results = {"command": "python bench/build_memory.py " + " ".join(sys.argv[1:]),
+    results = {"command": "python bench/build_memory.py " + shlex.join(sys.argv[1:]),
                "machine": {"cpus": os.cpu_count(), "bpy": version},
                "types": types, "modes": {}}
     # the config, the children's results and logs: a fresh temporary directory of this run's

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -64,7 +65,7 @@ def main() -> int:
         rows.append({"pairs": rep["pairs"], "seconds": round(time.perf_counter() - t0, 1)})
         print(json.dumps(rows[-1]), flush=True)
     per_pair = np.polyfit([r["pairs"] for r in rows], [r["seconds"] for r in rows], 1)
-    out = {"command": "python bench/evaluate_cost.py " + " ".join(sys.argv[1:]),
+    out = {"command": "python bench/evaluate_cost.py " + shlex.join(sys.argv[1:]),
            "rows": rows, "seconds_per_pair": float(per_pair[0]),
            "fixed_seconds": float(per_pair[1]),
            "seconds_for_10000": float(np.polyval(per_pair, 10_000)),

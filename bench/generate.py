@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -87,7 +88,7 @@ def main() -> int:
         nets["cpu-width (0.25)"] = Generator(NetConfig(width=0.25))
     torch.manual_seed(0)
     nets["paper full width (1.0)"] = Generator(NetConfig(width=1.0))
-    res = {"command": "python bench/generate.py " + " ".join(sys.argv[1:]),
+    res = {"command": "python bench/generate.py " + shlex.join(sys.argv[1:]),
            "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
            "matmul_gflops_fp32": round(matmul_flops(torch.float32) / 1e9, 1),
            "matmul_gflops_bf16": round(matmul_flops(torch.bfloat16) / 1e9, 1), "rows": []}

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import os
 import resource
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -119,7 +120,7 @@ def main() -> int:
                 for cloud in clouds:
                     w.write(cloud)
             rows[f"write_{ext}"] = c.read(n)
-    report = {"command": "python bench/generate_profile.py " + " ".join(sys.argv[1:]),
+    report = {"command": "python bench/generate_profile.py " + shlex.join(sys.argv[1:]),
               "model": str(model.directory), "family": model.family, "clouds": n,
               "threads": 1, "cpu_count": os.cpu_count(), "load_avg": os.getloadavg()[0],
               "compiled_reader": plus_kernels.loaded(),

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -132,7 +133,7 @@ def main() -> int:
     ap.add_argument("--json")
     args = ap.parse_args()
     if args.workloads == "issue34":
-        emit({"command": "python bench/generate_vs_build.py " + " ".join(sys.argv[1:]),
+        emit({"command": "python bench/generate_vs_build.py " + shlex.join(sys.argv[1:]),
               "repeats": args.repeats, "build_workers": args.workers,
               "cpu_count": os.cpu_count(), "workloads": workloads(args)}, args.json)
         return 0
@@ -154,7 +155,7 @@ def main() -> int:
             times["build"].append(timed([*build[:-3], str(work / "ds2"), *build[-2:]], ROOT))
             times["generate"].append(timed(gen, ROOT))
         med = {k: sorted(v)[len(v) // 2] for k, v in times.items()}
-        report = {"command": "python bench/generate_vs_build.py " + " ".join(sys.argv[1:]),
+        report = {"command": "python bench/generate_vs_build.py " + shlex.join(sys.argv[1:]),
                   "clouds": n, "repeats": args.repeats, "build_workers": args.workers,
                   "cpu_count": os.cpu_count(), "seconds": times, "median_seconds": med,
                   "ms_per_cloud": {k: round(1e3 * v / n, 4) for k, v in med.items()},

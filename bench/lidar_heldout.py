@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -107,7 +108,7 @@ def main() -> int:
         m["seconds_build"] = round(t1 - t0, 1)
         m["seconds_evaluate"] = round(time.perf_counter() - t1, 1)
         rows[lidar] = m
-    record = {"command": "python bench/lidar_heldout.py " + " ".join(sys.argv[1:]),
+    record = {"command": "python bench/lidar_heldout.py " + shlex.join(sys.argv[1:]),
               "config": config, "lidars": rows}
     write_text(out / f"{args.name}.json", json.dumps(record, indent=1) + "\n")
     write_text(out / f"{args.name}.md", markdown(record))

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -116,7 +117,7 @@ def main() -> int:
                      "photon_cloud_over_ideal_k4": round(float(np.median((hits + stage)
                                                                          / ideal)), 3)}
     n = args.samples_per_type * len(TYPES)
-    emit({"command": "python bench/photons.py " + " ".join(sys.argv[1:]),
+    emit({"command": "python bench/photons.py " + shlex.join(sys.argv[1:]),
           "machine": {"cpus": os.cpu_count()}, "clock": args.clock, "samples": n, "types": TYPES,
           "rounds": args.rounds, "bright_counts": points.BRIGHT_COUNTS,
           "median_seconds": {k: round(v, 4) for k, v in med.items()},

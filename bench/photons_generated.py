@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -81,7 +82,7 @@ def main() -> int:
     cond = model.conditions(names, table[:, 1:])
     res = model.generate(cond)
     gen_table = res.table
-    out = {"command": "python bench/photons_generated.py " + " ".join(sys.argv[1:]),
+    out = {"command": "python bench/photons_generated.py " + shlex.join(sys.argv[1:]),
            "generated_photons": "cell reads (K = 1)" if args.cell_reads else "3 x 3 sub-reads",
            "model": str(model.directory), "per_band": args.per_band, "seed": args.seed,
            "sensors": {}}

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from dataclasses import replace
@@ -101,7 +102,7 @@ def main() -> int:
               f"{r['ms_per_cloud']:.3f} ms/cloud ({time.perf_counter() - t0:.0f} s)",
               flush=True)
         write_text(out / "ablation.json", json.dumps(
-            {"command": "python bench/plus_ablation.py " + " ".join(sys.argv[1:]),
+            {"command": "python bench/plus_ablation.py " + shlex.join(sys.argv[1:]),
              **pairs.record(), "steps_each": args.steps, "results": results}, indent=1))
     print(markdown(results))
     return 0

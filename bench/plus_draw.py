@@ -29,6 +29,7 @@ the model's:
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -120,7 +121,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     ds = DepthDataset(args.data, "test")
     pairs = protocol.draw_pairs(ds, args.pairs, 0, "test")
-    out = {"command": "bench/plus_draw.py " + " ".join(sys.argv[1:]), "model": args.model,
+    out = {"command": "bench/plus_draw.py " + shlex.join(sys.argv[1:]), "model": args.model,
            "pairs": len(pairs), "span": args.span, "draws": {}}
     prep = None
     for draw in args.draw or ["threshold", "diffuse-rows"]:

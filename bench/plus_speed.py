@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -41,7 +42,7 @@ def main() -> int:
             times.append(time.perf_counter() - t0)
         out[name] = round(1e3 * float(np.median(times)) / len(cond), 4)
         print(f"{name}: {out[name]:.4f} ms/cloud", flush=True)
-    print(json.dumps({"command": "python bench/plus_speed.py " + " ".join(sys.argv[1:]),
+    print(json.dumps({"command": "python bench/plus_speed.py " + shlex.join(sys.argv[1:]),
                       "clouds": len(cond), "ms_per_cloud": out}))
     return 0
 

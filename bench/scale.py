@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -72,7 +73,7 @@ def main() -> int:
         n *= 10
     raw, pipe = floor["raw_embree_rays_per_s"], floor["pipeline_rays_per_s"]
     res = {
-        "command": "python bench/scale.py " + " ".join(sys.argv[1:]),
+        "command": "python bench/scale.py " + shlex.join(sys.argv[1:]),
         "cpus": os.cpu_count(), "load_at_start": os.getloadavg()[0],
         "rays_per_s": {"raw_embree": raw, "embree_pipeline": pipe,
                        "blender_bpy": blender["bpy_rays_per_s"],

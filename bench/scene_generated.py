@@ -34,6 +34,7 @@ import argparse
 import copy
 import json
 import os
+import shlex
 import sys
 import time
 import tomllib
@@ -214,7 +215,7 @@ def main() -> int:
                                    "floor_chamfer_m2": floor.get("chamfer_m2")}
     scene_name = str(path.relative_to(HERE.parent)) if path.is_relative_to(HERE.parent) \
         else str(path)
-    report = {"command": "python bench/scene_generated.py " + " ".join(sys.argv[1:]),
+    report = {"command": "python bench/scene_generated.py " + shlex.join(sys.argv[1:]),
               "machine": {"cpus": os.cpu_count(),
                           "APCG_THREADS": os.environ.get("APCG_THREADS")},
               "scene": scene_name, "model": args.model, "repeats": args.repeats,

@@ -16,6 +16,7 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import sys
 import tempfile
 import time
@@ -132,7 +133,7 @@ def main() -> int:
     plan = make_plan(load_config("paper-table1"), catalog)
     n_full = plan.n_samples
     results = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
-               "command": "python bench/simulate.py " + " ".join(sys.argv[1:]),
+               "command": "python bench/simulate.py " + shlex.join(sys.argv[1:]),
                "backends": {}}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

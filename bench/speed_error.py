@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -139,7 +140,7 @@ def main() -> int:
         methods[f"{m.family} {Path(m.directory).name}"] = generated(m, ds, idx, args.seed)
         directories[f"{m.family} {Path(m.directory).name}"] = str(m.directory)
     methods["nearest sample"] = nearest_sample(DepthDataset(args.data, "train"), ds, idx)
-    report = {"command": "python bench/speed_error.py " + " ".join(sys.argv[1:]),
+    report = {"command": "python bench/speed_error.py " + shlex.join(sys.argv[1:]),
               **pairs.record(), "protocol": protocol.constants(),
               "jsd_bins": protocol.JSD_BINS, "methods": {}}
     recognize = json.loads(Path(args.recognize).read_text()) if args.recognize else None

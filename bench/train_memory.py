@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from dataclasses import asdict
 from pathlib import Path
@@ -56,7 +57,7 @@ def main() -> int:
         row = {"config": name, **training_memory(cfg, args.data, args.steps)}
         rows.append(row)
         print(json.dumps(row), flush=True)
-    out = {"command": "python bench/train_memory.py " + " ".join(sys.argv[1:]),
+    out = {"command": "python bench/train_memory.py " + shlex.join(sys.argv[1:]),
            "steps": args.steps, "rows": rows}
     emit(out, args.json, show=False)
     if args.plot:

@@ -151,7 +151,8 @@ def register_dataset(sub) -> None:
                    help="with --address: give up when no Dask scheduler answers there within "
                         "S seconds (default 10)")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
-    b.set_defaults(func=_run_build)
+    b.set_defaults(func=_run_build, resume_hint="Run the same command again: the build "
+                                                "continues where it stopped.")
     i = dsub.add_parser("info", help="describe a dataset directory")
     i.add_argument("directory")
     i.add_argument("--verify", action="store_true",

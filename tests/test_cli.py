@@ -78,3 +78,46 @@ def test_condition_by_catalog_type_uses_its_range_band():
     far = run("condition", "--type", "Mavic 3", "--range-m", "3000", "--elevation-deg", "3.5",
               "--pitch-deg", "2")
     assert far.returncode == 2 and "range_m" in far.stderr and "600" in far.stderr
+
+
+def _probe_registrar(seen: dict, hint=None):
+    """A command of this test's own, run by the real `apcg` main: it keeps what main gave it,
+    then stops as Ctrl-C does."""
+    def register(sub):
+        p = sub.add_parser("probe")
+        p.add_argument("--types")
+        p.add_argument("rest", nargs="*")
+        p.set_defaults(func=run_probe, **({"resume_hint": hint} if hint else {}))
+
+    def run_probe(args):
+        seen["command_line"] = args.command_line
+        raise KeyboardInterrupt
+    return register
+
+
+def test_the_command_line_main_records_can_be_pasted_back(capsys):
+    import shlex
+
+    from apcg_core.cli import main
+    seen: dict = {}
+    argv = ["probe", "--types", "A320neo,Mavic 3", "it's", "$HOME", ""]
+    assert main(argv, registrars=[_probe_registrar(seen)]) == 130
+    assert shlex.split(seen["command_line"]) == ["apcg", *argv]
+
+
+def test_ctrl_c_says_how_the_command_itself_continues(capsys):
+    from apcg_core.cli import RUN_AGAIN, build_parser, main
+    assert main(["probe"], registrars=[_probe_registrar({})]) == 130
+    assert RUN_AGAIN in capsys.readouterr().err
+    assert main(["probe"], registrars=[_probe_registrar({}, "Add --again.")]) == 130
+    err = capsys.readouterr().err
+    assert "apcg probe: interrupted" in err and "Add --again." in err and RUN_AGAIN not in err
+    # the commands that continue say how; a benchmark is not told to add --resume
+    hints = {" ".join(words): build_parser().parse_args([*words, *rest]).resume_hint
+             for words, rest in ((["dataset", "build"], ["--config", "demo", "-o", "d"]),
+                                 (["train"], ["--data", "d", "-o", "r"]),
+                                 (["generate"], ["--type", "A320neo", "-o", "g.npz"]))}
+    assert "continues" in hints["dataset build"] and "--resume" in hints["train"]
+    assert "--resumable" in hints["generate"]
+    args = build_parser().parse_args(["benchmark", "recognize", "-o", "r"])
+    assert getattr(args, "resume_hint", None) is None

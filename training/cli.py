@@ -94,7 +94,8 @@ def register_train(sub) -> None:
                         "over resumes, reaches it (saved with the run; equal-hours comparisons)")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--no-progress", action="store_true")
-    p.set_defaults(func=_run_train)
+    p.set_defaults(func=_run_train, resume_hint="Add --resume to the same command to continue "
+                                                "from the last checkpoint.")
 
 
 def _run_train(args) -> int:
@@ -360,7 +361,7 @@ def _run_evaluate(args) -> int:
     from .evaluate import evaluate, jsd_bins_study, markdown, write_report
     model = model_at_lidar(load_model(args.model, runtime=args.runtime), args, "evaluate")
     warn_other_lidar("evaluate", args.data, model)
-    command = "apcg evaluate " + " ".join(sys.argv[2:])
+    command = args.command_line
     if args.jsd_bins_study:
         study = jsd_bins_study(model, args.data, seed=args.seed)
         study["command"] = command
@@ -420,7 +421,7 @@ def _run_choose_tau(args) -> int:
             raise InputError(f"--taus takes comma-separated numbers, got {args.taus!r}") from exc
     model = load_model(args.model, runtime=args.runtime)
     rep = choose_tau(model, args.data, taus=taus, n_pairs=_pairs(args), seed=args.seed)
-    rep["command"] = "apcg choose-tau " + " ".join(sys.argv[2:])
+    rep["command"] = args.command_line
     text = json.dumps(rep, indent=1)
     print(text)
     if args.output:
@@ -633,7 +634,7 @@ def _run_compare(args) -> int:
     report = compare(models, args.data, n_pairs=_pairs(args), seed=args.seed,
                      memory_steps=args.memory_steps, with_untrained=not args.no_untrained,
                      progress=True, faithfulness=args.faithfulness)
-    report["command"] = "apcg compare " + " ".join(sys.argv[2:])
+    report["command"] = args.command_line
     out = write(report, args.output)
     print(markdown(report))
     print(f"wrote {out}/compare.json, compare.md, compare.png")
