@@ -34,6 +34,10 @@ POSITIVE = Rule("a finite number > 0", lo=0, lo_open=True)
 SEED = Rule("an integer from 0 to 4294967295", lo=0, hi=2**32 - 1)
 ANY = Rule("a finite number")
 ANGLE = Rule("a finite angle in degrees from -360 to 360", lo=-360, hi=360)
+# Clouds per type a dataset plan (dataset_builder/schema.py samples_per_type) or a benchmark
+# (--train-per-type) may ask for: 10^7, about a day of this project's CPU build per type.
+MAX_PER_TYPE = 10**7
+PER_TYPE = Rule(f"an integer from 1 to {MAX_PER_TYPE}", lo=1, hi=MAX_PER_TYPE)
 
 # dest (the option's name with "_" for "-") -> Rule.
 RULES: dict[str, Rule] = {
@@ -48,7 +52,7 @@ RULES: dict[str, Rule] = {
     "threads": Rule("an integer from 1 to 1024", lo=1, hi=1024),
     "columns": Rule("an integer from 1 to 64", lo=1, hi=64), "n_critic": COUNT,
     "n_points": COUNT, "checkpoint_every": COUNT, "keep_every": COUNT, "log_every": COUNT,
-    "train_per_type": COUNT, "test_per_type": COUNT, "networks": COUNT,  # benchmark recognize
+    "train_per_type": PER_TYPE, "test_per_type": PER_TYPE, "networks": COUNT,  # recognize
     "bootstrap": Rule("an integer >= 0 (0: no interval)", lo=0),
     "sampling_steps": COUNT, "diffusion_steps": COUNT, "max_checkpoints": COUNT,
     "memory_steps": Rule("an integer >= 0 (0: skip)", lo=0), "tasks_per_process": COUNT,

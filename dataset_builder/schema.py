@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from apcg_core.errors import InputError
+from apcg_core.options import MAX_PER_TYPE, PER_TYPE
 
 from .backends import BACKENDS
 
@@ -70,7 +71,7 @@ SCHEMA: dict = {
     "quantize": Key("true or false", lambda v: isinstance(v, bool)),
     "supersample": Key("an integer from 1 to 16", _int_in(1, 16)),
     "sampling": Key('"grid" or "random"', lambda v: v in ("grid", "random")),
-    "samples_per_type": Key("an integer from 1 to 10000000", _int_in(1, 10**7), "random"),
+    "samples_per_type": Key(PER_TYPE.accepted, _int_in(1, MAX_PER_TYPE), "random"),
     "types": Key('"all" or a non-empty list of catalog type names', _types),
     "fine_cloud_points": Key("an integer from 100 to 10000000", _int_in(100, 10**7)),
     # a preset name, a TOML file, or the [sensor] table itself: apcg_core.sensor checks it

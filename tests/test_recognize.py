@@ -5,6 +5,7 @@ type) must score chance or below while the same run's classifier trained on exac
 the true labels scores well above it."""
 
 import json
+import shlex
 import shutil
 import subprocess
 import sys
@@ -16,6 +17,7 @@ import pytest
 from training import recognize
 
 _SCRIPT = Path(sys.executable).parent / "apcg"
+DEFAULT_MODEL = Path(recognize.__file__).resolve().parents[1] / "apcg_core" / "models" / "default"
 APCG = str(_SCRIPT) if _SCRIPT.exists() else shutil.which("apcg")
 
 # three types told apart by shape and size at every range of their band
@@ -69,6 +71,17 @@ def test_the_command_runs_end_to_end_and_is_deterministic(tmp_path):
     again = recognize.run(["exact", model], ["777-300ER", "Mavic 3"], 6, 5, 2, seed=3,
                           n_boot=50, lidar=load_lidar("double-cells"), networks=2)
     assert _without_cost(json.loads(json.dumps(again))) == _without_cost(rep)
+    # the command it records can be pasted back: "Mavic 3" stays one argument
+    assert shlex.split(rep["command"]) == ["apcg", "benchmark", "recognize", *args, "-o",
+                                           str(tmp_path / "a")]
+
+
+def test_two_models_in_directories_of_one_name_are_told_apart_in_the_report(tmp_path):
+    srcs = [{"source": {"source": str(tmp_path / d / "default"), "kind": "model"}}
+            for d in ("one", "two")] + [{"source": {"source": "exact", "kind": "simulator"}}]
+    assert recognize._labels(srcs) == [str(tmp_path / "one" / "default"),
+                                      str(tmp_path / "two" / "default"), "exact"]
+    assert recognize._labels(srcs[1:]) == ["default", "exact"]
 
 
 def test_photon_clouds_of_every_kind_of_source():
@@ -87,9 +100,16 @@ def test_photon_clouds_of_every_kind_of_source():
     (["--types", "A320neo"], "at least two types"),
     (["--types", "A320neo,Concorde"], "Concorde"),
     (["--source", "points", "--sensor", "nonsense-preset"], "nonsense-preset"),
+    (["--source", ""], "--source '': an empty name"),
+    (["--source", "exact", "--source", "exact"], "'exact' is given twice"),
+    (["--source", str(DEFAULT_MODEL), "--source", f"{DEFAULT_MODEL}/../default/"],
+     "is given twice"),
+    (["--train-per-type", "100000000"], "--train-per-type 100000000 not accepted"),
+    (["--test-per-type", "0"], "--test-per-type 0 not accepted"),
 ])
 def test_bad_input_is_one_clear_line(tmp_path, args, needle):
-    out = _cli(*args, "--train-per-type", "2", "--test-per-type", "2", "--epochs", "1",
+    sizes = {"--train-per-type": "2", "--test-per-type": "2", "--epochs": "1"}
+    out = _cli(*args, *[w for k, v in sizes.items() if k not in args for w in (k, v)],
                "-o", str(tmp_path / "r"))
     assert out.returncode == 2, out.stderr
     assert needle in out.stderr and "Traceback" not in out.stderr

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from apcg_core.errors import InputError, check_int
+from apcg_core.options import MAX_PER_TYPE
 
 from .scores import band_of, band_order
 
@@ -147,12 +148,17 @@ class Source:
         self.sensor = sensor
         self.lidar = DEFAULT_LIDAR if lidar is None else lidar
         self.model = None
+        self.key = self.name  # what tells two sources apart: the name, or the real directory
         if self.name in SIMULATORS or self.name == NOISE:
             return
+        if not self.name.strip():
+            raise InputError(f"--source {self.name!r}: an empty name; give one of "
+                             f"{', '.join(SOURCES)} or a model directory")
         if not Path(self.name).is_dir():
             raise InputError(f"--source {self.name!r} is neither a model directory nor one of "
                              f"{', '.join(SOURCES)}")
         from apcg_core.families import load_model
+        self.key = str(Path(self.name).resolve())
         self.model = load_model(self.name)
         # as `apcg generate --lidar` (apcg_core.lidar_options.model_at_lidar): a family that
         # draws at its training lidar only is refused in one line; outside the lidars the
@@ -450,13 +456,20 @@ def run(sources=("exact",), types=DEFAULT_TYPES, train_per_type: int = TRAIN_PER
     log = log or (lambda msg: None)
     sources = [sources] if isinstance(sources, str) else list(sources)
     types = check_types(types)
-    for name, v, lo in (("train-per-type", train_per_type, 1), ("test-per-type", test_per_type, 1),
-                        ("epochs", epochs, 1), ("bootstrap", n_boot, 0), ("seed", seed, 0),
-                        ("networks", networks, 1)):
-        check_int(name, v, lo)
-    if not sources or len(set(sources)) < len(sources):
-        raise InputError(f"--source: give each source once, got {sources}")
+    for name, v, lo, hi in (("train-per-type", train_per_type, 1, MAX_PER_TYPE),
+                            ("test-per-type", test_per_type, 1, MAX_PER_TYPE),
+                            ("epochs", epochs, 1, None), ("bootstrap", n_boot, 0, None),
+                            ("seed", seed, 0, None), ("networks", networks, 1, None)):
+        check_int(name, v, lo, hi)
+    if not sources:
+        raise InputError("--source: give at least one source")
     srcs = [Source(name, sensor, lidar, log) for name in sources]
+    seen: dict = {}
+    for name, src in zip(sources, srcs, strict=True):
+        if src.key in seen:  # the same model under two spellings is one source
+            same = "" if seen[src.key] == name else f" ({seen[src.key]!r} and {name!r})"
+            raise InputError(f"--source: give each source once; {name!r} is given twice{same}")
+        seen[src.key] = name
     lidar = srcs[0].lidar
     k = len(types)
     train_tab = conditions(types, train_per_type, _seed(seed, TRAIN_CONDITIONS))
@@ -570,12 +583,20 @@ def _label(src: dict) -> str:
     return Path(src["source"]).name if src["kind"] == "model" else src["source"]
 
 
+def _labels(srcs: list) -> list[str]:
+    """Each source's name in the report: a model by its directory's name, or by the path as
+    given where two sources' directories share a name."""
+    short = [_label(s["source"]) for s in srcs]
+    return [n if short.count(n) == 1 else s["source"]["source"]
+            for n, s in zip(short, srcs, strict=True)]
+
+
 def markdown(rep: dict) -> str:
     e, z = rep["trained_on_exact"], rep["sizes"]
     srcs = rep["sources"]
     sensor = ("ideal (no photon stage)" if rep["test"]["sensor"] is None
               else f"`{rep['test']['sensor'].get('name')}` on both sides")
-    names = [_label(s["source"]) for s in srcs]
+    names = _labels(srcs)
     lines = [f"# Recognition benchmark: trained on {', '.join(f'`{n}`' for n in names)}, "
              "tested on exact clouds", "",
              f"{len(rep['types'])} types ({', '.join(rep['types'])}); look-alike pairs: "
@@ -584,7 +605,8 @@ def markdown(rep: dict) -> str:
              f"{z['test_clouds']} exact test clouds ({z['test_per_type']} per type) at "
              f"conditions drawn with another seed; lidar: {rep['test']['lidar_name']}; "
              f"sensor: {sensor}; seed {rep['seed']}; "
-             f"PointNet width {z['width']}, {z['points']} points, {z['epochs']} epochs"
+             f"PointNet width {z['width']}, {z['points']} points, {z['epochs']} "
+             + ("epoch" if z["epochs"] == 1 else "epochs")
              + (f", {z['networks']} networks per training set (seeds), their hits averaged"
                 if z.get("networks", 1) > 1 else "") + ". "
              f"Chance: {_pct(rep['chance'])}. TSTR ratio: top-1 trained on the source / top-1 "
@@ -630,7 +652,8 @@ def plot(rep: dict, path) -> None:
     types = rep["types"]
     k = len(types)
     panels = [("trained on exact", rep["trained_on_exact"])] + [
-        (f"trained on {_label(s['source'])}", s["trained_on_source"]) for s in rep["sources"]]
+        (f"trained on {n}", s["trained_on_source"])
+        for n, s in zip(_labels(rep["sources"]), rep["sources"], strict=True)]
     fig, axes = plt.subplots(1, len(panels), figsize=((2 + 0.45 * k) * len(panels),
                                                       2 + 0.45 * k),
                              constrained_layout=True, squeeze=False)
@@ -733,7 +756,7 @@ def _run_recognize(args) -> int:
     rep = run(sources, types, args.train_per_type, args.test_per_type, args.epochs,
               args.seed, sensor, lidar, shuffle_labels=args.shuffle_labels, n_boot=args.bootstrap,
               networks=args.networks, log=log)
-    rep["command"] = "apcg benchmark recognize " + " ".join(sys.argv[3:])
+    rep["command"] = args.command_line
     out = write_report(rep, args.output)
     print(markdown(rep))
     print(f"wrote {out}/" + ", ".join(REPORT_FILES))
