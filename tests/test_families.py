@@ -1,6 +1,8 @@
 """The comparison families (issue 8) learn: trained at tiny size under one small budget, each
 beats its own untrained network on MMD and JSD against the held-out standard clouds."""
 
+import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -184,3 +186,31 @@ def test_apcg_train_sizes_a_family_from_the_command_line(data, tmp_path, capsys)
     with pytest.raises(SystemExit) as exit_:  # --model means a model directory, never a family
         main(["train", "--data", str(data), "-o", str(tmp_path / "bad"), "--model", "point-gan"])
     assert exit_.value.code == 2 and "unrecognized arguments: --model" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("change,needle", [
+    ({"format_version": 99}, "format_version 99 is not one this apcg reads (1 to 1)"),
+    ({"format_version": "1"}, "format_version '1'"),
+    ({"format_version": True}, "format_version True"),
+    ({"format_version": 0}, "format_version 0"),
+    ({"format": "apcg-dataset"}, "format 'apcg-dataset' is not an APCG model's"),
+])
+def test_a_model_json_of_another_format_or_a_newer_version_is_refused(tmp_path, change, needle):
+    import shutil
+
+    from apcg_core.errors import InputError
+    from apcg_core.families import default_model_dir, load_model
+    from apcg_core.families.registry import MODEL_FORMAT_VERSION
+    mdir = tmp_path / "m"
+    shutil.copytree(default_model_dir(), mdir)
+    meta = json.loads((mdir / "model.json").read_text())
+    assert meta["format_version"] == MODEL_FORMAT_VERSION  # the shipped one is read
+    meta.update(change)
+    (mdir / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=re.escape(needle)):
+        load_model(mdir)
+    # a model.json from before "format" and "format_version" were written is a first version
+    for key in ("format", "format_version"):
+        meta.pop(key)
+    (mdir / "model.json").write_text(json.dumps(meta))
+    assert load_model(mdir).family == "apcg-plus"

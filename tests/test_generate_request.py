@@ -61,6 +61,13 @@ def test_workers_without_an_engine_is_refused(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("name", ["", " "])
+def test_an_empty_conditions_name_is_refused_as_such(tmp_path, capsys, name):
+    assert main(["generate", "--conditions", name, "-o", str(tmp_path / "g.npz")]) == 2
+    _refused(capsys, f"--conditions {name!r}: an empty name")
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("pose", [["--range-m", "4000"], ["--pitch-deg", "3"],
                                   ["--roll-deg", "0", "--elevation-deg", "3"]])
 def test_pose_options_beside_conditions_are_refused(tmp_path, capsys, pose):

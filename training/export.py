@@ -13,6 +13,7 @@ import torch
 from apcg_core.depth import TAU_DEFAULT
 from apcg_core.errors import InputError
 from apcg_core.families import get_family
+from apcg_core.families.registry import MODEL_FORMAT, MODEL_FORMAT_VERSION
 from apcg_core.io.atomic import atomic_path
 from apcg_core.io.dataset import read_header
 from apcg_core.nn.cgan import COND_DIM, NOISE_DIM, Generator
@@ -147,7 +148,7 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     averaged = st.get("G_ema") is not None and not raw
     if averaged:
         st["G"] = st["G_ema"]
-    meta = {"format": "apcg-model", "format_version": 1, "net": st["net"],
+    meta = {"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "net": st["net"],
             "condition_space": head["condition_space"], "lidar": head["lidar"],
             "types": TypeTable.from_records(head["types"]).to_records(),
             "tau": getattr(family, "default_tau", TAU_DEFAULT) if tau is None else tau,

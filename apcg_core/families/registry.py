@@ -84,6 +84,13 @@ def get_family(name: str, need: str = "load"):
     return fam
 
 
+# model.json's "format" and the newest "format_version" this package reads (training/export.py
+# writes both; a model.json without them is a first-version model, from before they were
+# written).
+MODEL_FORMAT = "apcg-model"
+MODEL_FORMAT_VERSION = 1
+
+
 def read_model_meta(directory) -> dict:
     """A model directory's ``model.json``, checked to be one."""
     if not isinstance(directory, (str, os.PathLike)):
@@ -104,6 +111,14 @@ def read_model_meta(directory) -> dict:
     if not isinstance(out, dict) or "types" not in out or "condition_space" not in out:
         raise InputError(f"{meta} is not an APCG model.json (needs 'types' and "
                          "'condition_space')")
+    fmt, version = out.get("format", MODEL_FORMAT), out.get("format_version", 1)
+    if fmt != MODEL_FORMAT:
+        raise InputError(f"{meta}: format {fmt!r} is not an APCG model's ({MODEL_FORMAT!r})")
+    if isinstance(version, bool) or not isinstance(version, int) \
+            or not 1 <= version <= MODEL_FORMAT_VERSION:
+        raise InputError(f"{meta}: format_version {version!r} is not one this apcg reads "
+                         f"(1 to {MODEL_FORMAT_VERSION}); a newer apcg made it: upgrade, or "
+                         "export the model again with this one")
     return out
 
 
