@@ -65,7 +65,11 @@ def check_request(args) -> None:
     """Refuse a request whose options do not go together, before anything is read or made
     (a refused request leaves no file and no parts directory behind)."""
     from .errors import InputError
+    from .generation_job import MAX_CLOUDS
     from .options import option_name
+    if args.count > MAX_CLOUDS:
+        raise InputError(f"--count {args.count} not accepted: at most {MAX_CLOUDS:,} clouds "
+                         "in one request; split it into several")
     if args.conditions is not None and not args.conditions.strip():
         raise InputError(f"--conditions {args.conditions!r}: an empty name; give a CSV file")
     if args.conditions:
@@ -97,6 +101,7 @@ def engine_workers(args) -> int:
 
 
 def _run_generate(args) -> int:
+    from . import generation_job as job
     from .errors import InputError
     from .families import conditions_from_csv, load_model
     from .options import model_condition
@@ -114,6 +119,10 @@ def _run_generate(args) -> int:
     else:
         table = model_condition(model, args)
     total = len(table) * args.count
+    if total > job.MAX_CLOUDS:
+        raise InputError(f"{len(table):,} conditions x --count {args.count} = {total:,} "
+                         f"clouds: at most {job.MAX_CLOUDS:,} in one request; split it into "
+                         "several (other rows, other seeds)")
     model.expect_clouds(total)
     _warn_window(model, table)
     meta = {"model": str(model.directory), "family": model.family,
@@ -138,8 +147,6 @@ def _run_generate(args) -> int:
     points = empty = 0
     fields = () if sensor is None else ("label", "count") + (
         ("pulse",) if sensor.output == "events" else ())
-
-    from . import generation_job as job
 
     def block_clouds(item):
         block, (part, count, offset) = item

@@ -40,6 +40,11 @@ RESUMABLE_CLOUDS = 2**17
 # with --resumable: 14.7 s against 16.9 s, peak RSS 279 against 461 MB (docs/SCALE.md,
 # "Generation at scale")
 PART_CLOUDS = 2048
+# The most clouds one request may ask for (rows x --count): a thousand times the paper's 10^6
+# (its Fig. 18), about 7 TB of NPZ at the default model's ~150 points a cloud (48 bytes a
+# point) and ~1.5 days of this 2-core machine; a job's plan (its blocks and parts) is held in
+# memory, ~2 KB a block, and 10^11 clouds asked once filled 24 GB before the first cloud.
+MAX_CLOUDS = 10**9
 ENGINES_GROUP = "apcg.engines"  # entry points: name -> run_tasks(...) context (the builder's)
 _FIELDS = ("xyz", "range_m", "cell_w", "cell_h", "sample")
 
@@ -179,11 +184,18 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
             ProcessLock(parts / ".generate.lock", f"generate into {output}"):
         job = parts / "job.json"
         if job.exists():
-            if json.loads(job.read_text()) != json.loads(json_bytes(record)):
+            if _job_of(job) != json.loads(json_bytes(record)):
                 raise InputError(f"{parts} holds the parts of another request (its job.json "
                                  "differs: model, conditions, options or apcg version); run "
                                  "the command that made them, or delete that directory")
         else:
+            # job.json is written before any part: parts without it are of no known request
+            # (copied, or its job.json deleted), never to be taken into this output
+            if stray := sorted(parts.glob("part-*.npz")):
+                raise InputError(f"{parts} holds {len(stray)} part file(s) ({stray[0].name}"
+                                 f"{', ...' if len(stray) > 1 else ''}) but no job.json, so "
+                                 "nothing says which request made them; delete that "
+                                 "directory and run the command again")
             write_atomic(job, json_bytes(record), part_suffix=suffix)
         done = {i for i in range(n_parts) if (parts / _part_name(i)).exists()}
         before = 0
@@ -288,6 +300,19 @@ def _write_output(output, meta, photon_fields, parts: Path, n_parts: int) -> tup
 
 # what reading a damaged part file raises (zipfile.BadZipFile is a plain Exception)
 _UNREADABLE = (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile)
+
+
+def _job_of(job: Path) -> dict:
+    """A parts directory's job.json, read; a damaged one is named, with what to do."""
+    try:
+        out = json.loads(job.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        out = exc
+    if not isinstance(out, dict):
+        why = f"not JSON: {out}" if isinstance(out, Exception) else "not a JSON object"
+        raise InputError(f"{job} is damaged ({why}); delete {job.parent} and run the command "
+                         "again (its parts cannot be matched to a request without it)")
+    return out
 
 
 @contextmanager

@@ -46,6 +46,58 @@ def test_parts_of_another_request_are_refused(tmp_path, monkeypatch, capsys):
     assert not (tmp_path / "r.ply").exists()
 
 
+@pytest.mark.parametrize("text", ["", '{"header": {"se', "[1, 2]", "\xff\xfe"])
+def test_a_damaged_job_record_is_named_not_a_traceback(tmp_path, monkeypatch, capsys, text):
+    monkeypatch.setattr(gen, "BLOCK_CLOUDS", 2)
+    parts = tmp_path / "r.npz.parts"
+    parts.mkdir()
+    (parts / "job.json").write_bytes(text.encode("latin-1"))
+    assert main(["generate", *POSE, "--count", "5", "--resumable", "-o",
+                 str(tmp_path / "r.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "job.json is damaged" in err and "delete" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "r.npz").exists()
+
+
+def test_parts_without_a_job_record_never_go_into_the_output(tmp_path, monkeypatch, capsys):
+    """Parts of one request, their job.json gone, beside another request's output: refused,
+    not merged (its clouds were of other conditions)."""
+    import apcg_core.generation_job as job
+    monkeypatch.setattr(gen, "BLOCK_CLOUDS", 2)
+    out = tmp_path / "r.npz"
+    whole = job._write_output
+
+    def stop(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(job, "_write_output", stop)
+    assert main(["generate", *POSE, "--count", "5", "--resumable", "-o", str(out)]) == 130
+    monkeypatch.setattr(job, "_write_output", whole)
+    parts = tmp_path / "r.npz.parts"
+    assert len(list(parts.glob("part-*.npz"))) == 3
+    (parts / "job.json").unlink()
+    other = ["generate", *POSE[:-1], "4", "--count", "5", "--resumable", "-o", str(out)]
+    capsys.readouterr()
+    assert main(other) == 2
+    err = capsys.readouterr().err
+    assert "3 part file(s)" in err and "no job.json" in err, err
+    assert not out.exists() and len(list(parts.glob("part-*.npz"))) == 3
+
+
+def test_a_request_of_more_clouds_than_one_may_ask_is_refused_at_once(tmp_path, capsys):
+    import apcg_core.generation_job as job
+    big = str(job.MAX_CLOUDS + 1)
+    assert main(["generate", *POSE, "--count", big, "-o", str(tmp_path / "g.npz")]) == 2
+    assert f"--count {big} not accepted" in capsys.readouterr().err
+    csv = tmp_path / "c.csv"
+    csv.write_text("type,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg\n"
+                   "A320neo,3000,3,2,0,0\nA320neo,3100,3,2,0,0\n")
+    half = str(job.MAX_CLOUDS // 2 + 1)
+    assert main(["generate", "--conditions", str(csv), "--count", half, "-o",
+                 str(tmp_path / "g.npz")]) == 2
+    assert "2 conditions x --count" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.csv"]
+
+
 def test_ctrl_c_keeps_the_parts_and_the_same_command_resumes(tmp_path, hold):
     # 1,300 clouds of one condition: sub-blocks of 256, parts of 2 of them: 3 parts
     cmd = [*APCG, "generate", *POSE, "--count", "1300", "--resumable", "-o",
