@@ -214,3 +214,36 @@ def test_a_model_json_of_another_format_or_a_newer_version_is_refused(tmp_path, 
         meta.pop(key)
     (mdir / "model.json").write_text(json.dumps(meta))
     assert load_model(mdir).family == "apcg-plus"
+
+
+@pytest.mark.parametrize("model,change,needle", [
+    ("default", {"quantize": "false"}, "'quantize' must be true or false (a JSON boolean), "
+                                       "got 'false'"),
+    ("default", {"quantize": 0}, "'quantize' must be true or false"),
+    ("default", {"tau": float("nan")}, "must be a finite number, got nan"),
+    ("default", {"tau": "0.5"}, "got '0.5'"),
+    ("default", {"tau": True}, "tau must be a number, got True"),
+    ("default", {"lidar": None}, "it lacks 'lidar'"),
+    ("cgan", {"norm": "true"}, "'norm' must be true or false"),
+    ("cgan", {"tau": "high"}, "tau = 'high' is out of range"),
+    ("cgan", {"tau": 2.0}, "tau = 2.0 is out of range"),
+])
+def test_a_model_json_setting_of_the_wrong_kind_is_refused_naming_the_file(tmp_path, model,
+                                                                           change, needle):
+    import shutil
+
+    import apcg_core
+    from apcg_core.errors import InputError
+    from apcg_core.families import load_model
+    mdir = tmp_path / model
+    shutil.copytree(Path(apcg_core.__file__).parent / "models" / model, mdir)
+    meta = json.loads((mdir / "model.json").read_text())
+    for k, v in change.items():
+        if v is None:
+            meta.pop(k)
+        else:
+            meta[k] = v
+    (mdir / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=re.escape(needle)) as refused:
+        load_model(mdir)
+    assert str(mdir / "model.json") in str(refused.value)

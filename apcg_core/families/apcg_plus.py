@@ -161,10 +161,10 @@ class PlusModel(ModelTypes):
             raise InputError(f"{self.directory / 'model.json'}: every type needs a "
                              "bounding_radius_m > 0 (an APCG+ model reads its box from it)")
         self.radius = np.asarray(radius, np.float64)
-        self.tau = self.check_tau(self.meta.get("tau", self.DEFAULT_TAU))
+        self.tau = self.meta_tau()
         # how returns are drawn from the hit logits (plus_draw.py; none: the threshold)
         self.draw = draw_of(self.meta.get("draw"), f"{self.directory / 'model.json'}")
-        self.quantize = bool(self.meta.get("quantize", True))
+        self.quantize = self.meta_flag("quantize", True)
         # chunks generated side by side, each network call on one thread: measured fastest
         # here (bench/plus_speed.py); APCG_THREADS sets the count (1: one chunk at a time)
         self.workers = check_int("APCG_THREADS", int(os.environ.get(

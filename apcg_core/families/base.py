@@ -58,12 +58,35 @@ class ModelTypes:
         try:
             self.space = ConditionSpace.from_dict(self.meta["condition_space"])
             self.lidar = LidarParams.from_dict(self.meta["lidar"])
-        except (KeyError, TypeError, ValueError) as exc:
+        except KeyError as exc:
+            raise InputError(f"{self.directory / 'model.json'} is incomplete: it lacks "
+                             f"{exc.args[0]!r}") from exc
+        except (TypeError, ValueError) as exc:
             raise InputError(f"{self.directory / 'model.json'} is incomplete ({exc!r})") from exc
         except InputError as exc:  # a value refused: say which file holds it
             raise InputError(f"{self.directory / 'model.json'}: {exc}") from exc
         self.types = TypeTable.from_records(self.meta["types"],
                                             owner=f"model {self.directory}")
+
+    def meta_flag(self, key: str, default: bool) -> bool:
+        """A true/false setting of model.json (``default`` when absent): a JSON boolean, or
+        refused naming the file (the text "false" is not taken for true)."""
+        value = self.meta.get(key, default)
+        if not isinstance(value, bool):
+            raise InputError(f"{self.directory / 'model.json'}: {key!r} must be true or false "
+                             f"(a JSON boolean), got {value!r}")
+        return value
+
+    def meta_tau(self) -> float:
+        """model.json's ``tau`` (the family's DEFAULT_TAU when absent), checked by the
+        family's own ``check_tau``; a refusal names the file."""
+        value = self.meta.get("tau", self.DEFAULT_TAU)
+        try:
+            if isinstance(value, bool):
+                raise InputError(f"tau must be a number, got {value!r}")
+            return self.check_tau(value)
+        except InputError as exc:
+            raise InputError(f"{self.directory / 'model.json'}: {exc}") from exc
 
     # Whether the family draws at any lidar's cells (APCG+ reads its sheet at them), or only
     # at the lidar it was trained on (the cGAN's fixed H x W image; the baselines' point counts).

@@ -43,8 +43,8 @@ class APCGModel(ModelTypes):
             raise InputError(f"{self.directory} is not a cGAN model (no generator.onnx; "
                              "`apcg export` makes one from a training run)")
         self.onnx_path = onnx_path
-        self.tau = float(self.meta.get("tau", TAU_DEFAULT))
-        self.norm = bool(self.meta.get("norm", True))
+        self.tau = self.meta_tau()
+        self.norm = self.meta_flag("norm", True)
         if runtime not in RUNTIMES:
             raise InputError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
         self.runtime = self._pick(runtime)
