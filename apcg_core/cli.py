@@ -43,11 +43,26 @@ SIGNED_VALUE_OPTIONS = ("--forward", "--up")
 _AXIS = re.compile(r"^[+-]?[XYZxyz]$")
 
 
+# A negative number argparse takes for an option (its own pattern knows -1 and -0.5, not
+# -1e9 or -inf): joined to the long option before it ("--tau -1e9" -> "--tau=-1e9"), whose
+# rule then judges the value (apcg_core/options.py: "-inf" is refused as not finite).
+_NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)[eE][+-]?\d+$|^-(inf|infinity|nan)$",
+                              re.IGNORECASE)
+
+
 def join_signed_values(argv: list[str]) -> list[str]:
-    """``--forward -X`` -> ``--forward=-X`` for the options that take an axis."""
+    """``--forward -X`` -> ``--forward=-X`` for the options that take an axis, and
+    ``--tau -1e9`` -> ``--tau=-1e9`` for a negative number argparse would read as an
+    option."""
     out, i = [], 0
     while i < len(argv):
         a = argv[i]
+        nxt = argv[i + 1] if i + 1 < len(argv) else None
+        if nxt is not None and a.startswith("--") and "=" not in a \
+                and _NEGATIVE_NUMBER.match(nxt):
+            out.append(f"{a}={nxt}")
+            i += 2
+            continue
         if a in SIGNED_VALUE_OPTIONS and i + 1 < len(argv) and _AXIS.match(argv[i + 1]):
             out.append(f"{a}={argv[i + 1]}")
             i += 2

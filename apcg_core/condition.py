@@ -225,9 +225,14 @@ class ConditionSpace:
             i, j = np.argwhere(out)[0]
             scale, unit = (1.0, " m") if j == 1 else ((1 / DEG, " deg") if j > 1 else (1.0, ""))
             v, a, b = table[i, j] * scale, lo[i, j] * scale, hi[i, j] * scale
+            band = ""
+            if j == 1 and self.drone_types:  # which of the two range bands, and why
+                band = (" (the drone band: this type is one of the table's drones)"
+                        if self.is_drone(table[i:i + 1, 0])[0] else
+                        " (the aircraft band: this type is not one of the table's drones)")
             raise InputError(
                 f"{where(i, j)}: {FIELDS[j]} = {distinct(v, a if v < a else b)}{unit} is "
-                f"outside the configured range [{a:.6g}{unit}, {b:.6g}{unit}]")
+                f"outside the configured range [{a:.6g}{unit}, {b:.6g}{unit}]{band}")
 
     def encode(self, table) -> np.ndarray:
         """Condition table (N, 6) or one Condition -> nu in [-1, 1] (SPEC section 3)."""

@@ -28,7 +28,8 @@ def register_generate(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="auto",
                    help="cGAN inference: auto (torch when installed, else onnxruntime), onnx, "
-                        "torch; the same images either way")
+                        "torch; the same points either way, ranges equal to float32 rounding "
+                        "(within about 1e-4 m)")
     p.add_argument("--tau", type=float, help="output threshold (default: the model's): the "
                                              "cGAN's Im2PC tau, APCG+'s hit logit")
     add_lidar_argument(p, default_help="the model's own (its model.json lidar); another is "

@@ -190,6 +190,9 @@ def lidar_file(ref) -> Path:
     if ref_s and "/" not in ref_s and path.is_file():
         return path
     path = Path(ref_s).expanduser()
+    if ref_s and path.is_dir():
+        raise InputError(f"lidar {ref_s!r} is a directory; give a preset or a TOML file with "
+                         "a [lidar] table")
     if not ref_s or not path.is_file():
         raise InputError(f"unknown lidar {ref_s!r}: not a preset and no such file; presets: "
                          f"{', '.join(lidar_preset_names())}, or a TOML file with a [lidar] "

@@ -132,7 +132,7 @@ class DaskEngine:
                              "workers are long-lived)")
         if settings.address and settings.workers > 1:
             raise InputError("--workers sets the size of a local cluster; with --address the "
-                             "cluster's own workers build the shards: leave --workers out")
+                             "cluster's own workers do the work: leave --workers out")
         _check_timeout_needs_address(settings)
         if settings.address:
             _check_scheduler(settings.address, _connect_timeout(settings))

@@ -289,7 +289,7 @@ def _closed_port() -> int:
     (["--address", "tcp://127.0.0.1:8786"], "--address needs a cluster engine: --engine dask"),
     (["--engine", "dask", "--tasks-per-process", "2"], "applies to the local engine only"),
     (["--engine", "dask", "--workers", "2", "--address", "tcp://127.0.0.1:{port}"],
-     "with --address the cluster's own workers build the shards"),
+     "with --address the cluster's own workers do the work"),
     (["--connect-timeout-s", "5"], "--connect-timeout-s 5 bounds the connection to a running "
      "cluster's scheduler: it needs --engine dask --address ADDR"),
     (["--engine", "dask", "--connect-timeout-s", "5"], "it needs --engine dask --address ADDR"),

@@ -121,3 +121,20 @@ def test_ctrl_c_says_how_the_command_itself_continues(capsys):
     assert "--resumable" in hints["generate"]
     args = build_parser().parse_args(["benchmark", "recognize", "-o", "r"])
     assert getattr(args, "resume_hint", None) is None
+
+
+@pytest.mark.parametrize("value,parsed", [("-1e9", -1e9), ("-2.5E-1", -0.25), ("-.5e1", -5.0),
+                                          ("-1", -1.0), ("-0.5", -0.5)])
+def test_a_negative_number_in_any_notation_is_an_options_value(value, parsed):
+    from apcg_core.cli import build_parser, join_signed_values
+    argv = ["generate", "--type", "A320neo", "--range-m", "5000", "--elevation-deg", "3",
+            "--tau", value, "--yaw-deg", value, "-o", "g.npz"]
+    args = build_parser().parse_args(join_signed_values(argv))
+    assert args.tau == parsed and args.yaw_deg == parsed
+
+
+def test_a_negative_infinity_reaches_the_options_rule(capsys):
+    from apcg_core.cli import main
+    assert main(["simulate", "--type", "A320neo", "--range-m", "5000", "--elevation-deg", "3",
+                 "--yaw-deg", "-inf", "-o", "never.ply"]) == 2
+    assert "--yaw-deg -inf not accepted: a finite angle" in capsys.readouterr().err

@@ -154,3 +154,14 @@ def test_a_bad_row_beyond_the_first_block_is_named_by_its_own_row(monkeypatch):
         t[23, 1] = bad
         with pytest.raises(InputError, match=f"row 23: range_m.*{says}"):
             space.check(t)
+
+
+def test_a_range_refusal_says_which_band_the_type_is_in():
+    space = ConditionSpace(n_types=3, drone_types=(2,))
+    with pytest.raises(InputError, match=r"\(the aircraft band: this type is not one of"):
+        space.check([[1, 300.0, np.radians(3.5), np.radians(2), 0, 0]])
+    with pytest.raises(InputError, match=r"\(the drone band: this type is one of"):
+        space.check([[2, 5000.0, np.radians(3.5), np.radians(2), 0, 0]])
+    # a table without drones has one band: nothing to tell
+    with pytest.raises(InputError, match=r"18000 m\]$"):
+        ConditionSpace(n_types=3).check([[1, 300.0, np.radians(3.5), np.radians(2), 0, 0]])

@@ -107,8 +107,11 @@ def test_missing_columns_and_empty_files(model, tmp_path):
     with pytest.raises(InputError, match="no conditions"):
         conditions_from_csv(f, model)
     f.write_bytes(b"")
-    with pytest.raises(InputError, match="c.csv: the file is empty"):
+    with pytest.raises(InputError, match="c.csv: the file is empty") as empty:
         conditions_from_csv(f, model)
+    # the header it asks for is one the reader takes: the type column included
+    assert "header type|type_name,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg " \
+        in str(empty.value)
     f.write_bytes(b"\xef\xbb\xbf\r\n\r\n")
     with pytest.raises(InputError, match="c.csv: the file is empty"):
         conditions_from_csv(f, model)

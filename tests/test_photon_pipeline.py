@@ -93,6 +93,16 @@ def test_sensor_mistakes_are_one_line(tmp_path, capsys, extra, says):
     assert not (tmp_path / "x.npz").exists()
 
 
+@pytest.mark.parametrize("option", ["--sensor", "--lidar"])
+def test_a_directory_given_for_a_sensor_or_lidar_file_is_called_one(tmp_path, capsys, option):
+    folder = tmp_path / "presets"
+    folder.mkdir()
+    rc = main(["simulate", *POSE, option, str(folder), "-o", str(tmp_path / "x.npz")])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"'{folder}' is a directory" in err and "Traceback" not in err
+    assert not (tmp_path / "x.npz").exists()
+
+
 def test_a_bad_sensor_table_in_a_config_is_named_before_anything_is_written(tmp_path, capsys):
     cfg = tmp_path / "c.toml"
     cfg.write_text('types = ["A320neo"]\n[sensor]\npulses = 3\n')

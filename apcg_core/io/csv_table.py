@@ -190,8 +190,8 @@ def read_csv(path, required: Iterable[str] = (), what: str = "CSV file",
                          ) from None
     need = [c.strip().lower() for c in required]
     groups = [[c.strip().lower() for c in g] for g in any_of]
-    if table is None:
-        named = ",".join(need) if need else "a header line"
+    if table is None:  # the header it needs: its one-of groups first (a type column), then
+        named = ",".join(["|".join(g) for g in groups] + need) or "a header line"
         raise InputError(f"{path}: the file is empty; a {what} needs the header {named} "
                          "and rows under it")
     table.lines = text.splitlines(keepends=True)

@@ -145,6 +145,9 @@ def load_sensor(ref: str | Path | None, lidar_file: bool = False) -> SensorParam
     path = PRESET_DIR / f"{ref_s}.toml"
     if not path.is_file():
         path = Path(ref_s).expanduser()
+        if ref_s and path.is_dir():
+            raise InputError(f"sensor {ref_s!r} is a directory; give a preset or a TOML file "
+                             "with a [sensor] table")
         if not path.is_file():
             raise InputError(f"unknown sensor {ref_s!r}: not a preset and no such file; "
                              f"presets: {', '.join(preset_names())}, or a TOML file with a "
