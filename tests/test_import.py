@@ -139,10 +139,13 @@ def test_export_round_trip(tmp_path, ext, name):
     assert len(back.faces) == len(m.faces)
     np.testing.assert_allclose(back.extents, m.extents, rtol=1e-6)
     assert rep.scale == 1.0 and rep.centre == "volume centroid"
-    # same vertex set, nose +x, fin up (float32 formats keep ~1e-7 relative)
-    a = m.vertices[np.lexsort(np.round(m.vertices, 4).T)]
-    b = back.vertices[np.lexsort(np.round(back.vertices, 4).T)]
-    np.testing.assert_allclose(b, a, atol=2e-6 * np.abs(m.vertices).max())
+    # same vertex set, nose +x, fin up (float32 formats keep ~1e-7 relative): each vertex
+    # has the other's within that, both ways (a sort of rounded coordinates would flip where
+    # a coordinate sits on a rounding boundary)
+    from scipy.spatial import cKDTree
+    tol = 2e-6 * np.abs(m.vertices).max()
+    assert cKDTree(m.vertices).query(back.vertices)[0].max() <= tol
+    assert cKDTree(back.vertices).query(m.vertices)[0].max() <= tol
     from apcg_core.catalog.checks import axes_fix
     assert axes_fix(rep.guess, rep.forward, rep.up) == {}  # the shape agrees: no warning
     assert not list(tmp_path.glob("*.part"))

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from apcg_core.catalog import Catalog, Mesh
-from apcg_core.catalog.catalog import REGISTRY, mesh_file_stem, name_key
+from apcg_core.catalog.catalog import LAST_INDEX, REGISTRY, mesh_file_stem, name_key
 from apcg_core.errors import InputError
 
 APCG = str(Path(sys.executable).parent / "apcg")
@@ -91,7 +91,9 @@ def test_concurrent_adds_and_removes_from_several_processes_lose_nothing(tmp_pat
         i = int(name.split("-")[1])
         assert cat.mesh(name).extents[0] == pytest.approx(10 * (1 + i / 10))
     left = sorted(p.name for p in user.iterdir())
-    assert left == sorted([REGISTRY] + [f"{mesh_file_stem(w)}.npz" for w in want])
+    assert left == sorted([REGISTRY, LAST_INDEX] + [f"{mesh_file_stem(w)}.npz" for w in want])
+    # 30 adds, each its own index, none given twice even where the type was removed
+    assert int((user / LAST_INDEX).read_text()) == 1000 + n * workers - 1
 
 
 def test_concurrent_catalog_add_commands_all_stay(tmp_path, box_obj):
@@ -289,3 +291,85 @@ def test_every_command_finds_a_type_by_any_spelling_the_catalog_takes(spelling):
     assert name_key(spelling) == name_key("A320neo")
     with pytest.raises(InputError, match=r"did you mean 'A320neo'\?"):
         model.types.code("A320neoo")
+
+
+# --- names that read as something else, indices never handed out twice ------------------
+
+@pytest.mark.parametrize("name", ["+7", "-5", " 12 ", "٣"])
+def test_a_name_that_reads_as_an_index_is_refused(tmp_path, name):
+    with pytest.raises(InputError, match="not be a number"):
+        Catalog(user_path=tmp_path).add_user_type(name, _box(), "aircraft", "user", "x")
+
+
+@pytest.mark.parametrize("name", ["A320neo\u200b", "\uff21320neo", "Mavic\u202e 3", "ﬁ-jet\u200d"])
+def test_a_lookalike_or_invisible_character_name_is_refused(tmp_path, name):
+    with pytest.raises(InputError, match="invisible|built-in type named"):
+        Catalog(user_path=tmp_path).add_user_type(name, _box(), "aircraft", "user", "x",
+                                                  force=True)
+    assert not (tmp_path / REGISTRY).exists()
+
+
+def test_a_name_of_undecodable_bytes_is_one_line(tmp_path, box_obj):
+    name = os.fsdecode(b"Avi\xf3n")  # what argv holds for a Latin-1 name
+    out = _apcg("catalog", "add", box_obj, "--name", name, env=_env(tmp_path))
+    assert out.returncode == 2 and "not valid UTF-8 text" in out.stderr, out.stderr
+    assert "Traceback" not in out.stderr
+    weird = tmp_path / os.fsdecode(b"pl\xe9ne.obj")
+    weird.write_bytes(box_obj.read_bytes())
+    out = _apcg("catalog", "add", weird, "--name", "Plane", env=_env(tmp_path))
+    assert out.returncode == 2 and "file name is not UTF-8" in out.stderr, out.stderr
+
+
+def test_a_removed_types_index_is_never_handed_out_again(tmp_path):
+    cat = Catalog(user_path=tmp_path)
+    a = cat.add_user_type("Jet A", _box(), "aircraft", "user", "x")
+    b = cat.add_user_type("Jet B", _box(), "aircraft", "user", "x")
+    cat.remove_user_type("Jet B")
+    c = Catalog(user_path=tmp_path).add_user_type("Jet C", _box(), "aircraft", "user", "x")
+    assert (a.index, b.index, c.index) == (1000, 1001, 1002)
+    for t in ("Jet A", "Jet C"):
+        Catalog(user_path=tmp_path).remove_user_type(t)
+    assert Catalog(user_path=tmp_path).add_user_type("Jet D", _box(), "aircraft", "user",
+                                                     "x").index == 1003
+    (tmp_path / "last_index").write_text("lots\n")
+    with pytest.raises(InputError, match="last_index is damaged"):
+        Catalog(user_path=tmp_path).add_user_type("Jet E", _box(), "aircraft", "user", "x")
+
+
+def _obj_text(m: Mesh) -> str:
+    return ("".join(f"v {a!r} {b!r} {c!r}\n" for a, b, c in m.vertices)
+            + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in m.faces))
+
+
+@pytest.mark.parametrize("offset", [(4.5e5, 5.2e6, 1e3), (-3e6, 2e6, 0.0)])
+def test_a_model_stored_far_from_its_files_origin_imports_as_at_the_origin(tmp_path, offset):
+    """Georeferenced coordinates (UTM: millions of metres): the origin still lands on the
+    volume centroid, no vertex is welded to another, and the mesh is the one at the origin."""
+    from apcg_core.catalog import default_catalog
+    from apcg_core.catalog.importer import import_model
+    plane = default_catalog().mesh("A320neo")
+    near, far = tmp_path / "near.obj", tmp_path / "far.obj"
+    near.write_text(_obj_text(plane))
+    far.write_text(_obj_text(plane.transformed(offset=np.array(offset))))
+    m0, r0 = import_model(near)
+    m1, r1 = import_model(far)
+    assert r1.centre == r0.centre == "volume centroid"
+    assert (len(m1.vertices), len(m1.faces)) == (len(m0.vertices), len(m0.faces))
+    assert np.abs(m1.vertices - m0.vertices).max() < 1e-6  # metres: no digit lost to the offset
+    assert np.abs(m1.centroid).max() < 1e-6
+
+
+def test_a_closed_body_wound_inward_does_not_move_the_origin(tmp_path):
+    from apcg_core.catalog import default_catalog
+    from apcg_core.catalog.importer import import_model
+    plane = default_catalog().mesh("A320neo")
+    pod = _box(6.0, 6.0, 6.0).transformed(offset=np.array([0.0, 14.0, 0.0]))
+    good, bad = tmp_path / "good.obj", tmp_path / "bad.obj"
+    good.write_text(_obj_text(Mesh.concat([plane, pod])))
+    bad.write_text(_obj_text(Mesh.concat([plane, pod.flipped()])))
+    m0, r0 = import_model(good)
+    m1, r1 = import_model(bad)
+    assert f"1 of its {r0.n_bodies} bodies were wound inward" in r1.centre
+    assert "inward" not in r0.centre
+    assert np.abs(m1.vertices - m0.vertices).max() < 1e-9
+    assert m1.volume == pytest.approx(m0.volume, rel=1e-12) and m1.volume > 0

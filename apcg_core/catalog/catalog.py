@@ -131,6 +131,10 @@ def _database_file(path, suffix: str = ".part"):
 
 
 REGISTRY = "user_types.json"
+# The highest index a user type ever had in this catalog (a removed type's index is never
+# handed to the next: a script's `--type 1013` must not turn into another aircraft). A catalog
+# from before this file: the highest index its registry holds.
+LAST_INDEX = "last_index"
 LOCK_WAIT_S = 120.0  # how long a catalog change waits for another process's change to end
 # A registry entry: field -> (accepted types, required). The rest of AircraftType is optional.
 _ENTRY_FIELDS = {f.name: f for f in fields(AircraftType)}
@@ -338,6 +342,22 @@ class Catalog:
                 raise self._damaged(f"{at}: {k} {v!r} is not text")
         return AircraftType(**{**e, "name": normalize_name(name)})
 
+    def _last_index(self) -> int:
+        """The highest index a user type ever had here (``LAST_INDEX``), or -1; a damaged
+        record is named (it would hand out an index again)."""
+        path = self.user_path / LAST_INDEX
+        try:
+            text = path.read_text().strip()
+        except FileNotFoundError:
+            return -1
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputError(f"{path} cannot be read ({exc})") from None
+        if not text.isdigit() or not text.isascii():
+            raise InputError(f"{path} is damaged (it holds {text[:40]!r}, not an index); write "
+                             "the highest type index your catalog ever had into it, or delete "
+                             "it if no type was ever removed")
+        return int(text)
+
     def _load_user(self) -> list[AircraftType]:
         return self._read_registry()
 
@@ -369,18 +389,21 @@ class Catalog:
 
     # --- user types: changes ---------------------------------------------------------------
     def _conflict(self, name: str, force: bool, users=None,
-                  given: str | None = None) -> AircraftType | None:
+                  given: str | None = None, lookalike: bool = False) -> AircraftType | None:
         """The user type that ``name`` would replace (with ``force``), or None; a built-in
-        type of that name, or a user type without ``force``, is refused naming it."""
+        type of that name, or a user type without ``force``, is refused naming it. With
+        ``lookalike`` a built-in type whose name reads the same once compatibility forms are
+        folded (NFKC: 'Ａ320neo' is 'A320neo') is refused too."""
         key = name_key(name)
         shown = name if given is None else given
-        same = next((t for t in self._builtin if name_key(t.name) == key), None)
+        folded = name_key(unicodedata.normalize("NFKC", name)) if lookalike else key
+        same = next((t for t in self._builtin if name_key(t.name) in (key, folded)), None)
         if same is not None:
             raise InputError(f"type name {shown!r}: a built-in type named {same.name!r} "
                              "already exists (names are compared ignoring case, spaces, '-' "
                              "and '_'); choose another --name")
         users = self.types[len(self._builtin):] if users is None else users
-        same = next((t for t in users if name_key(t.name) == key), None)
+        same = next((t for t in users if name_key(t.name) in (key, folded)), None)
         if same is not None and not force:
             raise InputError(f"type name {shown!r}: a type named {same.name!r} already exists "
                              "(names are compared ignoring case, spaces, '-' and '_'); choose "
@@ -403,14 +426,23 @@ class Catalog:
             hint = f" (did you mean {close[0]}?)" if close else ""
             raise InputError(f"category {category!r} unknown{hint}; accepted: "
                              f"{', '.join(self.categories())}")
+        if any("\ud800" <= c <= "\udfff" for c in str(name)):  # undecodable bytes of argv
+            raise InputError(f"type name {name!r} not accepted: it is not valid UTF-8 text; "
+                             "give the name in UTF-8")
         clean = normalize_name(name)
-        if not name_key(clean) or clean.isdigit() or any(c in clean for c in "/\\\0"):
+        if not name_key(clean) or clean.isdigit() or any(c in clean for c in "/\\\0") \
+                or re.fullmatch(r"[+-]?[0-9]+", clean):
             raise InputError(f"type name {name!r} not accepted: it must have a letter or "
-                             "digit, not be a number (numbers are catalog indices) and have "
-                             "no '/' or '\\'")
-        if any(unicodedata.category(c) == "Cc" for c in clean):
-            raise InputError(f"type name {name!r} not accepted: it holds a control character")
-        self._conflict(clean, force, given=name)
+                             "digit, not be a number such as 7, +7 or -5 (numbers are catalog "
+                             "indices) and have no '/' or '\\'")
+        odd = sorted({unicodedata.category(c) for c in clean} & {"Cc", "Cf", "Cs", "Co", "Cn"})
+        if odd:
+            what = "a control character" if odd == ["Cc"] else (
+                "an invisible or unassigned character (Unicode category "
+                f"{', '.join(odd)}: a zero-width space, a direction mark)")
+            raise InputError(f"type name {name!r} not accepted: it holds {what}")
+        # a name that reads as another (a fullwidth 'Ａ', a ligature) is that name
+        self._conflict(clean, force, given=name, lookalike=True)
         return clean
 
     def add_user_type(self, name: str, mesh: Mesh, kind: str, category: str,
@@ -433,7 +465,7 @@ class Catalog:
         with self._changing() as users:
             old = self._conflict(name, force, users)
             index = old.index if old is not None else \
-                max([USER_INDEX_START - 1] + [t.index for t in users]) + 1
+                max([USER_INDEX_START - 1, self._last_index()] + [t.index for t in users]) + 1
             t = AircraftType(index=index, name=name, kind=kind, range_band=band,
                              category=category, length_m=float(ext[0]), span_m=float(ext[1]),
                              height_m=float(ext[2]), source=str(source),
@@ -444,6 +476,9 @@ class Catalog:
                 users[users.index(old)] = t
             else:
                 users.append(t)
+            if index > self._last_index():
+                with _database_file(self.user_path / LAST_INDEX) as tmp:
+                    tmp.write_text(f"{index}\n")
             self._write_registry(users)
             if old is not None and self._legacy_mesh_file(old.name) != \
                     self._user_mesh_file(name):

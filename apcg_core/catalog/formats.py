@@ -483,6 +483,12 @@ def format_of(path) -> Format:
 def read_model(path, objects: str | None = None) -> RawModel:
     """Read ``path`` as stored; ``objects``: comma-separated name patterns to keep."""
     path = Path(path)
+    try:  # the readers (trimesh's among them) take file names as UTF-8 text
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise InputError(f"{shown}: the file name is not UTF-8 text; rename the file, or link "
+                         "it under a UTF-8 name (ln -s)") from None
     if not path.exists():
         raise InputError(f"{path}: no such file")
     if path.is_dir():

@@ -68,9 +68,14 @@ def axis_matrix(forward: str = "X", up: str = "Z") -> np.ndarray:
 
 
 def _merge_close(mesh: Mesh) -> Mesh:
-    """Weld duplicate vertices (STL and many OBJ files store triangles unshared)."""
-    scale = float(np.abs(mesh.vertices).max()) or 1.0
-    key = np.round(mesh.vertices / (scale * 1e-9)).astype(np.int64)
+    """Weld duplicate vertices (STL and many OBJ files store triangles unshared): those within
+    1e-9 of the model's size of each other, measured from its bounding-box centre (not the
+    file's origin: a model stored kilometres away would be welded on a grid of millimetres)."""
+    if not len(mesh.vertices):
+        return mesh
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    scale = float(np.max(hi - lo)) or 1.0
+    key = np.round((mesh.vertices - (lo + hi) / 2) / (scale * 1e-9)).astype(np.int64)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     faces = inverse.reshape(-1)[mesh.faces]
     f0, f1, f2 = faces.T
@@ -197,8 +202,11 @@ def import_model(path, forward: str | None = None, up: str | None = None,
     how = "none"
     if centre:
         if rep.watertight and abs(rep.volume) > 0:
-            mesh = mesh.outward()
+            mesh, turned = mesh.bodies_outward()
             origin, how = mesh.centroid, "volume centroid"
+            if turned:
+                how += (f"; {turned} of its {rep.n_bodies} bodies were wound inward and were "
+                        "turned outward")
         else:
             origin, how = mesh.bounds.mean(axis=0), "bounding-box centre"
         mesh = mesh.transformed(offset=-origin)

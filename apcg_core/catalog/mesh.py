@@ -34,21 +34,28 @@ class Mesh:
 
     # --- measures --------------------------------------------------------------------------
     def _tetra(self):
-        v0, v1, v2 = (self.vertices[self.faces[:, i]] for i in range(3))
-        return v0, v1, v2, np.einsum("ij,ij->i", v0, np.cross(v1, v2)) / 6.0
+        """The faces' corners relative to the bounding-box centre ``c``, and the signed
+        volume of each face's tetrahedron against ``c``: a model stored kilometres from its
+        file's origin (georeferenced) loses no digits to the offset (against the file's origin,
+        1e6 m put the centroid 540 m off)."""
+        c = (self.vertices.min(axis=0) + self.vertices.max(axis=0)) / 2 \
+            if len(self.vertices) else np.zeros(3)
+        v0, v1, v2 = (self.vertices[self.faces[:, i]] - c for i in range(3))
+        return c, v0, v1, v2, np.einsum("ij,ij->i", v0, np.cross(v1, v2)) / 6.0
 
     @property
     def volume(self) -> float:
-        return float(self._tetra()[3].sum())
+        return float(self._tetra()[4].sum())
 
     @property
     def centroid(self) -> np.ndarray:
-        """Volume centroid (signed tetrahedra against the origin); closed meshes only."""
-        v0, v1, v2, vol = self._tetra()
+        """Volume centroid (signed tetrahedra against the bounding-box centre); closed meshes
+        only."""
+        c, v0, v1, v2, vol = self._tetra()
         total = vol.sum()
         if abs(total) < 1e-18:
             raise InputError("the mesh encloses no volume; use the bounding-box centre")
-        return ((v0 + v1 + v2) * vol[:, None]).sum(axis=0) / (4.0 * total)
+        return c + ((v0 + v1 + v2) * vol[:, None]).sum(axis=0) / (4.0 * total)
 
     @property
     def face_areas(self) -> np.ndarray:
@@ -85,6 +92,26 @@ class Mesh:
         """Same surface, wound so that the enclosed volume is positive."""
         return self if self.volume >= 0 else self.flipped()
 
+    def bodies_outward(self) -> tuple[Mesh, int]:
+        """Same surface, each body (connected part) wound so that its own volume is positive,
+        and how many were turned: a closed part wound inward (a separate nacelle or pod the
+        modeller flipped) would otherwise subtract its volume from the model's and move its
+        centroid."""
+        label = self.vertex_labels()
+        if not len(self.faces):
+            return self, 0
+        body = label[self.faces[:, 0]]
+        _, _, _, _, vol = self._tetra()
+        per_body = np.bincount(np.unique(body, return_inverse=True)[1], weights=vol)
+        ids = np.unique(body)
+        inward = ids[per_body < 0]
+        if not len(inward):
+            return self, 0
+        faces = self.faces.copy()
+        turn = np.isin(body, inward)
+        faces[turn] = faces[turn][:, ::-1]
+        return Mesh(self.vertices.copy(), faces), int(len(inward))
+
     @staticmethod
     def concat(meshes: list[Mesh]) -> Mesh:
         verts, faces, n = [], [], 0
@@ -107,16 +134,23 @@ class Mesh:
         watertight = bool(len(f)) and bool((ucounts == 2).all())
         consistent = watertight and bool((counts == 1).all()) and bool(
             np.isin(rev, uk, assume_unique=False).all())
-        scale = max(float(np.abs(self.vertices).max()) if nv else 1.0, 1e-9)
+        scale = max(float(np.max(self.extents)) if nv else 1.0, 1e-9)  # the model's size
         degenerate = int((self.face_areas <= area_eps * scale * scale).sum())
         return MeshReport(nv, len(f), watertight, consistent, degenerate,
                           self.volume if len(f) else 0.0, self.n_bodies())
 
     def n_bodies(self) -> int:
-        """Connected components over shared vertex indices (union-find, vectorised passes)."""
-        nv = len(self.vertices)
-        if nv == 0:
+        """Connected components over shared vertex indices."""
+        if len(self.vertices) == 0:
             return 0
+        label = self.vertex_labels()
+        used = np.unique(self.faces)
+        return int(len(np.unique(label[used])))
+
+    def vertex_labels(self) -> np.ndarray:
+        """Per vertex, the smallest vertex index of its connected component (union-find over
+        shared vertex indices, vectorised passes)."""
+        nv = len(self.vertices)
         label = np.arange(nv)
         edges = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]]])
         while True:
@@ -128,8 +162,7 @@ class Mesh:
             if np.array_equal(new, label):
                 break
             label = new
-        used = np.unique(self.faces)
-        return int(len(np.unique(label[used])))
+        return label
 
 
 def sample_surface(mesh: Mesh, n: int, seed: int = 0, return_faces: bool = False):
