@@ -188,17 +188,34 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
         if head_path.read_bytes() != header:
             raise InputError(f"{out} already holds a different dataset (its dataset.json differs "
                              "from this config's); build into a new directory or delete it")
+    elif stray := sorted((out / "shards").glob("*.npz")):
+        # dataset.json is written before any shard: shards without it are of no known build
+        # (copied in, or its dataset.json deleted), never to be taken in as this one's
+        raise InputError(f"{out / 'shards'} holds {len(stray)} shard file(s) ({stray[0].name}"
+                         f"{', ...' if len(stray) > 1 else ''}) but {out} has no dataset.json, "
+                         "so nothing says which build made them; build into a new directory, "
+                         "or delete them")
     else:
         # first: the header is the record that makes the directory this build's own
         # (apcg_core.outputs), so a conditions.csv of ours never stands without it; a
         # conditions.csv missing beside it is made below (a build stopped in between)
         write_atomic(head_path, header, part_suffix=part_suffix())
         write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=part_suffix())
+    table = conditions_csv(plan)
     if not (out / "conditions.csv").exists():
-        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=part_suffix())
+        write_atomic(out / "conditions.csv", table, part_suffix=part_suffix())
+    elif (out / "conditions.csv").read_bytes() != table:  # ours (dataset.json says so), damaged
+        _say(f"{out / 'conditions.csv'} was not this build's (edited or damaged): written again")
+        write_atomic(out / "conditions.csv", table, part_suffix=part_suffix())
 
     mine = [s for s in plan.shards if s.index % part_n == part_i]
-    todo = [s for s in mine if not (out / s.file).exists()]
+    todo = []
+    for s in mine:  # a shard is done only when it is this plan's shard, whole
+        if (out / s.file).exists() and (why := not_this_shard(out, s, plan)) is not None:
+            _say(f"{out / s.file} is not this build's ({why}): built again")
+            (out / s.file).unlink()
+        if not (out / s.file).exists():
+            todo.append(s)
     done_samples = sum(len(s.rows) for s in mine) - sum(len(s.rows) for s in todo)
     # absolute: a cluster's workers do not share this process's working directory
     tasks = [_task(plan, catalog, s, Path(settings.output)) for s in todo]
@@ -216,7 +233,14 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
         bar.close()
     elapsed = time.perf_counter() - t0
     complete = all((out / s.file).exists() for s in plan.shards)
-    if complete:
+    if complete:  # the other parts' shards too, whole, before a manifest vouches for them
+        bad = [(s, why) for s in plan.shards if s.index % part_n != part_i
+               and (why := not_this_shard(out, s, plan)) is not None]
+        if bad:
+            s, why = bad[0]
+            raise InputError(f"{out / s.file} is not this build's ({why}); delete it and run "
+                             f"--shard {s.index % part_n}/{part_n} again"
+                             + (f" ({len(bad)} such shards)" if len(bad) > 1 else ""))
         _remove_dead_parts(out / "shards")
         _remove_dead_parts(out)
         manifest = {"complete": True, "shards": [
@@ -225,6 +249,25 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
     return {"directory": str(out), "built_shards": len(tasks), "skipped_shards": len(mine) -
             len(tasks), "samples_built": sum(len(t.rows) for t in tasks),
             "seconds": round(elapsed, 3), "complete": complete}
+
+
+def not_this_shard(out: Path, s: ShardPlan, plan: Plan) -> str | None:
+    """Why ``out / s.file`` is not shard ``s`` of ``plan`` (read whole: every member's CRC),
+    or None when it is: its samples and their conditions must be the plan's, exactly (a shard
+    of another seed, config or dataset, copied in, is told apart)."""
+    try:
+        shard = Shard.load(out / s.file)
+    except InputError as exc:
+        return str(exc).split(" (")[0].replace(f"dataset shard {out / s.file} ", "")
+    if not np.array_equal(shard.sample_id, s.rows) or \
+            not np.array_equal(shard.conditions, plan.table[s.rows]):
+        return "its samples or their conditions are another build's"
+    return None
+
+
+def _say(message: str) -> None:
+    import sys
+    print(f"apcg dataset build: {message}", file=sys.stderr, flush=True)
 
 
 def _interrupted(out: Path, mine: list[ShardPlan], part_i: int, part_n: int,

@@ -51,6 +51,11 @@ from apcg_core.scene.trajectory import Static
 from .rays import AngularBoxes, angular_boxes, bounding_radius, start_margin_m
 from .simulate import Simulator
 
+# The farthest a target may be at any frame: the bound of a target's range_m and of every
+# command's --range-m (apcg_core/options.py), so that a speed or start time cannot carry it
+# to 2e7 m or to infinity, where no lidar of this project sees anything.
+MAX_RANGE_M = 1e6
+
 
 @dataclass
 class FrameScan:
@@ -177,6 +182,13 @@ class SceneScanner:
             raise InputError(f"{target.source}: at t = {times[j]:.6g} s its range "
                              f"{rng[j]:.6g} m puts the lidar inside it (bounding radius "
                              f"{radius:.3f} m); accepted: a range > {need:.3f} m")
+        far = ~(rng <= MAX_RANGE_M)  # inf and NaN too: a speed or start time run away
+        if far.any():
+            j = int(np.argmax(far))
+            raise InputError(f"{target.source}: at t = {times[j]:.6g} s its range is "
+                             f"{rng[j]:.6g} m; accepted: a range <= {MAX_RANGE_M:g} m at every "
+                             "frame (a target's range_m has the same bound): check its speed "
+                             "and the sequence's start_s")
         return turn(-scene.pointing_azimuth, b), turn(-scene.pointing_azimuth, p), rng
 
     def _sphere_meets(self, i: int, c: np.ndarray) -> np.ndarray:
@@ -657,9 +669,17 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
     try:
         check_targets_seen(scanner, frames, every_frame=False)
         header = json_bytes(sequence_header(scene, scanner))
+        # what each frame file of this sequence says of itself (its own frame index aside)
+        ours = {k: v for k, v in scan_meta(scene, scanner, 0).items()
+                if k not in ("frame", "fallback")}
     finally:
         scanner.close()
-    check_sequence_directory(out, header)
+    if not check_sequence_directory(out, header) and \
+            (stray := sorted((out / "frames").glob("*.npz"))):
+        raise InputError(f"{out / 'frames'} holds {len(stray)} frame file(s) ({stray[0].name}"
+                         f"{', ...' if len(stray) > 1 else ''}) but {out} has no {HEADER}, so "
+                         "nothing says which sequence made them; write into a new directory, "
+                         "or delete them")
     (out / "frames").mkdir(parents=True, exist_ok=True)
     lock = ProcessLock(out / ".sequence.lock", f"scene sequence into {out}")
     lock.acquire()
@@ -667,7 +687,16 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
         head = out / HEADER
         if not check_sequence_directory(out, header):  # again: another run may have begun
             write_atomic(head, header, part_suffix=part_suffix())
-        todo = [f for f in frames if not (out / frame_file(f)).exists()]
+        todo = []
+        for f in frames:  # a frame is done only when it is this sequence's, whole
+            path = out / frame_file(f)
+            if path.exists() and (why := not_this_frame(path, f, ours)) is not None:
+                import sys
+                print(f"apcg scene sequence: {path} is not this sequence's ({why}): made "
+                      "again", file=sys.stderr, flush=True)
+                path.unlink()
+            if not path.exists():
+                todo.append(f)
         tasks = [SequenceTask(i // FRAMES_PER_TASK, str(Path(scene_path).resolve()),
                               scene.digest(),
                               lidar.to_dict() if lidar is not None else None,
@@ -707,6 +736,22 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
     if stats is not None:
         summary["generator"] = stats
     return summary
+
+
+def not_this_frame(path: Path, frame: int, ours: dict) -> str | None:
+    """Why the frame file ``path`` is not frame ``frame`` of the sequence whose frames say
+    ``ours`` of themselves (:func:`scan_meta`, its frame index and fallbacks aside), read
+    whole; None when it is."""
+    import json
+    try:
+        meta = dict(read_frame(path).meta)
+    except InputError as exc:
+        return f"unreadable: {exc}"
+    meta.pop("fallback", None)
+    want = json.loads(json.dumps({**ours, "frame": int(frame)}))
+    if json.loads(json.dumps(meta, default=str)) != want:
+        return "another scene's or other options' frame"
+    return None
 
 
 def check_sequence_directory(out: Path, header: bytes) -> bool:

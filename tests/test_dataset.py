@@ -218,3 +218,58 @@ def test_blender_pool_workers_live_across_shards_and_write_the_same_bytes(tmp_pa
         assert run.returncode == 0, run.stderr[-2000:]
     a, b = _files(outs["reused"]), _files(outs["fresh"])
     assert len(a) > 10 and a == b
+
+
+# --- a shard is done only when it is this build's, whole -----------------------------------
+
+def _small(seed: int = 3) -> dict:
+    cfg = load_config(SMALL)
+    cfg["seed"] = seed
+    return cfg
+
+
+def test_shards_without_a_dataset_json_are_never_taken_in(tmp_path):
+    build_dataset(_small(3), tmp_path / "a", progress=False)
+    shutil.copytree(tmp_path / "a" / "shards", tmp_path / "b" / "shards")
+    with pytest.raises(InputError, match=r"holds \d+ shard file\(s\) .* no dataset.json"):
+        build_dataset(_small(4), tmp_path / "b", progress=False)
+    assert not (tmp_path / "b" / "dataset.json").exists()
+
+
+@pytest.mark.parametrize("damage", ["cut", "flip", "other seed"])
+def test_a_damaged_or_foreign_shard_of_a_partial_build_is_built_again(tmp_path, capsys, damage):
+    whole = tmp_path / "whole"
+    build_dataset(_small(3), whole, progress=False)
+    out = tmp_path / "parts"
+    build_dataset(_small(3), out, shard_spec="0/2", progress=False)
+    victim = sorted((out / "shards").glob("*.npz"))[0]
+    data = bytearray(victim.read_bytes())
+    if damage == "cut":
+        data = data[:1000]
+    elif damage == "flip":
+        data[len(data) // 2] ^= 0x10
+    else:
+        other = tmp_path / "other"
+        build_dataset(_small(4), other, progress=False)
+        data = (other / "shards" / victim.name).read_bytes()
+    victim.write_bytes(bytes(data))
+    (out / "conditions.csv").write_text("edited\n")
+    capsys.readouterr()
+    summary = build_dataset(_small(3), out, shard_spec="0/2", progress=False)
+    err = capsys.readouterr().err
+    assert f"{victim} is not this build's" in err and "built again" in err
+    assert "conditions.csv was not this build's" in err
+    assert summary["built_shards"] == 1
+    build_dataset(_small(3), out, shard_spec="1/2", progress=False)
+    assert _files(out) == _files(whole)  # the bytes of one uninterrupted build
+    assert dataset_info(out, verify=True)["complete"]
+
+
+def test_a_damaged_shard_of_another_part_stops_the_manifest(tmp_path):
+    out = tmp_path / "parts"
+    build_dataset(_small(3), out, shard_spec="0/2", progress=False)
+    victim = sorted((out / "shards").glob("*.npz"))[0]
+    victim.write_bytes(victim.read_bytes()[:1000])
+    with pytest.raises(InputError, match=r"is not this build's .*delete it and run --shard 0/2"):
+        build_dataset(_small(3), out, shard_spec="1/2", progress=False)
+    assert not (out / "manifest.json").exists()

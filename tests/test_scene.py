@@ -6,6 +6,7 @@ machinery, so one target alone at azimuth 0 must be `apcg simulate` byte for byt
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -572,3 +573,56 @@ def test_a_trajectory_beyond_its_type_is_warned_about(tmp_path, capsys):
     assert main(["scene", "scan", str(scene), "-o", str(tmp_path / "a.npz")]) == 0
     err = capsys.readouterr().err
     assert "warning: " in err and "speed 400 m/s exceeds what a airliner_narrowbody flies" in err
+
+
+def test_frames_without_a_header_are_never_taken_in(sequence_reference, tmp_path, capsys):
+    scene, _, ref = sequence_reference
+    shutil.copytree(ref / "frames", tmp_path / "seq" / "frames")
+    assert main(["scene", "sequence", str(scene), "-o", str(tmp_path / "seq"),
+                 "--no-progress"]) == 2
+    assert "frame file(s) (000000.npz, ...) but" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("damage", ["cut", "other scene"])
+def test_a_damaged_or_foreign_frame_is_made_again(sequence_reference, tmp_path, capsys,
+                                                  damage):
+    scene, want, ref = sequence_reference
+    out = tmp_path / "seq"
+    shutil.copytree(ref, out)
+    (out / "manifest.json").unlink()  # a sequence still being made
+    victim = out / "frames" / "000002.npz"
+    if damage == "cut":
+        victim.write_bytes(victim.read_bytes()[:500])
+    else:  # the same frame of a scene whose jet flies 50 m further out
+        doc = json.loads(json.dumps(SEQUENCE))
+        doc["target"][0]["range_m"] = doc["target"][0].get("range_m", 6000.0) + 50.0
+        other = _write_scene(tmp_path / "other.toml", doc)
+        assert main(["scene", "sequence", str(other), "-o", str(tmp_path / "o"),
+                     "--no-progress"]) == 0
+        shutil.copy(tmp_path / "o" / "frames" / "000002.npz", victim)
+    capsys.readouterr()
+    assert main(["scene", "sequence", str(scene), "-o", str(out), "--no-progress"]) == 0
+    assert f"{victim} is not this sequence's" in capsys.readouterr().err
+    assert _files(out) == want
+
+
+@pytest.mark.parametrize("change", [{"speed_mps": 1e308}, {"speed_mps": 1e7},
+                                    {"start_s": 1e300}])
+def test_a_target_carried_beyond_any_range_is_refused_by_frame(tmp_path, capsys, change):
+    doc = json.loads(json.dumps(SEQUENCE))
+    doc["target"] = doc["target"][:1]
+    if "start_s" in change:
+        doc["sequence"]["start_s"] = change["start_s"]
+    else:
+        doc["target"][0]["trajectory"]["speed_mps"] = change["speed_mps"]
+        doc["target"][0]["trajectory"]["heading_deg"] = 0.0  # straight away from the lidar
+    scene = _write_scene(tmp_path / "far.toml", doc)
+    for cmd, out in (("sequence", tmp_path / "seq"), ("scan", tmp_path / "scan.npz")):
+        extra = ["--no-progress"] if cmd == "sequence" else []
+        assert main(["scene", cmd, str(scene), "-o", str(out), *extra]) == 2, \
+            capsys.readouterr().err
+        err = capsys.readouterr().err
+        if cmd == "sequence" and "start_s" not in change:  # (else the window's check may come
+            # first: refused all the same)
+            assert "accepted: a range <= 1e+06 m at every frame" in err, err
+        assert not out.exists()
