@@ -43,11 +43,11 @@ SIGNED_VALUE_OPTIONS = ("--forward", "--up")
 _AXIS = re.compile(r"^[+-]?[XYZxyz]$")
 
 
-# A negative number argparse takes for an option (its own pattern knows -1 and -0.5, not
-# -1e9 or -inf): joined to the long option before it ("--tau -1e9" -> "--tau=-1e9"), whose
-# rule then judges the value (apcg_core/options.py: "-inf" is refused as not finite).
-_NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)[eE][+-]?\d+$|^-(inf|infinity|nan)$",
-                              re.IGNORECASE)
+# A value beginning with a minus sign that argparse takes for an option (its own pattern
+# knows -1 and -0.5, not -1e9, -inf or a shard spec -1/4): joined to the long option before it
+# ("--tau -1e9" -> "--tau=-1e9"), whose own check then judges the value ("-inf" is refused as
+# not finite, "-1/4" as no shard). No option of apcg begins with a minus and a digit.
+_NEGATIVE_NUMBER = re.compile(r"^-(\d|\.\d)|^-(inf|infinity|nan)$", re.IGNORECASE)
 
 
 def join_signed_values(argv: list[str]) -> list[str]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import time
 from pathlib import Path
 
@@ -107,10 +108,11 @@ def _remove_dead_parts(directory: Path) -> None:
 def parse_shard_spec(spec: str | None) -> tuple[int, int]:
     if spec is None:
         return 0, 1
-    try:
-        i, n = (int(x) for x in spec.split("/"))
-    except ValueError as exc:
-        raise InputError(f"--shard takes I/N (e.g. 3/10), got {spec!r}") from exc
+    parts = str(spec).split("/")
+    if len(parts) != 2 or not all(re.fullmatch(r"\s*-?[0-9]+\s*", p) for p in parts):
+        # ASCII digits only: int() would also read '١' (an Arabic-Indic one)
+        raise InputError(f"--shard takes I/N (e.g. 3/10), got {spec!r}")
+    i, n = (int(x) for x in parts)
     if n < 1 or not 0 <= i < n:
         raise InputError(f"--shard {spec}: need N >= 1 and 0 <= I < N (I counts from 0)")
     return i, n

@@ -138,3 +138,21 @@ def test_a_negative_infinity_reaches_the_options_rule(capsys):
     assert main(["simulate", "--type", "A320neo", "--range-m", "5000", "--elevation-deg", "3",
                  "--yaw-deg", "-inf", "-o", "never.ply"]) == 2
     assert "--yaw-deg -inf not accepted: a finite angle" in capsys.readouterr().err
+
+
+def test_a_shard_spec_with_a_minus_is_judged_by_its_own_check(tmp_path, capsys):
+    from apcg_core.cli import main
+    assert main(["dataset", "build", "--config", "demo", "-o", str(tmp_path / "d"),
+                 "--shard", "-1/4"]) == 2
+    err = capsys.readouterr().err
+    assert "--shard -1/4: need N >= 1 and 0 <= I < N" in err and "usage:" not in err
+    assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize("spec", ["\u0661/2", "1/2/3", "a/b", "1.0/2", "", "1/"])
+def test_a_shard_spec_takes_ascii_whole_numbers_only(spec):
+    from apcg_core.errors import InputError
+    from dataset_builder.build import parse_shard_spec
+    with pytest.raises(InputError, match="--shard takes I/N"):
+        parse_shard_spec(spec)
+    assert parse_shard_spec(" 1/ 4") == (1, 4)
