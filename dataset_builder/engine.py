@@ -252,9 +252,12 @@ def _dask_client(distributed, settings: RunSettings):
         return
     with contextlib.ExitStack() as stack:
         with _sigint_held():
+            # ":0", a free port: None does not turn the dashboard off (dask/distributed
+            # issue 8136), and with a second cluster on the machine (another --shard part)
+            # its default port 8787 is taken and a multi-line warning is printed
             cluster = stack.enter_context(distributed.LocalCluster(
                 n_workers=settings.workers, threads_per_worker=1, processes=True,
-                dashboard_address=None, silence_logs=logging.ERROR))
+                dashboard_address=":0", silence_logs=logging.ERROR))
             wait_point("build.workers-starting")
         client = stack.enter_context(distributed.Client(cluster, set_as_default=False))
         client.register_worker_callbacks(setup=worker_init)

@@ -432,3 +432,22 @@ def test_local_builds_need_no_dask(tmp_path):
     r = _build_without_dask(tmp_path / "ds", "--shard", "0/6", "--workers", "2")
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["built_shards"] == 3
+
+
+def test_a_local_dask_cluster_beside_another_says_nothing_of_its_dashboard(tmp_path,
+                                                                          demo_reference):
+    """Another cluster on the machine (a second --shard part) holds Dask's dashboard port:
+    the build is quiet about it (dashboard_address None did not turn the dashboard off)."""
+    import socket
+    with socket.socket() as taken:
+        try:
+            taken.bind(("", 8787))
+        except OSError:
+            pass  # already held by something else: the case itself
+        taken.listen()
+        r = subprocess.run(_build_cmd(tmp_path / "ds", "--engine", "dask", "--workers", "2",
+                                      config="demo"), capture_output=True, text=True,
+                           timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "8787" not in r.stderr and "Warning" not in r.stderr, r.stderr
+    _assert_same(tmp_path / "ds", demo_reference)
