@@ -273,3 +273,29 @@ def test_a_damaged_shard_of_another_part_stops_the_manifest(tmp_path):
     with pytest.raises(InputError, match=r"is not this build's .*delete it and run --shard 0/2"):
         build_dataset(_small(3), out, shard_spec="1/2", progress=False)
     assert not (out / "manifest.json").exists()
+
+
+@pytest.mark.parametrize("extra", [
+    {"sampling": "grid", "counts": {"elevation": 1, "range_m": 3000, "yaw": 3000, "pitch": 1,
+                                    "roll": 1}},
+    {"sampling": "random", "samples_per_type": 6_000_000}])
+def test_a_config_too_large_to_plan_is_refused_before_it_is_planned(extra):
+    from dataset_builder.plan import MAX_SAMPLES
+    cfg = {"seed": 1, "backend": "embree", "types": ["A320neo", "Mavic 3"], **extra}
+    with pytest.raises(InputError, match=f"one config plans at most {MAX_SAMPLES:,}"):
+        make_plan(cfg, default_catalog())
+
+
+def test_a_grid_plan_is_the_product_in_its_fields_order():
+    import itertools
+
+    from dataset_builder.plan import GRID_FIELDS
+    plan = make_plan(load_config(SMALL), default_catalog())
+    v = plan.values
+    rows = [(code, rr, b, p, y, g) for code, t in enumerate(plan.types)
+            for b, rr, y, p, g in itertools.product(
+                *(np.radians(v["elevation_deg"]) if f == "elevation" else
+                  np.asarray(v["drone_range_m" if t.range_band == "near" else
+                               "aircraft_range_m"]) if f == "range_m" else
+                  np.radians(v[f"{f}_deg"]) for f in GRID_FIELDS))]
+    assert np.allclose(plan.table, np.array(rows), rtol=1e-12, atol=0)
