@@ -228,9 +228,12 @@ def test_a_type_name_is_found_or_refused_by_name(tmp_path_factory, capsys, name,
 @fuzz(25)
 @given(name=TYPE_TEXT)
 def test_a_new_type_name_that_could_be_misread_is_refused(tmp_path_factory, capsys, name):
-    """Names a later `--type NAME` could not find as themselves (empty, a number, which
-    `--type` reads as an index, a path separator, a control character, a taken name in any
-    case or spelling of its spaces, dashes and underscores) are refused up front."""
+    """Names a later `--type NAME` could not find as themselves, or that read as another
+    (empty, a number in any sign, which `--type` reads as an index, a path separator, a
+    control, invisible, unassigned or undecodable character, a taken name in any case or
+    spelling of its spaces, dashes and underscores, or once compatibility forms fold: NFKC)
+    are refused up front."""
+    import re
     import unicodedata
 
     def key(s):  # the catalog's rule, written out again: NFC, case, separators
@@ -239,9 +242,11 @@ def test_a_new_type_name_that_could_be_misread_is_refused(tmp_path_factory, caps
                        and unicodedata.category(c) not in ("Pd", "Pc"))
     from apcg_core.catalog.catalog import default_catalog
     taken = {key(n) for n in default_catalog().names()}
-    misread = (not key(name) or name.strip().isdigit() or "/" in name or "\\" in name
-               or any(unicodedata.category(c) == "Cc" for c in name.strip())
-               or key(name) in taken)
+    clean = unicodedata.normalize("NFC", name).strip()
+    misread = (not key(name) or clean.isdigit() or re.fullmatch(r"[+-]?[0-9]+", clean)
+               or "/" in name or "\\" in name
+               or any(unicodedata.category(c) in ("Cc", "Cf", "Cs", "Co", "Cn") for c in clean)
+               or key(name) in taken or key(unicodedata.normalize("NFKC", clean)) in taken)
     tmp = tmp_path_factory.mktemp("newname")
     rc, out, err = run(["catalog", "add", MESH, f"--name={name}",
                         "--dry-run"], capsys, cwd=tmp)
