@@ -26,7 +26,7 @@ CONFIG_DIR = Path(__file__).with_name("configs")
 GRID_FIELDS = ("elevation", "range_m", "yaw", "pitch", "roll")
 _DEFAULT_COUNTS = {"elevation": 5, "range_m": 10, "yaw": 10, "pitch": 5, "roll": 5}
 # One config is planned in memory: its table is 48 bytes a sample, but the plan as a whole
-# (split, shards, checks) peaks near 200 (a 2 x 10^6-sample grid: 393 MB peak RSS, stop 50):
+# (split, shards, checks) peaks near 200 (a 2 x 10^6-sample grid: 384 MiB peak RSS, stop 50):
 # 10^7 samples plan in about 2 GB. Beyond this, split a config into several (other seeds);
 # 10^8 ran a 23 GB machine out of memory before its first shard.
 MAX_SAMPLES = 10**7
