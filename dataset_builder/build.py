@@ -183,10 +183,12 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
 def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings, part_i: int,
                   part_n: int, progress: bool) -> dict:
     header = json_bytes(header_of(plan, catalog))
+    table = conditions_csv(plan)  # once: about a second a 10^5 samples
     head_path = out / "dataset.json"
     # Concurrent builders of one plan write the same bytes here, each through its own
     # temporary file and an atomic rename, so any interleaving leaves complete, equal files.
-    if head_path.exists():
+    fresh = not head_path.exists()
+    if not fresh:
         if head_path.read_bytes() != header:
             raise InputError(f"{out} already holds a different dataset (its dataset.json differs "
                              "from this config's); build into a new directory or delete it")
@@ -197,14 +199,13 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
                          f"{', ...' if len(stray) > 1 else ''}) but {out} has no dataset.json, "
                          "so nothing says which build made them; build into a new directory, "
                          "or delete them")
-    else:
+    if fresh:
         # first: the header is the record that makes the directory this build's own
         # (apcg_core.outputs), so a conditions.csv of ours never stands without it; a
         # conditions.csv missing beside it is made below (a build stopped in between)
         write_atomic(head_path, header, part_suffix=part_suffix())
-        write_atomic(out / "conditions.csv", conditions_csv(plan), part_suffix=part_suffix())
-    table = conditions_csv(plan)
-    if not (out / "conditions.csv").exists():
+        write_atomic(out / "conditions.csv", table, part_suffix=part_suffix())
+    elif not (out / "conditions.csv").exists():
         write_atomic(out / "conditions.csv", table, part_suffix=part_suffix())
     elif (out / "conditions.csv").read_bytes() != table:  # ours (dataset.json says so), damaged
         _say(f"{out / 'conditions.csv'} was not this build's (edited or damaged): written again")
@@ -259,17 +260,18 @@ def not_this_shard(out: Path, s: ShardPlan, plan: Plan) -> str | None:
     of another seed, config or dataset, copied in, is told apart)."""
     try:
         shard = Shard.load(out / s.file)
-    except InputError as exc:
-        return str(exc).split(" (")[0].replace(f"dataset shard {out / s.file} ", "")
+    except InputError:
+        return "unreadable, cut short or damaged"
     if not np.array_equal(shard.sample_id, s.rows) or \
             not np.array_equal(shard.conditions, plan.table[s.rows]):
         return "its samples or their conditions are another build's"
     return None
 
 
-def _say(message: str) -> None:
+def _say(message: str, command: str = "apcg dataset build") -> None:
+    """One line on stderr while a build goes on (what it found and did)."""
     import sys
-    print(f"apcg dataset build: {message}", file=sys.stderr, flush=True)
+    print(f"{command}: {message}", file=sys.stderr, flush=True)
 
 
 def _interrupted(out: Path, mine: list[ShardPlan], part_i: int, part_n: int,

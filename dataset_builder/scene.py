@@ -652,7 +652,7 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
     from apcg_core.progress import Progress
     from apcg_core.scene.sequence import HEADER
 
-    from .build import BuildInterrupted, _remove_dead_parts
+    from .build import BuildInterrupted, _remove_dead_parts, _say
     from .engine import RunSettings, get_engine
     from .shards import part_suffix
     scene = load_scene(scene_path, lidar=lidar, generator=generator)
@@ -691,9 +691,8 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
         for f in frames:  # a frame is done only when it is this sequence's, whole
             path = out / frame_file(f)
             if path.exists() and (why := not_this_frame(path, f, ours)) is not None:
-                import sys
-                print(f"apcg scene sequence: {path} is not this sequence's ({why}): made "
-                      "again", file=sys.stderr, flush=True)
+                _say(f"{path} is not this sequence's ({why}): made again",
+                     "apcg scene sequence")
                 path.unlink()
             if not path.exists():
                 todo.append(f)
