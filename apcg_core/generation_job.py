@@ -333,9 +333,7 @@ def _part_ranges(src, fields: dict) -> tuple[dict, int, int]:
     open part file ``src``, for the output's ``fields`` (name -> (dtype, row shape):
     ``CloudWriter.fields``), every member read once to check its CRC against the zip's. A part
     that is not what :func:`_write_part` writes raises ValueError (:func:`_reading` names it)."""
-    import zlib
-
-    from .io.crc import crc32_combine
+    from .io.crc import crc32, crc32_combine
     fmt = np.lib.format
     with zipfile.ZipFile(src) as z:
         infos = {i.filename: i for i in z.infolist()}
@@ -370,10 +368,10 @@ def _part_ranges(src, fields: dict) -> tuple[dict, int, int]:
             data = os.pread(src.fileno(), min(1 << 24, count - done), start + head + done)
             if not data:
                 raise ValueError(f"{k}.npy ends {count - done} bytes early")
-            crc = zlib.crc32(data, crc)
+            crc = crc32(data, crc)
             done += len(data)
         src.seek(start)
-        if crc32_combine(zlib.crc32(src.read(head)), crc, count) != info.CRC:
+        if crc32_combine(crc32(src.read(head)), crc, count) != info.CRC:
             raise ValueError(f"{k}.npy: its bytes do not match its CRC")
         ranges[k] = (start + head, count, crc)
     return ranges, int(n or 0), empty

@@ -13,7 +13,12 @@ once it has put a set's own amount of work (its switch: hits, clouds, ...) throu
 path: loading costs about 0.5 s, so a short run never pays it and a long one pays it once
 (rent, then buy). A caller that knows how much work is coming says so (:meth:`Loader.expect`):
 when that reaches the switch, the set is loaded at once on a thread of its own, beside the
-first work on the numpy path, instead of stalling the work that reaches the switch.
+first work on the numpy path, instead of stalling the work that reaches the switch. Work keeps
+to the numpy path until that thread is done (it never waits for it), and the thread also makes
+the caller's first call (``warm``): numba loads each compiled function from its cache, and sets
+up its runtime, at a function's first call in a process (about 0.3 s of CPU here, most of it
+holding the GIL), which the first block of real work would otherwise pay while the other
+threads wait on numba's compiler lock.
 """
 
 from __future__ import annotations
@@ -74,25 +79,35 @@ class Loader:
             return False
         if self.loaded():
             return True
+        if self.loading() and mode() != "compiled":  # expect's thread: never wait for it
+            self._numpy_work += n
+            return False
         if mode() == "compiled" or self._numpy_work + n >= switch:
             return self.load() is not False
         self._numpy_work += n
         return False
 
-    def expect(self, n: int) -> None:
+    def expect(self, n: int, warm=None) -> None:
         """``n`` units of work are coming: when they reach the switch (or ``compiled`` is set),
         start loading the kernels now, on a thread of their own, so that they load while the
-        first work runs on the numpy path (the same bytes) and are there when the switch
-        comes; a call reaching the switch before they are loaded waits for them."""
+        first work runs on the numpy path (the same bytes; :meth:`use_for` does not wait for
+        them unless ``compiled`` is set). ``warm(kernels)``: a first call of the kernels with
+        the argument types the caller's work will pass, made on that thread before the kernels
+        are handed out (an exception in it is the work's to meet: it is dropped here)."""
         if (self._loading is not None or self.loaded() or not self.enabled()
                 or (n < self.switch and mode() != "compiled")):
             return
-        self._loading = threading.Thread(target=self.load, name=f"load {self.what}",
-                                         daemon=True)
+        self._loading = threading.Thread(target=self.load, args=(warm,),
+                                         name=f"load {self.what}", daemon=True)
         self._loading.start()
 
-    def load(self):
-        """The kernels, loaded if numba is importable; False when it is not."""
+    def loading(self) -> bool:
+        """Whether :meth:`expect`'s thread is loading the kernels now."""
+        return self._loading is not None and self._loading.is_alive() and not self.loaded()
+
+    def load(self, warm=None):
+        """The kernels, loaded if numba is importable (and ``warm``, a first call of them,
+        made before they are handed out); False when numba is not importable."""
         if self._kernels is None:
             with self._lock:
                 if self._kernels is None:
@@ -101,7 +116,13 @@ class Loader:
                     except ImportError:
                         self._kernels = False
                     else:
-                        self._kernels = self._compile()
+                        kernels = self._compile()
+                        if warm is not None:
+                            try:
+                                warm(kernels)
+                            except Exception:  # noqa: BLE001 - the real call will say it
+                                pass
+                        self._kernels = kernels
         return self._kernels
 
     def require(self) -> KernelSet:

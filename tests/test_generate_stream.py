@@ -156,6 +156,29 @@ def test_crc32_combine_is_the_crc_of_the_concatenation(la, lb):
         crc32_combine(0, 0, -1)
 
 
+@pytest.mark.parametrize("size", [0, 1, 15, 16, 17, 255, 4096, 65537, (1 << 20) + 3])
+def test_the_packages_crc32_is_zlibs_in_pieces_and_whole(size):
+    """Every CRC the package writes goes through apcg_core.io.crc.crc32 (ISA-L's where the
+    io extra installed it): zlib's values, from any start value, over unaligned pieces."""
+    import os
+    import zlib
+
+    from apcg_core.io.crc import crc32
+    data = os.urandom(size)
+    assert crc32(data) == zlib.crc32(data)
+    assert crc32(memoryview(data)[3:]) == zlib.crc32(data[3:])
+    cut = size // 3
+    assert crc32(data[cut:], crc32(data[:cut])) == zlib.crc32(data)
+    assert crc32(data, 0xDEADBEEF) == zlib.crc32(data, 0xDEADBEEF)
+
+
+def test_the_io_extra_gives_the_fast_crc32():
+    """The set-up command installs the io extra, whose isal the package's CRC comes from (zlib's
+    is the fallback without it): CI runs with the one users get."""
+    from apcg_core.io.crc import crc32
+    assert crc32.__module__.startswith("isal"), crc32.__module__
+
+
 def test_npz_writer_spills_every_member_where_zipfile_is_another(tmp_path, monkeypatch):
     """Where this Python's zipfile keeps a member's size and CRC elsewhere, the first member is
     spilled and copied like the others: the same arrays either way."""

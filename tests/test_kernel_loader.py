@@ -56,3 +56,28 @@ def test_work_said_to_be_coming_loads_the_kernels_beside_it(module, mode):
                          check=True).stdout.split()
     assert out[:2] == ["False", "1"]  # below the switch: no thread, nothing loaded
     assert out[2:] == (["True", "True"] if mode == "" else ["False", "False"])
+
+
+def test_work_goes_on_on_numpy_while_expect_loads_and_warm_comes_first():
+    """While expect's thread loads (and warms) the kernels, calls take the numpy path, past
+    the switch too, instead of waiting; the warm call gets the kernels before anyone else."""
+    code = ("import threading, time\n"
+            "from apcg_core.kernel_loader import KernelSet, Loader\n"
+            "seen = []\n"
+            "go = threading.Event()\n"
+            "def compile():\n"
+            "    go.wait(60)\n"
+            "    return KernelSet(f=lambda: 1)\n"
+            "def warm(k):\n"
+            "    seen.append(('warm', loader.loaded(), k.f()))\n"
+            "loader = Loader(compile, 'test kernels', 10)\n"
+            "loader.expect(10, warm=warm)\n"
+            "print(loader.loading(), loader.use_for(100), loader.use_for(100), loader.loaded())\n"
+            "go.set()\n"
+            "loader._loading.join(60)\n"
+            "print(seen, loader.loading(), loader.use_for(1), loader.loaded())\n")
+    env = {**os.environ, "APCG_KERNELS": ""}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.splitlines()
+    assert out[0].split() == ["True", "False", "False", "False"]
+    assert out[1] == "[('warm', False, 1)] False True True"

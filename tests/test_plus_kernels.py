@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -196,3 +198,30 @@ def test_the_kernels_hold_no_fused_multiply_add(model, drawn):
         asm = "\n".join(again.inspect_asm().values())
         assert not fused.search(asm), (name, fused.search(asm).group(0))
         assert re.search(r"\b(v?mul[sp][sd]|fmul)\b", asm), name  # the pattern reads it
+
+
+def test_the_loading_thread_makes_the_readers_first_call_with_a_blocks_types():
+    """expect_clouds loads the compiled reader on a thread and calls it there on a probe with
+    the argument types of a real block (numba loads each function from its cache at its first
+    call in a process): a block read afterwards adds no compiled version of either kernel."""
+    code = ("import time\n"
+            "import numpy as np\n"
+            "from apcg_core.families import load_model, plus_kernels\n"
+            "from apcg_core.condition import DEG\n"
+            "m = load_model(None)\n"
+            "m.expect_clouds(plus_kernels.SWITCH_CLOUDS)\n"
+            "t = time.time()\n"
+            "while not plus_kernels.loaded() and time.time() - t < 300:\n"
+            "    time.sleep(0.01)\n"
+            "k = plus_kernels.require()\n"
+            "before = [len(k.row_spans.overloads), len(k.read_rows.overloads)]\n"
+            "c = m.conditions(['A320neo', 'Mavic 3'], [[6000.0, 3.5 * DEG, 0.02, 0.3, 0.01],\n"
+            "                                      [300.0, 3.2 * DEG, 0.05, -0.4, 0.0]])\n"
+            "table = m.repeated_conditions(c, 1)\n"
+            "cloud = m.clouds_of(table, m.sheets(table), compiled=True)\n"
+            "print(before, [len(k.row_spans.overloads), len(k.read_rows.overloads)], "
+            "len(cloud) > 0)\n")
+    env = {**os.environ, "APCG_KERNELS": ""}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.split("]")
+    assert out[0].strip() == "[1, 1" and out[1].strip() == "[1, 1", out

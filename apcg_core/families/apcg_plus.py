@@ -195,7 +195,20 @@ class PlusModel(ModelTypes):
         return self.workers
 
     def expect_clouds(self, n: int) -> None:
-        plus_kernels.expect(n)  # enough clouds to switch: the reader loads beside the first
+        # enough clouds to switch: the reader loads beside the first blocks, and makes its
+        # first call there, on a probe with the argument types the blocks' calls will have
+        plus_kernels.expect(n, warm=self._warm_reader)
+
+    def _warm_reader(self, kernels) -> None:
+        """The compiled reader on one probe condition (the middle of the condition space, type
+        0) and a 4 x 4 sheet whose hit logits are all above the draw's floor: every kernel
+        called once with the types of a real block's call (float32 sheets, as the network's)."""
+        lo, hi = self.space.bounds(np.zeros((1, 6)))
+        table = (lo + hi) / 2.0
+        table[:, 0] = 0.0
+        sheets = np.full((1, 2, 4, 4), self.tau + 1.0, np.float32)
+        sheets[:, 1] = 0.0
+        self._clouds_compiled(table, sheets, kernels)
 
     def _run(self, codes: np.ndarray, pose: np.ndarray) -> np.ndarray:
         if self._rt is None:
@@ -368,12 +381,14 @@ class PlusModel(ModelTypes):
         alpha, beta = self.lidar.cell_centre_angles(w, h, b0[sample])
         return PointCloud(spherical_to_cartesian(alpha, beta, r), r, w, h, sample)
 
-    def _clouds_compiled(self, table: np.ndarray, sheets: np.ndarray) -> PointCloud:
+    def _clouds_compiled(self, table: np.ndarray, sheets: np.ndarray,
+                         kernels=None) -> PointCloud:
         """:meth:`clouds_of` in two compiled passes (plus_kernels.row_spans: the box rows'
         places and the columns above tau; plus_kernels.read_rows: the cells, ranges and
         points), every tan, arctan, sin and cos in numpy on the numpy reader's arguments
-        (tables of the window's angles; the live rows' intervals and elevations)."""
-        k = plus_kernels.require()
+        (tables of the window's angles; the live rows' intervals and elevations).
+        ``kernels``: the compiled set (default: loaded now)."""
+        k = kernels or plus_kernels.require()
         lidar = self.lidar
         codes = table[:, 0].astype(np.int64)
         rad = self.radius[codes]

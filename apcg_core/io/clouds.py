@@ -12,7 +12,6 @@ import copy
 import functools
 import io
 import json
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ import numpy as np
 from ..cloud import PointCloud
 from ..errors import InputError
 from .atomic import atomic_path, claim, name_the_file, publish, refuse_directory, scratch
+from .crc import crc32
 
 FORMATS = (".ply", ".npz", ".las", ".laz")
 _OWN = ("range_m", "cell_w", "cell_h", "sample")
@@ -141,7 +141,7 @@ class _DirectMember:
 
     def write(self, data) -> None:
         self.member._fileobj.write(data)
-        self.crc = zlib.crc32(data, self.crc)
+        self.crc = crc32(data, self.crc)
         self.size += data.nbytes if isinstance(data, memoryview) else len(data)
 
     def append_range(self, src_fd: int, offset: int, count: int, crc: int) -> None:
@@ -160,7 +160,7 @@ class _DirectMember:
         fp.seek(self.start)
         fp.write(header)
         fp.seek(end)
-        _count_in(m, crc32_combine(zlib.crc32(header), self.crc, self.size), self.size)
+        _count_in(m, crc32_combine(crc32(header), self.crc, self.size), self.size)
         m.close()  # the local header rewritten with the CRC and sizes
 
 
@@ -289,7 +289,7 @@ class CloudWriter:
                     f.write(data)
                 # the member's CRC, taken while the bytes are at hand: the zip at the end
                 # then copies them in the kernel without reading them back
-                self._crc[k] = zlib.crc32(data, self._crc.get(k, 0))
+                self._crc[k] = crc32(data, self._crc.get(k, 0))
         elif self.ext == ".ply":
             self._file.write(_ply_records(cloud))
         else:
