@@ -167,9 +167,16 @@ class ConditionSpace:
             object.__setattr__(self, name, (float(lo), float(hi)))
         if self.drone_range_m[0] <= 0 or self.aircraft_range_m[0] <= 0:
             raise InputError("ranges must be > 0 m")
+        drone = np.zeros(self.n_types, bool)
+        drone[list(self.drone_types)] = True
+        drone.flags.writeable = False
+        object.__setattr__(self, "_drone", drone)  # type index -> in the drone band
 
     def is_drone(self, type_index):
+        """Whether each type index is one of ``drone_types`` (False for any other value)."""
         t = np.asarray(type_index)
+        if t.dtype.kind in "iu" and (not t.size or (t.min() >= 0 and t.max() < self.n_types)):
+            return self._drone[t]  # a table lookup: np.isin sorts, 0.1 ms a 256-row block
         return np.isin(t, np.asarray(self.drone_types, dtype=np.int64))
 
     def range_bounds(self, type_index) -> tuple[np.ndarray, np.ndarray]:
