@@ -125,7 +125,7 @@ def _run_generate(args) -> int:
                          f"clouds: at most {job.MAX_CLOUDS:,} in one request; split it into "
                          "several (other rows, other seeds)")
     model.expect_clouds(total)
-    _warn_window(model, table)
+    window = _warn_window(model, table)
     meta = {"model": str(model.directory), "family": model.family,
             "runtime": getattr(model, "runtime", None), "seed": args.seed,
             "count": args.count, "tau": getattr(model, "tau", None),
@@ -188,6 +188,7 @@ def _run_generate(args) -> int:
                 empty += n - job.clouds_with_points(cloud.sample)
                 progress.update(n)
         progress.close()
+    window.result()  # its line printed (above the bar) before the command's last ones
     from .plausibility import empty_clouds_warning
     if (warning := empty_clouds_warning(empty, total)) is not None:
         import sys
@@ -198,21 +199,39 @@ def _run_generate(args) -> int:
     return 0
 
 
-def _warn_window(model, table) -> None:
-    """One "window too small" line when the lidar's window cuts a requested target."""
-    import sys
+def _warn_window(model, table):
+    """One "window too small" line when the lidar's window cuts a requested target, found on
+    a thread of its own beside the first blocks (the meshes' loading and the check are 0.1-0.2
+    s that the start would otherwise spend on one core) and printed above the progress bar
+    when found; returns its future (``result()`` waits for it, and raises what it raised)."""
+    from concurrent.futures import Future
 
-    from .catalog.catalog import default_catalog
-    from .errors import InputError
-    from .plausibility import WINDOW_CHECK_ROWS, window_fit, window_warning
-    cat, part = default_catalog(), table[:WINDOW_CHECK_ROWS]
-    try:
-        fit = window_fit(model.lidar, lambda n: cat.mesh(n).vertices, part.names, part.table)
-    except InputError:  # a type of the model that this catalog no longer holds: no mesh
-        return
-    warning = window_warning(model.lidar, *fit, "the requested targets")
-    if warning:
-        print(f"apcg generate: warning: {warning}", file=sys.stderr)
+    done: Future = Future()
+
+    def check() -> None:
+        from .catalog.catalog import default_catalog
+        from .errors import InputError
+        from .plausibility import WINDOW_CHECK_ROWS, window_fit, window_warning
+        from .progress import say
+        cat, part = default_catalog(), table[:WINDOW_CHECK_ROWS]
+        try:
+            fit = window_fit(model.lidar, lambda n: cat.mesh(n).vertices, part.names,
+                             part.table)
+        except InputError:  # a type of the model that this catalog no longer holds: no mesh
+            return
+        warning = window_warning(model.lidar, *fit, "the requested targets")
+        if warning:
+            say(f"apcg generate: warning: {warning}")
+
+    def run() -> None:
+        try:
+            done.set_result(check())
+        except BaseException as exc:  # noqa: BLE001 - the command raises it at result()
+            done.set_exception(exc)
+
+    import threading
+    threading.Thread(target=run, name="apcg-window-check", daemon=True).start()
+    return done
 
 
 # Clouds generated per block: large requests are made and written block by block, so memory

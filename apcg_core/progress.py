@@ -29,3 +29,14 @@ class Progress:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+
+
+def say(line: str) -> None:
+    """One line on stderr from any thread, above a progress bar being drawn (tqdm's own
+    write, which clears the bar and draws it again under the line)."""
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        print(line, file=sys.stderr, flush=True)
+    else:
+        tqdm.write(line, file=sys.stderr)

@@ -2,6 +2,7 @@
 output, Ctrl-C keeps them, the same command continues, and the output's bytes are those of
 one uninterrupted run straight into the file."""
 
+import json
 import signal
 import subprocess
 import sys
@@ -225,3 +226,25 @@ def test_a_pose_outside_the_models_ranges_is_refused_first(tmp_path, ext, pose, 
     assert len(lines) == 1 and lines[0].startswith(f"apcg generate: error: the condition: "
                                                    f"{says}"), p.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("how", ["type", "csv"])
+def test_a_target_the_window_cuts_is_warned_of_once(tmp_path, how):
+    """The window check runs beside the first blocks: its one line still comes, once, before
+    the command's result, for one condition and for a CSV (with its progress bar)."""
+    if how == "type":
+        request = ["--type", "777-300ER", "--range-m", "3000", "--elevation-deg", "3.5",
+                   "--pitch-deg", "2"]
+    else:
+        csv = tmp_path / "c.csv"
+        csv.write_text("type,range_m,elevation_deg,pitch_deg,yaw_deg,roll_deg\n" + "".join(
+            f"{t},{r},3.5,2,{y},0\n" for t, r in (("777-300ER", 3000), ("A320neo", 15000))
+            for y in range(-50, 50, 2)))
+        request = ["--conditions", str(csv)]
+    p = subprocess.run([*APCG, "generate", *request, "-o", str(tmp_path / "g.npz")],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    said = [ln for ln in p.stderr.splitlines() if "window too small" in ln]
+    assert len(said) == 1 and said[0].startswith("apcg generate: warning: window too small: "
+                                                 "the lidar's 256 x 64 window cuts"), p.stderr
+    assert json.loads(p.stdout)["clouds"] == (1 if how == "type" else 100)
