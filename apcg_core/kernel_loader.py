@@ -111,22 +111,23 @@ class Loader:
         """The kernels, loaded if numba is importable (and ``warm``, a first call of them,
         made before they are handed out); False when numba is not importable."""
         if self._kernels is None:
-            with self._lock:
+            with self._lock, long_lived_objects(), numba_without_scipy():
                 if self._kernels is None:
-                    try:
-                        import numba  # noqa: F401
-                    except ImportError:
-                        self._kernels = False
-                    else:
-                        with long_lived_objects():
-                            kernels = self._compile()
-                            if warm is not None:
-                                try:
-                                    warm(kernels)
-                                except Exception:  # noqa: BLE001 - the real call will say it
-                                    pass
-                        self._kernels = kernels
+                    self._kernels = self._load(warm)
         return self._kernels
+
+    def _load(self, warm):
+        try:
+            import numba  # noqa: F401
+        except ImportError:
+            return False
+        kernels = self._compile()
+        if warm is not None:
+            try:
+                warm(kernels)
+            except Exception:  # noqa: BLE001 - the real call will say it
+                pass
+        return kernels
 
     def require(self) -> KernelSet:
         """The compiled kernels, loaded (numba must be importable)."""
@@ -154,3 +155,38 @@ def long_lived_objects():
         gc.freeze()
         if enabled:
             gc.enable()
+
+
+class _NoScipyOnThisThread:
+    """An import finder that answers "no such module" for scipy and its modules, to imports
+    made on one thread (:func:`numba_without_scipy`); every other thread imports as usual."""
+
+    def __init__(self) -> None:
+        self.thread = threading.get_ident()
+
+    def find_spec(self, name, path=None, target=None):
+        if threading.get_ident() == self.thread and name.split(".", 1)[0] == "scipy":
+            raise ModuleNotFoundError(f"No module named {name!r} (numba's load, "
+                                      "apcg_core.kernel_loader)", name=name)
+        return None
+
+
+@contextlib.contextmanager
+def numba_without_scipy():
+    """numba imports scipy when it is installed (the sim extra installs it), for np.dot and
+    np.linalg in compiled code: scipy and scipy.linalg's BLAS, 0.25-0.37 s of CPU of the
+    0.85-1.4 s a process spends loading the kernels here, and an OpenBLAS thread pool that
+    spins. No kernel of this package uses linear algebra, so while numba loads (and makes its
+    first calls) on this thread, scipy is not found there; numba then goes without its
+    linear algebra in this process. A process that has imported scipy already is left as it
+    is, and other threads import it as usual throughout."""
+    import sys
+    if "scipy" in sys.modules:
+        yield
+        return
+    finder = _NoScipyOnThisThread()
+    sys.meta_path.insert(0, finder)
+    try:
+        yield
+    finally:
+        sys.meta_path.remove(finder)

@@ -81,3 +81,23 @@ def test_work_goes_on_on_numpy_while_expect_loads_and_warm_comes_first():
                          check=True).stdout.splitlines()
     assert out[0].split() == ["True", "False", "False", "False"]
     assert out[1] == "[('warm', False, 1)] False True True"
+
+
+def test_numba_loads_without_importing_scipy_and_scipy_still_imports_after():
+    """The kernels use no linear algebra: numba's load does not pull in scipy (0.3 s and an
+    OpenBLAS thread pool), the kernels work, and scipy imports as usual afterwards."""
+    code = ("import sys\n"
+            "import numpy as np\n"
+            "from apcg_core.families import load_model, plus_kernels\n"
+            "m = load_model(None)\n"
+            "plus_kernels.expect(plus_kernels.SWITCH_CLOUDS, warm=m._warm_reader)\n"
+            "plus_kernels._loader._loading.join(300)\n"
+            "print(plus_kernels.loaded(), 'scipy' in sys.modules, 'numba' in sys.modules)\n"
+            "c = m.conditions(['A320neo'], [[6000.0, 0.06, 0.03, 0.2, 0.0]])\n"
+            "t = m.repeated_conditions(c, 1)\n"
+            "print(len(m.clouds_of(t, m.sheets(t), compiled=True)) > 0)\n"
+            "import scipy.linalg\n"
+            "print(scipy.linalg.norm(np.ones(4)))\n")
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "APCG_KERNELS": ""},
+                         capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["True", "False", "True", "True", "2.0"], out
