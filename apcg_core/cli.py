@@ -135,8 +135,6 @@ def _run(argv, registrars, command: list, resume_hint: list) -> int:
     if refused:
         print(f"apcg {args.command}: error: {refused[0]}", file=sys.stderr)
         return 2
-    import gc
-    gc.freeze()  # the imports so far live as long as the process: never scanned again
     with guarding(args):  # every file written goes through its guard (outputs.py)
         return int(args.func(args) or 0)
 

@@ -140,12 +140,12 @@ class Loader:
 @contextlib.contextmanager
 def long_lived_objects():
     """Around work that makes many objects that live as long as the process (numba's import
-    and its first calls: ~60,000; a command's imports): no cyclic garbage collection while
-    they are made, then every object there is moved out of the collector's sight
-    (:func:`gc.freeze`). A collection of all generations scans every tracked object, holding
-    the GIL: two of them during numba's load took 0.11 s of a 102,400-cloud `apcg generate`
-    (gc.callbacks, stop 51), and each later one would scan those objects again. Objects freed
-    by their reference counts are freed as before; the collector runs again afterwards."""
+    and its first calls: ~60,000): no cyclic garbage collection while they are made, then
+    every object there is moved out of the collector's sight (:func:`gc.freeze`). A
+    collection of all generations scans every tracked object, holding the GIL: two of them
+    during numba's load took 0.11 s of a 102,400-cloud `apcg generate` (gc.callbacks, stop
+    51), and each later one would scan those objects again. Objects freed by their reference
+    counts are freed as before; the collector runs again afterwards."""
     enabled = gc.isenabled()
     gc.disable()
     try:
