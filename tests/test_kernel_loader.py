@@ -2,11 +2,8 @@
 process stays on numpy until it has put its set's switch of work through it (rent, then buy),
 unless APCG_KERNELS says otherwise, and the package imports without numba."""
 
-import os
-import subprocess
-import sys
-
 import pytest
+from fresh_process import printed
 
 SETS = {  # kernel module -> (its switch, the package that must import without numba)
     "apcg_core.sensor.kernels": ("SWITCH_HITS", "apcg_core.sensor"),
@@ -26,9 +23,7 @@ def test_a_process_loads_the_kernels_once_it_has_work_for_them(module, mode):
             f"n = k.{switch}\n"
             "print(k.enabled(), k.loaded(), k.use_for(n // 2), k.use_for(0), k.loaded(),\n"
             "      k.use_for(n // 2), k.loaded(), k.use_for(1))\n")
-    env = {**os.environ, "APCG_KERNELS": mode}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         check=True).stdout.split()
+    out = printed(code, APCG_KERNELS=mode).split()
     want = {"": "False True False False False False True True True",
             "numpy": "False False False False False False False False False",
             "compiled": "False True False True True True True True True"}[mode]
@@ -51,9 +46,7 @@ def test_work_said_to_be_coming_loads_the_kernels_beside_it(module, mode):
             "while not k.loaded() and time.time() - t < 120 and k.enabled():\n"
             "    time.sleep(0.01)\n"
             "print(k.loaded(), k.use_for(1))\n")
-    env = {**os.environ, "APCG_KERNELS": mode}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         check=True).stdout.split()
+    out = printed(code, APCG_KERNELS=mode).split()
     assert out[:2] == ["False", "1"]  # below the switch: no thread, nothing loaded
     assert out[2:] == (["True", "True"] if mode == "" else ["False", "False"])
 
@@ -76,9 +69,7 @@ def test_work_goes_on_on_numpy_while_expect_loads_and_warm_comes_first():
             "go.set()\n"
             "loader._loading.join(60)\n"
             "print(seen, loader.loading(), loader.use_for(1), loader.loaded())\n")
-    env = {**os.environ, "APCG_KERNELS": ""}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         check=True).stdout.splitlines()
+    out = printed(code, APCG_KERNELS="").splitlines()
     assert out[0].split() == ["True", "False", "False", "False"]
     assert out[1] == "[('warm', False, 1)] False True True"
 
@@ -98,6 +89,5 @@ def test_numba_loads_without_importing_scipy_and_scipy_still_imports_after():
             "print(len(m.clouds_of(t, m.sheets(t), compiled=True)) > 0)\n"
             "import scipy.linalg\n"
             "print(scipy.linalg.norm(np.ones(4)))\n")
-    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "APCG_KERNELS": ""},
-                         capture_output=True, text=True, check=True).stdout.split()
+    out = printed(code, APCG_KERNELS="").split()
     assert out == ["True", "False", "True", "True", "2.0"], out

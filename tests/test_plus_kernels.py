@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import os
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 pytest.importorskip("numba")
 pytest.importorskip("onnxruntime")
+
+from fresh_process import printed  # noqa: E402
 
 from apcg_core.families import load_model, plus_kernels  # noqa: E402
 from apcg_core.families.apcg_plus import CHUNK  # noqa: E402
@@ -221,7 +221,5 @@ def test_the_loading_thread_makes_the_readers_first_call_with_a_blocks_types():
             "cloud = m.clouds_of(table, m.sheets(table), compiled=True)\n"
             "print(before, [len(k.row_spans.overloads), len(k.read_rows.overloads)], "
             "len(cloud) > 0)\n")
-    env = {**os.environ, "APCG_KERNELS": ""}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         check=True).stdout.split("]")
+    out = printed(code, APCG_KERNELS="").split("]")
     assert out[0].strip() == "[1, 1" and out[1].strip() == "[1, 1", out
