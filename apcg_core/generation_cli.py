@@ -204,10 +204,6 @@ def _warn_window(model, table):
     a thread of its own beside the first blocks (the meshes' loading and the check are 0.1-0.2
     s that the start would otherwise spend on one core) and printed above the progress bar
     when found; returns its future (``result()`` waits for it, and raises what it raised)."""
-    from concurrent.futures import Future
-
-    done: Future = Future()
-
     def check() -> None:
         from .catalog.catalog import default_catalog
         from .errors import InputError
@@ -223,14 +219,10 @@ def _warn_window(model, table):
         if warning:
             say(f"apcg generate: warning: {warning}")
 
-    def run() -> None:
-        try:
-            done.set_result(check())
-        except BaseException as exc:  # noqa: BLE001 - the command raises it at result()
-            done.set_exception(exc)
-
-    import threading
-    threading.Thread(target=run, name="apcg-window-check", daemon=True).start()
+    from concurrent.futures import ThreadPoolExecutor
+    pool = ThreadPoolExecutor(1, thread_name_prefix="apcg-window-check")
+    done = pool.submit(check)
+    pool.shutdown(wait=False)  # the thread ends with the check
     return done
 
 

@@ -141,9 +141,10 @@ class TypeTable:
         """Each code of this table as a code of ``to`` (-1: a type ``to`` lacks), made once per
         pair of tables: a request recodes every block of its rows (10^5 blocks of a 10^7-row
         CSV), and the names' keys cost 0.3 ms a time for 98 types."""
-        maps = self.__dict__.setdefault("_maps", {})  # id(to) -> (to, its codes)
+        # id(to) -> (to, its codes): holding ``to`` keeps its id from naming another table
+        maps = self.__dict__.setdefault("_maps", {})
         hit = maps.get(id(to))
-        if hit is None or hit[0] is not to:
+        if hit is None:
             if len(maps) >= 16:  # held tables stay few in a long session (the add-on's)
                 maps.clear()
             hit = maps[id(to)] = (to, np.array([to._code.get(name_key(n), -1)
