@@ -54,7 +54,7 @@ def _per_sample(name: str, value, n: int) -> np.ndarray:
 
 
 def pc2im(points, range_m, elevation, length_m, lidar: LidarParams = DEFAULT_LIDAR,
-          sample=None, n_samples: int | None = None, dtype=np.float32):
+          sample=None, n_samples: int | None = None, dtype=np.float32, image: bool = True):
     """PC2Im, paper eq. 15: d(w, h) = 1.8 (r(w, h) - r0) / l, background -1.
 
     ``points`` (N, 3) are in the observation frame. For a batch, ``sample`` gives each point's
@@ -63,7 +63,8 @@ def pc2im(points, range_m, elevation, length_m, lidar: LidarParams = DEFAULT_LID
     nearest is kept (the lidar's first return). Target depths outside [TARGET_FLOOR, 1] are
     clamped so they stay distinguishable from background, and counted.
 
-    Returns ``(image, Pc2imStats)``.
+    Returns ``(image, Pc2imStats)``; ``image`` False: ``(None, Pc2imStats)``, without the
+    dense (N, H, W) image (a 65536 x 65536 window's is 16 GiB).
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     batch = sample is not None
@@ -98,12 +99,14 @@ def pc2im(points, range_m, elevation, length_m, lidar: LidarParams = DEFAULT_LID
     keep = order[first]
     d = DEPTH_SCALE * (r[keep] - r0[s[keep]]) / length[s[keep]]
     dc = np.clip(d, TARGET_FLOOR, 1.0)
-    img = np.full(n_samples * H * W, BACKGROUND, dtype=dtype)
-    img[key[keep]] = dc
-    img = img.reshape(n_samples, H, W)
     stats = Pc2imStats(n_points=len(pts), n_outside=int((~inside).sum()),
                        n_hidden=int(len(order) - len(keep)),
                        n_clamped=int((d != dc).sum()), n_pixels=int(len(keep)))
+    if not image:
+        return None, stats
+    img = np.full(n_samples * H * W, BACKGROUND, dtype=dtype)
+    img[key[keep]] = dc
+    img = img.reshape(n_samples, H, W)
     return (img if batch else img[0]), stats
 
 

@@ -190,7 +190,7 @@ def _run_generate(args) -> int:
         progress.close()
     window.result()  # its line printed (above the bar) before the command's last ones
     from .plausibility import empty_clouds_warning
-    if (warning := empty_clouds_warning(empty, total)) is not None:
+    if (warning := empty_clouds_warning(empty, total, sensor is not None)) is not None:
         import sys
         print(f"apcg generate: warning: {warning}", file=sys.stderr)
     print(json.dumps({"output": args.output, "clouds": total, "points": points,

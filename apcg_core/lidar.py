@@ -8,13 +8,13 @@ read by ``apcg_core.sensor``). Presets are the files beside this module in ``lid
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError, check_finite
+from .io.toml_file import read_toml
 
 DEG = math.pi / 180.0
 LIDAR_PRESET_DIR = Path(__file__).with_name("lidar_presets")
@@ -22,6 +22,23 @@ DEFAULT_LIDAR_PRESET = "paper"  # the paper's SPC-Lidar (SPEC section 1; its fil
 LIDAR_KEYS = ("r_alpha_deg", "r_beta_deg", "r_r_m", "width", "height")
 # The tables a lidar file may hold: [lidar] (here) and [sensor] (apcg_core.sensor.params).
 LIDAR_FILE_TABLES = ("lidar", "sensor")
+
+
+# What a lidar's cells and bins may be: wide enough for every single-photon lidar we know of,
+# narrow enough that the arithmetic stays finite and a window's arrays fit in memory. A 1 um
+# bin is 6.7 fs of flight time, far below any timing electronics (SPAD TCSPC jitter is tens
+# of ps: Hadfield, Nature Photonics 3, 696 (2009)); a 1 km bin is beyond any range gate's use.
+# A 1e-7 deg cell is 0.03 mm at 18 km; one of 10 deg gives 18 cells across a 180 deg window.
+_BOUNDS = {  # name: (lowest, highest, unit shown, factor to the unit shown)
+    "r_alpha": (1e-7 * DEG, 10.0 * DEG, "_deg", DEG),
+    "r_beta": (1e-7 * DEG, 10.0 * DEG, "_deg", DEG),
+    "r_r": (1e-6, 1e3, "_m", 1.0),
+}
+_BOUND_WHY = {
+    "r_alpha": "an azimuth cell from 1e-7 deg (0.03 mm at 18 km) to 10 deg",
+    "r_beta": "an elevation cell from 1e-7 deg (0.03 mm at 18 km) to 10 deg",
+    "r_r": "a range bin from 1 um (6.7 fs of flight) to 1 km",
+}
 
 
 @dataclass(frozen=True)
@@ -39,10 +56,12 @@ class LidarParams:
     height: int = 64  # elevation cells H
 
     def __post_init__(self) -> None:
-        for name in ("r_alpha", "r_beta", "r_r"):
+        for name, (lo, hi, unit, scale) in _BOUNDS.items():
             v = check_finite(name, getattr(self, name))
-            if v <= 0:
-                raise InputError(f"{name} must be > 0, got {v!r}")
+            if not lo <= v <= hi:
+                raise InputError(
+                    f"{name}{unit} = {v / scale!r} is outside [{lo / scale!r}, {hi / scale!r}]"
+                    f"{'' if v > 0 else ' (it must be > 0)'}: {_BOUND_WHY[name]}")
         for name in ("width", "height"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or v < 2 or v % 2:
@@ -203,12 +222,7 @@ def lidar_file(ref) -> Path:
 def read_lidar_file(ref) -> tuple[Path, dict]:
     """The path and parsed tables of a lidar preset or file, its tables checked by name."""
     path = lidar_file(ref)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not a readable TOML file ({exc})") from exc
-    except OSError as exc:
-        raise InputError(f"{path}: cannot be read ({exc.strerror})") from exc
+    doc = read_toml(path)
     unknown = sorted(set(doc) - set(LIDAR_FILE_TABLES))
     if unknown:
         raise InputError(f"{path}: unknown table(s) or key(s) {', '.join(map(repr, unknown))}; "

@@ -9,7 +9,13 @@ from __future__ import annotations
 
 import sys
 
-from .lidar import DEFAULT_LIDAR_PRESET, LidarParams, lidar_preset_names, load_lidar
+from .lidar import (
+    DEFAULT_LIDAR_PRESET,
+    LidarParams,
+    lidar_preset_names,
+    lidar_sensor_file,
+    load_lidar,
+)
 
 
 def add_lidar_argument(p, default_help: str = "the paper's") -> None:
@@ -21,16 +27,28 @@ def add_lidar_argument(p, default_help: str = "the paper's") -> None:
                         + default_help)
 
 
+def _load_checked(ref) -> LidarParams:
+    """The lidar of ``ref``, its file's ``[sensor]`` table (when it has one) checked too: a
+    mistake there is named now, whether or not this command reads the table, instead of
+    passing unseen."""
+    from .sensor import load_sensor
+    lidar = load_lidar(ref)
+    path = lidar_sensor_file(ref)
+    if path is not None:
+        load_sensor(path, lidar_file=True)
+    return lidar
+
+
 def lidar_of(args) -> LidarParams | None:
     """The lidar ``--lidar`` names, None when it was not given (the command's default)."""
     ref = getattr(args, "lidar", None)
-    return None if ref is None else load_lidar(ref)
+    return None if ref is None else _load_checked(ref)
 
 
 def lidar_or_default(args) -> LidarParams:
     """``--lidar``'s lidar, else the default preset (``paper``)."""
     ref = getattr(args, "lidar", None)
-    return load_lidar(DEFAULT_LIDAR_PRESET if ref is None else ref)
+    return _load_checked(DEFAULT_LIDAR_PRESET if ref is None else ref)
 
 
 def model_at_lidar(model, args, command: str):

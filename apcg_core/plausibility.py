@@ -35,17 +35,32 @@ def band_share_warning(n_outside: int, n_total: int) -> str | None:
             "models never saw such ranges, and far-off small targets give empty clouds")
 
 
-def empty_clouds_warning(n_empty: int, n_total: int) -> str | None:
-    """Empty clouds among many generated at once."""
+# Why a photon cloud holds little of its target when the geometry is not the cause.
+SENSOR_CAUSE = ("the single-photon lidar detected little of it (range, reflectivity, "
+                "visibility, pulse energy, efficiencies, threshold: the sensor's values)")
+
+
+def empty_clouds_warning(n_empty: int, n_total: int, sensor: bool = False) -> str | None:
+    """Empty clouds among many generated at once (``sensor``: drawn through a photon stage,
+    which may return nothing of a target the lidar's cells do see)."""
     if not n_empty:
         return None
-    return (f"{n_empty:,} of {n_total:,} clouds are empty (no cell of the lidar's window sees "
-            "the target: too small or too far for the lidar); they are counted in `sample` but "
-            "hold no points")
+    cause = (f"the target too small or too far for the lidar, or {SENSOR_CAUSE}" if sensor
+             else "no cell of the lidar's window sees the target: too small or too far for "
+                  "the lidar")
+    return (f"{n_empty:,} of {n_total:,} clouds are empty ({cause}); they are counted in "
+            "`sample` but hold no points")
 
 
-def sparse_cloud_warning(n_points: int, what: str) -> str | None:
-    """An empty or near-empty cloud: the target covers too few lidar cells."""
+def sparse_cloud_warning(n_points: int, what: str,
+                         covered_cells: int | None = None) -> str | None:
+    """An empty or near-empty cloud. ``covered_cells`` (a photon cloud: the cells the target
+    covers, ``n_points`` its signal points): when the target covers enough cells, the sensor
+    is the cause, not the geometry."""
+    if covered_cells is not None and covered_cells >= SPARSE_POINTS \
+            and n_points < SPARSE_POINTS:
+        return (f"{what} holds {n_points} signal point{'s' * (n_points != 1)} though the "
+                f"target covers {covered_cells} lidar cells: {SENSOR_CAUSE}")
     if n_points == 0:
         return (f"{what} is empty: no cell of the lidar's window sees the target (too small "
                 "or too far for the lidar's resolution)")

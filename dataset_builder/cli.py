@@ -82,7 +82,8 @@ def _run_simulate(args) -> int:
     if sensor:
         from apcg_core.sensor import reflectivity_of
         meta.update(sensor=sensor.to_dict(), seed=args.seed, reflectivity=reflectivity_of(t))
-    img, stats = res.depth_images(table, length, sim.lidar)
+    img, stats = res.depth_images(table, length, sim.lidar,
+                                  image=bool(args.depth_image or args.normalized_image))
     cloud = res.cloud
     cloud.sample = None
     write_cloud(args.output, cloud, meta)
@@ -100,7 +101,9 @@ def _run_simulate(args) -> int:
     print(json.dumps(summary))
     from apcg_core.plausibility import window_fit, window_warning
     warnings = [range_band_warning(t, args.range_m),
-                sparse_cloud_warning(len(cloud), f"the cloud of {t.name} at {args.range_m:g} m"),
+                sparse_cloud_warning(int((cloud.label == 1).sum()) if sensor else len(cloud),
+                                     f"the cloud of {t.name} at {args.range_m:g} m",
+                                     len(photons.target_w) if sensor else None),
                 window_warning(lidar, *window_fit(lidar, lambda n: cat.mesh(n).vertices,
                                                   [t.name], table),
                                f"{t.name} at {args.range_m:g} m")]

@@ -7,7 +7,6 @@ count or interruption; the shards are then pure functions of the plan.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import numpy as np
 
 from apcg_core.condition import ConditionSpace
 from apcg_core.errors import InputError
+from apcg_core.io.toml_file import read_toml
 from apcg_core.lidar import DEG, LidarParams
 from apcg_core.options import Rule
 
@@ -50,12 +50,15 @@ def load_config(ref: str) -> dict:
     if not path.is_file():
         raise InputError(f"no dataset config {ref!r}: give a TOML file or one of "
                          f"{', '.join(builtin_configs())}")
-    try:
-        cfg = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"dataset config {path} is not valid TOML: {exc}") from exc
-    except OSError as exc:
-        raise InputError(f"dataset config {path} cannot be read: {exc.strerror}") from exc
+    cfg = read_toml(path, f"dataset config {path}")
+    sensor = cfg.get("sensor")
+    if isinstance(sensor, str) and sensor.strip():
+        # a sensor file named relative to the config is found beside it, as a scene file's
+        # trajectories are, whatever directory the build runs from
+        beside = path.parent / Path(sensor.strip()).expanduser()
+        from apcg_core.sensor import preset_names
+        if sensor.strip() not in preset_names() and beside.is_file():
+            cfg["sensor"] = str(beside)
     check_config(cfg, f"dataset config {path}")
     cfg.setdefault("name", path.stem)
     return cfg
@@ -186,6 +189,7 @@ def make_plan(cfg: dict, catalog, backend: str | None = None,
         if sensor is None and "sensor" in doc:
             cfg["sensor"] = {"name": path.stem, **doc["sensor"]}
     if sensor is not None:
+        resolve_sensor(sensor, "--sensor")  # its errors name the option, not the config
         cfg = {**cfg, "sensor": sensor}
     check_config(cfg)
     seed = cfg.get("seed", 0)
@@ -274,6 +278,9 @@ def make_plan(cfg: dict, catalog, backend: str | None = None,
         raise InputError("a sensor needs a ray-casting backend (the photon stage takes every "
                          "sub-ray's range and incidence); accepted: embree, blender, "
                          "blender-bvh")
+    if sensor_params is not None:  # its pairing with the lidar, before anything is made
+        from apcg_core.sensor.stage import check_sensor_at
+        check_sensor_at(sensor_params, lidar)
     if cfg.get("incidence", False):
         if sensor_params is not None:
             raise InputError("incidence = true records each return's cosine of incidence in "

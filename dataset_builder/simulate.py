@@ -53,10 +53,12 @@ class SimResult:
     def clouds(self) -> list[PointCloud]:
         return self.cloud.split(self.n_samples)
 
-    def depth_images(self, table: np.ndarray, length_m: float, lidar: LidarParams):
-        """PC2Im of every sample (N, H, W) and its statistics."""
+    def depth_images(self, table: np.ndarray, length_m: float, lidar: LidarParams,
+                     image: bool = True):
+        """PC2Im of every sample (N, H, W) and its statistics (``image`` False: the
+        statistics alone, no dense image)."""
         return pc2im(self.cloud.xyz, table[:, 1], table[:, 2], length_m, lidar,
-                     sample=self.cloud.sample, n_samples=self.n_samples)
+                     sample=self.cloud.sample, n_samples=self.n_samples, image=image)
 
 
 @dataclass

@@ -364,8 +364,11 @@ def fig_photons(out, types=PHOTON_TYPES, sensors=PHOTON_SENSORS, poses: int = 6,
                   else np.linspace(3000, 18000, 6))
         tab = table(t, ranges)
         hits = sim.sub_ray_hits(cat.mesh(t), tab, ("type", t.index))
-        covered = np.bincount(np.unique(hits.sample * 10**6 + (hits.h + 500) * 1000 + hits.w
-                                        + 500) // 10**6, minlength=len(tab))
+        n_cells = sim.lidar.width * sim.lidar.height  # a cell's index in its window, per sample
+        cell = (hits.h.astype(np.int64) - sim.lidar.h_min) * sim.lidar.width \
+            + (hits.w.astype(np.int64) - sim.lidar.w_min)
+        covered = np.bincount(np.unique(hits.sample * n_cells + cell) // n_cells,
+                              minlength=len(tab))
         for s_name in sensors:
             sensor = load_sensor(s_name)
             pc = photon_cloud(hits, tab[:, 1], np.full(len(tab), reflectivity_of(t)), sensor,
@@ -393,6 +396,7 @@ def fig_photons(out, types=PHOTON_TYPES, sensors=PHOTON_SENSORS, poses: int = 6,
         share.append(float((pc.label == 0).sum() / max(len(pc.label), 1)))
     sim.close()
     data = {"figure": "photons", "seed": seed, "poses_per_range": poses,
+            "lidar": sim.lidar.to_dict(),
             "sensors": {s: dataclasses.asdict(load_sensor(s)) for s in sensors},
             "curves": curves,
             "noise_share": {"type": types[0], "range_m": 6000.0, "sensor": "1550nm-night",

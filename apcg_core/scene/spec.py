@@ -40,13 +40,13 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..io.toml_file import read_toml
 from ..lidar import DEG, LidarParams, lidar_from_table
 from .poses import POSE_RULES, pose_value_problem
 from .scan import make_pattern
@@ -187,14 +187,9 @@ def load_scene(path, catalog=None, lidar: LidarParams | None = None,
     the file's ``[lidar]`` table; ``generator`` (a command's ``--generator``: "default" or a
     model directory) draws every target whose table has no ``generator`` key."""
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
-    except FileNotFoundError:
-        raise InputError(f"scene file {path} does not exist") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not a readable TOML file ({exc})") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot be read ({exc.strerror})") from None
+    if not path.exists():
+        raise InputError(f"scene file {path} does not exist")
+    doc = read_toml(path)
     return scene_from_dict(doc, str(path), path.parent, catalog, lidar, generator)
 
 

@@ -226,6 +226,23 @@ def _quiet_cost(n_quiet: int, n_bins: int, pmf: np.ndarray, pulses: int, thresho
     return fast, full
 
 
+def work_per_window(n_cells: int, n_bins: int, noise: float, dead_bins: float, pulses: int,
+                    threshold: int, points: bool) -> float:
+    """Expected arrivals the draws of one window's noise follow, by the route they take: the
+    cheaper of the heavy-bin route and every pulse (``_quiet_cost``, as ``points.batch_points``
+    chooses) for the points output with a dead time of at least the gate; otherwise every
+    event of every pulse: a pulse's first event (1 - exp(-noise n_bins)), or where the
+    detector re-arms many times in the gate, the dead-time-limited rate's noise n_bins /
+    (1 + noise dead_bins), whichever is more."""
+    if points and dead_bins >= n_bins:
+        pmf = _binomial_pmf(pulses, float(-np.expm1(-noise)))
+        return min(_quiet_cost(n_cells, n_bins, pmf, pulses, threshold, noise))
+    first = float(-np.expm1(-noise * n_bins))
+    per_pulse = max(first, noise * n_bins / (1.0 + noise * dead_bins)) \
+        if dead_bins < n_bins else first
+    return float(n_cells) * pulses * per_pulse
+
+
 def _signal_share(signal: SignalBins, k: np.ndarray, noise: float) -> np.ndarray:
     """The chance that an event is signal: the signal's part of its bin's mean (0 in a bin the
     signal does not reach)."""

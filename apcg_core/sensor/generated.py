@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud import PointCloud
+from ..errors import InputError
 from ..lidar import LidarParams
 from .stage import SubRayHits
 
@@ -100,8 +101,15 @@ SUB_READS = 3
 def sub_ray_lidar(lidar: LidarParams, k: int = SUB_READS) -> LidarParams:
     """The K-times finer lidar whose cell centres are ``lidar``'s K x K sub-ray centres (K
     odd), its window one finer cell wider on each side so every sub-ray of the window fits."""
-    return LidarParams(lidar.r_alpha / k, lidar.r_beta / k, lidar.r_r, lidar.width * k + 2,
-                       lidar.height * k + 2)
+    try:
+        return LidarParams(lidar.r_alpha / k, lidar.r_beta / k, lidar.r_r, lidar.width * k + 2,
+                           lidar.height * k + 2)
+    except InputError as exc:  # the user gave `lidar`, not this one: say why it is refused
+        raise InputError(
+            f"with a sensor, a model draws {k} x {k} sub-rays a cell in a window one finer "
+            f"cell wider on each side, which the lidar ({lidar.describe()}) cannot hold: "
+            f"{exc}. Accepted: width x r_alpha_deg + {2 / k:.3g} r_alpha_deg < 180 deg and "
+            f"height x r_beta_deg + {2 / k:.3g} r_beta_deg < 90 deg") from None
 
 
 def sub_ray_hits(model, table: np.ndarray, names, lidar: LidarParams,

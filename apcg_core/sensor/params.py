@@ -8,11 +8,11 @@ standard cloud: no photon stage at all. Every value is checked here, once, with 
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 from ..errors import InputError
+from ..io.toml_file import read_toml
 
 PRESET_DIR = Path(__file__).with_name("presets")
 OUTPUTS = ("points", "events")
@@ -72,6 +72,9 @@ _RULES = {
     "threshold": ("int", 1, 100_000, False),
 }
 KEYS = tuple(f.name for f in fields(SensorParams) if f.name != "name")
+# A sensor's name travels in every cloud file's metadata; a LAS file's record holds 65,535
+# bytes at most (LAS 1.4 R15, section 2.5: the VLR's record length is an unsigned short).
+MAX_NAME_CHARS = 200
 
 
 def _check_value(key: str, value, source: str):
@@ -89,7 +92,7 @@ def _check_value(key: str, value, source: str):
     ok = (lo < v if open_lo else lo <= v) and v <= hi
     if not ok:
         br = "(" if open_lo else "["
-        raise InputError(f"{where} = {v:g} is out of range; accepted: {br}{lo:g}, {hi:g}]")
+        raise InputError(f"{where} = {value!r} is out of range; accepted: {br}{lo!r}, {hi!r}]")
     return v
 
 
@@ -103,6 +106,10 @@ def check_sensor(table: dict, source: str = "", name: str = "") -> SensorParams:
     if not isinstance(given, str):
         raise InputError(f"sensor value name{' in ' + source if source else ''} must be text "
                          f"(a quoted string), got {given!r}")
+    if len(given) > MAX_NAME_CHARS:
+        raise InputError(f"sensor value name{' in ' + source if source else ''} is "
+                         f"{len(given)} characters long ({given[:40]!r}...); accepted: at most "
+                         f"{MAX_NAME_CHARS}")
     name = given or "custom"
     unknown = sorted(set(table) - set(KEYS))
     if unknown:
@@ -125,8 +132,8 @@ def check_gate(sensor: SensorParams, r_r_m: float) -> int:
     """Bins of the range gate at this lidar's range resolution; a gate shorter than one bin is
     refused (it could hold no event)."""
     if sensor.gate_m < r_r_m:
-        raise InputError(f"sensor value gate_m = {sensor.gate_m:g} m is shorter than one range "
-                         f"bin of the lidar (r_r_m = {r_r_m:g} m); accepted: gate_m >= {r_r_m:g}")
+        raise InputError(f"sensor value gate_m = {sensor.gate_m!r} m is shorter than one range "
+                         f"bin of the lidar (r_r_m = {r_r_m!r} m); accepted: gate_m >= {r_r_m!r}")
     return int(math.ceil(sensor.gate_m / r_r_m - 1e-9))
 
 
@@ -152,12 +159,7 @@ def load_sensor(ref: str | Path | None, lidar_file: bool = False) -> SensorParam
             raise InputError(f"unknown sensor {ref_s!r}: not a preset and no such file; "
                              f"presets: {', '.join(preset_names())}, or a TOML file with a "
                              f"[sensor] table")
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not a readable TOML file ({exc})") from exc
-    except OSError as exc:
-        raise InputError(f"{path}: cannot be read ({exc.strerror})") from exc
+    doc = read_toml(path)
     if "sensor" not in doc:
         raise InputError(f"{path} has no [sensor] table; see the presets in {PRESET_DIR}")
     others = [k for k in doc if k != "sensor" and not (lidar_file and k == "lidar")]

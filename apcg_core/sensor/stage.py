@@ -18,7 +18,7 @@ from ..errors import InputError
 from ..frames import spherical_to_cartesian
 from ..lidar import LidarParams
 from . import kernels
-from .detector import SignalBins, detect, detect_points
+from .detector import SignalBins, detect, detect_points, work_per_window
 from .link import (
     LIGHT_M_S,
     bin_seconds,
@@ -36,6 +36,50 @@ SIGMA_CUT = 5.3
 # Rows of the spread table: the fraction of a bin at which a return's window starts, in steps
 # of 1 / SPREAD_ROWS.
 SPREAD_ROWS = 4096
+
+
+# The most range bins one return's Gaussian may reach at once (the spread table is
+# (SPREAD_ROWS + 1) x that many float64: 134 MB, and a few times that while it is made).
+MAX_SPREAD_BINS = 4096
+# The most detector arrivals one cloud's draws may follow (the detector's own cost model,
+# detector.work_per_window): about 60 bytes each at the peak, so about 1.2 GB. The presets
+# at the paper's lidar need 5e3 to 1.2e6.
+MAX_WORK_PER_CLOUD = 2e7
+
+
+def check_sensor_at(sensor: SensorParams, lidar: LidarParams) -> int:
+    """The range gate's bins of ``sensor`` at ``lidar``, once their pairing is checked: a gate
+    of at least one bin, a threshold the pulses can reach, and a cloud's draws that fit in
+    memory (a named error before anything is drawn, not a MemoryError after minutes)."""
+    n_bins = check_gate(sensor, lidar.r_r)
+    dead_bins = sensor.dead_time_ns * 1e-9 / bin_seconds(lidar.r_r)
+    where = f"sensor {sensor.name!r} at the lidar ({lidar.describe()})"
+    if sensor.output == "points" and dead_bins >= 1.0 and sensor.threshold > sensor.pulses:
+        raise InputError(
+            f"{where}: threshold = {sensor.threshold} is more than pulses = {sensor.pulses}: "
+            f"with a dead time of at least one range bin (dead_time_ns = "
+            f"{sensor.dead_time_ns!r}) a pulse counts at most once in a bin, so no bin could "
+            f"ever reach the threshold; accepted: threshold <= pulses")
+    sigma_bins = range_sigma_m(sensor) / lidar.r_r
+    spread = int(np.ceil(2.0 * SIGMA_CUT * sigma_bins)) + 1
+    if spread > MAX_SPREAD_BINS:
+        raise InputError(
+            f"{where}: a return's timing spread (pulse_fwhm_ps = {sensor.pulse_fwhm_ps!r}, "
+            f"jitter_ps = {sensor.jitter_ps!r}: sigma {range_sigma_m(sensor):.4g} m) reaches "
+            f"{spread} range bins of r_r_m = {lidar.r_r!r} at once; accepted: at most "
+            f"{MAX_SPREAD_BINS} (less spread, or a coarser r_r_m)")
+    work = work_per_window(lidar.width * lidar.height, n_bins,
+                           noise_per_bin(sensor, lidar.r_r), dead_bins, sensor.pulses,
+                           sensor.threshold, sensor.output == "points")
+    if work > MAX_WORK_PER_CLOUD:
+        raise InputError(
+            f"{where}: one cloud would draw about {work:.3g} detector arrivals (the window's "
+            f"{lidar.width} x {lidar.height} cells x pulses = {sensor.pulses} x the noise "
+            f"in a gate of {n_bins} bins: gate_m = {sensor.gate_m!r}, background_hz + "
+            f"dark_count_hz = {sensor.noise_hz:.4g}, dead_time_ns = {sensor.dead_time_ns!r}); "
+            f"accepted: at most {MAX_WORK_PER_CLOUD:.3g}. Lower one of them, or use a smaller "
+            "window")
+    return n_bins
 
 
 @lru_cache(maxsize=16)
@@ -224,7 +268,7 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
         bad = rho[~(np.isfinite(rho) & (rho >= 0) & (rho <= 1))][0]
         raise InputError(f"reflectivity must be in [0, 1], got {bad!r}")
     ids = np.arange(n) if sample_ids is None else np.asarray(sample_ids, np.int64)
-    n_bins = check_gate(sensor, lidar.r_r)
+    n_bins = check_sensor_at(sensor, lidar)
     n_cells = lidar.width * lidar.height
     noise = noise_per_bin(sensor, lidar.r_r)
     dead_bins = sensor.dead_time_ns * 1e-9 / bin_seconds(lidar.r_r)
@@ -276,5 +320,5 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
                        sensor.output == "events")
 
 
-__all__ = ["LIGHT_M_S", "PhotonCells", "SubRayHits", "gate_first_bin", "photon_cloud",
-           "sample_rng", "signal_bins", "to_cloud"]
+__all__ = ["LIGHT_M_S", "PhotonCells", "SubRayHits", "check_sensor_at", "gate_first_bin",
+           "photon_cloud", "sample_rng", "signal_bins", "to_cloud"]
