@@ -20,6 +20,7 @@ DEG = math.pi / 180.0
 LIDAR_PRESET_DIR = Path(__file__).with_name("lidar_presets")
 DEFAULT_LIDAR_PRESET = "paper"  # the paper's SPC-Lidar (SPEC section 1; its file cites it)
 LIDAR_KEYS = ("r_alpha_deg", "r_beta_deg", "r_r_m", "width", "height")
+MAX_WINDOW_SIDE = 65536  # cells a side a lidar file may ask for (a window's cells index int32)
 # The tables a lidar file may hold: [lidar] (here) and [sensor] (apcg_core.sensor.params).
 LIDAR_FILE_TABLES = ("lidar", "sensor")
 
@@ -192,9 +193,9 @@ def lidar_from_table(table, source: str = "") -> LidarParams:
         if key in table:
             v = table[key]
             if (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not
-                    2 <= v <= 65536 or v % 2):
+                    2 <= v <= MAX_WINDOW_SIDE or v % 2):
                 raise InputError(f"lidar value {key}{_where(source)} must be an even integer "
-                                 f"from 2 to 65536, got {v!r}")
+                                 f"from 2 to {MAX_WINDOW_SIDE}, got {v!r}")
             values[key] = int(v)
     try:
         return LidarParams.from_degrees(**values)

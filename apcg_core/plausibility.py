@@ -8,6 +8,8 @@ command words the same case the same way.
 from __future__ import annotations
 
 from .condition import ConditionSpace
+from .errors import InputError
+from .lidar import MAX_WINDOW_SIDE
 
 # Fewer points than this is a cloud few detectors or metrics can use.
 SPARSE_POINTS = 10
@@ -169,7 +171,18 @@ def window_warning(lidar, n_cut: int, n_checked: int, width: int, height: int,
     if not n_cut:
         return None
     share = "" if n_checked == 1 else f" ({n_cut:,} of the {n_checked:,} checked)"
-    return (f"window too small: the lidar's {lidar.width} x {lidar.height} window cuts "
-            f"{what}{share} at its edge; a window of width = {width}, height = {height} "
-            f"at the same cells holds {'it' if n_checked == 1 else 'them'} whole (the [lidar] "
-            "table's width and height)")
+    head = (f"window too small: the lidar's {lidar.width} x {lidar.height} window cuts "
+            f"{what}{share} at its edge; ")
+    them = "it" if n_checked == 1 else "them"
+    try:  # a window a lidar file may hold (LidarParams' rules and its side), else none
+        type(lidar)(lidar.r_alpha, lidar.r_beta, lidar.r_r, width, height)
+        fits = max(width, height) <= MAX_WINDOW_SIDE
+    except InputError:
+        fits = False
+    if not fits:
+        return (head + f"no window at these cells holds {them} whole (it would need "
+                f"{width} x {height} cells; a window is at most {MAX_WINDOW_SIDE} cells a side "
+                "and 180 x 90 deg): use coarser cells (r_alpha_deg, r_beta_deg) or a longer "
+                "range")
+    return (head + f"a window of width = {width}, height = {height} at the same cells holds "
+            f"{them} whole (the [lidar] table's width and height)")

@@ -344,3 +344,18 @@ def test_running_out_of_memory_is_one_line_not_a_traceback(capsys):
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("apcg probe: error: out of memory")
     assert "Traceback" not in err
+
+
+def test_window_advice_never_names_a_window_no_lidar_file_may_hold(tmp_path, capsys):
+    path = tmp_path / "l.toml"
+    path.write_text("[lidar]\nr_alpha_deg = 1e-6\nr_beta_deg = 1e-6\n")
+    rc, _, err = run([*SIM, "-o", tmp_path / "o.ply", "--force", "--lidar", path], capsys)
+    assert rc == 0, err
+    assert "no window at these cells holds it whole" in err and "width =" not in err
+    path.write_text("[lidar]\nwidth = 64\n")  # too narrow for an A320neo at 4.5 km
+    rc, _, err = run([*SIM, "-o", tmp_path / "o.ply", "--force", "--lidar", path], capsys)
+    assert rc == 0 and "a window of width = " in err, err
+    width = int(err.split("a window of width = ")[1].split(",")[0])
+    path.write_text(f"[lidar]\nwidth = {width}\n")
+    rc, _, err = run([*SIM, "-o", tmp_path / "o.ply", "--force", "--lidar", path], capsys)
+    assert rc == 0 and "window too small" not in err, err
