@@ -46,17 +46,47 @@ class ProcessLock:
         # A job refused later leaves no empty directory made only to hold its lock.
         self.made_parent = not self.path.parent.exists()
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._drop_dead_drafts()
         for _ in range(10):
             try:
-                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                self._create()
             except FileExistsError:
                 self._take_over_if_stale()
                 continue
-            with os.fdopen(fd, "w") as f:
-                f.write(self.mine)
             self.held = True
             return self
         raise InputError(f"could not take the lock {self.path}; delete it if no {self.job} runs")
+
+    def _draft(self, pid: int) -> Path:
+        return self.path.with_name(f"{self.path.name}.{pid}.new")
+
+    def _create(self) -> None:
+        """The lock file, whole or not at all: its text is written to a draft first and the
+        draft linked to the lock's name (a link, like O_EXCL, fails if the name exists), so a
+        process killed while taking the lock never leaves an empty one that reads as a live
+        owner's. Where the file system has no hard links, O_EXCL and a write."""
+        draft = self._draft(os.getpid())
+        try:
+            draft.write_text(self.mine)
+            try:
+                os.link(draft, self.path)
+                return
+            except FileExistsError:
+                raise
+            except OSError:  # no hard links here
+                pass
+            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            with os.fdopen(fd, "w") as f:
+                f.write(self.mine)
+        finally:
+            draft.unlink(missing_ok=True)
+
+    def _drop_dead_drafts(self) -> None:
+        """Drafts of processes killed between writing and linking them."""
+        for draft in self.path.parent.glob(f"{self.path.name}.*.new"):
+            pid = draft.name[len(self.path.name) + 1:-len(".new")]
+            if pid.isdigit() and not pid_alive(int(pid)):
+                draft.unlink(missing_ok=True)
 
     def _take_over_if_stale(self) -> None:
         try:
