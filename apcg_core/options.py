@@ -106,23 +106,54 @@ def problems(values: dict) -> list[str]:
     return out
 
 
-def check_values(**values) -> None:
+# A seed from a Python caller: None is no seed (a draw left unseeded would not repeat), and a
+# float is not one either (3.0 may be 3.0000000001 computed); other names' None is the
+# function's own default, and their whole floats count as integers, as on the command line.
+_SEED_NAMES = ("seed",)
+
+
+def _integer(dest: str, v):
+    """``v`` as a Python int (any integer type, numpy's too, through operator.index; a whole
+    float where ``dest`` is not a seed), else None."""
+    import operator
+    if isinstance(v, bool | str):
+        return None
+    try:
+        return operator.index(v)
+    except TypeError:
+        pass
+    if dest in _SEED_NAMES:
+        return None
+    try:
+        f = float(v)
+        return int(f) if f.is_integer() else None
+    except (TypeError, ValueError, OverflowError):
+        return None
+
+
+def check_values(**values) -> dict:
     """The same rules for a Python function's keyword arguments (the Blender add-on's API takes
     the command line's names): raise InputError naming the first refused value and what is
-    accepted. None is skipped (the function's own default applies)."""
+    accepted. None is skipped (the function's own default applies), except for a seed.
+    Returns the values, an integer rule's as a Python int."""
     from .errors import InputError
+    out = {}
     for dest, v in values.items():
-        if v is None:
-            continue
         rule = RULES.get(dest, ANY)
+        if v is None and dest not in _SEED_NAMES:
+            out[dest] = v
+            continue
         integer = rule.accepted.startswith("an integer")
         try:
-            number = float(v)
-        except (TypeError, ValueError):
-            number = None
-        if (isinstance(v, bool) or isinstance(v, str) or number is None or not rule.ok(number)
-                or (integer and number != int(number))):
+            number = _integer(dest, v) if integer else (
+                None if isinstance(v, bool | str) else float(v))
+            ok = number is not None and rule.ok(float(number))
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
             raise InputError(f"{dest} = {v!r} not accepted: {rule.accepted}")
+        out[dest] = number if integer else v
+    return out
 
 
 def model_condition(model, args):

@@ -26,7 +26,7 @@ def _sync_moved_targets(scene, depsgraph=None):
     for update in getattr(depsgraph, "updates", ()):
         ob = getattr(update.id, "original", None)
         if update.is_updated_transform and is_target(ob):
-            sync_pose(ob)
+            sync_pose(ob, depsgraph)
 
 
 def register() -> None:

@@ -2,7 +2,8 @@
 
     from blender_addon import api          # or: from bl_ext.user_default.apcg import api
     lidar = api.add_lidar()
-    jet = api.add_aircraft(lidar, "A320neo", range_m=4500, elevation_deg=3.4, yaw_deg=13.2)
+    jet = api.add_aircraft(lidar, "A320neo", range_m=4500, elevation_deg=3.4, pitch_deg=2.0,
+                           yaw_deg=13.2)   # within the default model's ranges
     cloud = api.scan(lidar)[0]             # the lidar's view, by Blender's ray casting
     fake = api.generate(jet, seed=0)       # the same condition through the APCG generator
     api.export_cloud(cloud, "/tmp/a320neo.ply")
@@ -25,6 +26,7 @@ from apcg_core.errors import InputError
 from apcg_core.options import check_values
 
 from .clouds import (
+    checked_path,
     cloud_from_object,
     cloud_object,
     export_cloud,
@@ -39,8 +41,10 @@ from .objects import (
     add_lidar,
     axes_label,
     body_mesh,
+    check_lidar_values,
     check_target_scale,
-    check_unit_scale,
+    checked_surface,
+    depth_length_of,
     guess_axes,
     is_lidar,
     is_target,
@@ -114,11 +118,7 @@ def read_lidar_file(lidar, ref):
     values = {"r_alpha_deg": math.degrees(params.r_alpha),
               "r_beta_deg": math.degrees(params.r_beta),
               "range_resolution_m": params.r_r, "width": params.width, "height": params.height}
-    for name, v in values.items():  # what the lidar object holds; Blender would clamp the rest
-        prop = p.bl_rna.properties[name]
-        if not prop.hard_min <= v <= prop.hard_max:
-            raise InputError(f"{path}: {name} = {v:g} is more than a lidar object holds; "
-                             f"accepted: {prop.hard_min:g} .. {prop.hard_max:g}")
+    check_lidar_values(lidar, values, str(path))  # Blender would clamp what it cannot hold
     for name, v in values.items():  # every check passed: only now is the object changed
         setattr(p, name, v)
     if "sensor" in doc:
@@ -171,27 +171,27 @@ def scan_target(target, backend: str = "blender", quantize: bool = True,
     from apcg_core.sensor import SensorParams, load_sensor, to_cloud
     from dataset_builder.simulate import SimResult, Simulator
     lidar = lidar_of(require_target(target))
-    check_values(seed=seed, supersample=supersample)
+    seed = check_values(seed=seed, supersample=supersample)["seed"]
     params = lidar_params(lidar)
     if isinstance(sensor, str) and sensor == "lidar":
         sensor = sensor_of(lidar)
     elif not isinstance(sensor, SensorParams):
         sensor = load_sensor(sensor)
-    table = simulator_row(target)
+    mesh = body_mesh(target)
+    table = simulator_row(target, mesh)
     pose = pose_of(target)
+    length = depth_length_of(target, 0.0)
     own = simulator is None
     k = supersample or (4 if sensor else 1)
     sim = simulator or Simulator(backend, params, quantize=quantize, supersample=k)
     try:
-        key = ("blender-object", target.name)
         if sensor is not None:
             cells, clipped, n_rays = sim.photon_cells(
-                body_mesh(target), table, sensor, reflectivity_of_target(target), seed,
-                key=key)
+                mesh, table, sensor, reflectivity_of_target(target), seed, key=mesh.key)
             res = SimResult(to_cloud(cells, table[:, 2], params), 1, clipped, n_rays,
                             sim.backend)
         else:
-            res = sim.simulate(body_mesh(target), table, key=key)
+            res = sim.simulate(mesh, table, key=mesh.key)
     finally:
         if own:
             sim.close()
@@ -204,7 +204,7 @@ def scan_target(target, backend: str = "blender", quantize: bool = True,
     meta = {"type": target.get(TYPE_KEY),
             **_pose_meta(pose), "backend": sim.backend,
             "quantized": sim.quantize, "supersample": sim.supersample,
-            "lidar": params.to_dict(), "depth_length_m": float(target.get(LENGTH_KEY, 0.0)),
+            "lidar": params.to_dict(), "depth_length_m": length,
             "clipped": bool(res.clipped[0]), "occluded_points": hidden}
     if sensor is not None:
         meta.update(sensor=sensor.to_dict(), seed=seed,
@@ -225,7 +225,7 @@ def scan(lidar, targets=None, backend: str = "blender", quantize: bool = True,
     from apcg_core.sensor import SensorParams, load_sensor
     from dataset_builder.simulate import Simulator
     targets = _lidar_and_targets(lidar, targets)
-    check_values(seed=seed, supersample=supersample)
+    seed = check_values(seed=seed, supersample=supersample)["seed"]
     if isinstance(sensor, str) and sensor == "lidar":
         sensor = sensor_of(lidar_of(targets[0]))
     elif not isinstance(sensor, SensorParams):
@@ -284,6 +284,10 @@ def load_model(path=None, runtime: str = "auto"):
     return load(path, runtime=runtime)
 
 
+# The most samples one Generate makes (the panel's Samples field takes no more).
+MAX_GENERATE_COUNT = 10_000
+
+
 @leaves_nothing_on_error
 def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "auto",
              name: str | None = None):
@@ -292,9 +296,12 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
     (attribute ``sample``). The target's type reaches the model by its catalog name.
     """
     from apcg_core.families import ModelTypes
-    if not is_target(target):
-        raise InputError(f"{named(target)} is not an APCG target")
-    check_values(count=count, seed=seed)
+    require_target(target, lidar=False)
+    checked = check_values(count=count, seed=seed)
+    count, seed = checked["count"], checked["seed"]
+    if count > MAX_GENERATE_COUNT:
+        raise InputError(f"count = {count!r} not accepted: at most {MAX_GENERATE_COUNT} "
+                         "samples a call (the Generate panel's limit); call again for more")
     if not isinstance(model, ModelTypes):
         model = load_model(model, runtime=runtime)
     pose = pose_of(target)
@@ -302,8 +309,12 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
     owner = lidar_of(target)
     if owner is not None and model.ANY_LIDAR:  # at the lidar object's cells (issue 33)
         model.use_lidar(lidar_params(owner))
-    cond = model.condition(name_of_type, pose["range_m"], pose["elevation"], pose["pitch"],
-                           pose["yaw"], pose["roll"])
+    try:
+        cond = model.condition(name_of_type, pose["range_m"], pose["elevation"],
+                               pose["pitch"], pose["yaw"], pose["roll"])
+    except InputError as exc:  # which target, which model: the condition alone names neither
+        raise InputError(f"target {target.name!r} ({name_of_type}) for the model "
+                         f"{model.directory}: {exc}") from None
     res = model.generate(cond, count=count, seed=seed)
     meta = {"model": str(model.directory), "family": model.family,
             "runtime": getattr(model, "runtime", None), "seed": seed,
@@ -358,20 +369,19 @@ def add_to_catalog(target, kind: str = "aircraft", category: str = "user",
     import bpy
 
     from apcg_core.catalog import default_catalog
-    from apcg_core.catalog.mesh import Mesh
-    if not is_target(target):
-        raise InputError(f"{named(target)} is not an APCG target: make one "
-                         "with apcg.make_target first")
+    require_target(target, lidar=False)
     check_target_scale(target)  # a scaled target is not the mesh that would be added
     catalog = catalog or default_catalog()
     name = (name or str(target.get(TYPE_KEY, target.name))).strip()
-    mesh = body_mesh(target)
+    body = body_mesh(target)
+    # what `apcg catalog add` stores of a file: checked, its zero-area triangles dropped
+    mesh = checked_surface(f"target {target.name!r}", body.vertices, body.faces, flat_ok=False)
     src = source_of(target)
     where = bpy.data.filepath or "an unsaved .blend"
     source = f"Blender object {(src or target).name!r} in {where}"
     if reflectivity is None and "apcg_reflectivity" in target:
         reflectivity = float(target["apcg_reflectivity"])
-    t = catalog.add_user_type(name, Mesh(mesh.vertices, mesh.faces), kind, category,
+    t = catalog.add_user_type(name, mesh, kind, category,
                               source=source, force=force, reflectivity=reflectivity)
     if reflectivity is not None:
         target["apcg_reflectivity"] = float(t.reflectivity)
@@ -382,15 +392,9 @@ def add_to_catalog(target, kind: str = "aircraft", category: str = "user",
 
 # --- animations: several targets, frame by frame (issue 36; docs/SCENES.md) ---------------------
 def _pose_in_lidar(lidar, target) -> dict:
-    """The target's pose at the current frame as the lidar sees it, from the evaluated world
-    matrices (keyframes, parents, constraints such as Follow Path all included)."""
-    from apcg_core.frames import pose_from_lidar_local
-
-    lw = np.array([list(r) for r in lidar.matrix_world], dtype=np.float64)
-    tw = np.array([list(r) for r in target.matrix_world], dtype=np.float64)
-    rel = np.linalg.inv(lw) @ tw
-    check_unit_scale(target.name, rel[:3, :3])  # a scaled target is not what is cast
-    return pose_from_lidar_local(rel)
+    """The target's pose at the current frame as the lidar sees it: its placement (keyframes,
+    parents, constraints such as Follow Path all included), as a Scan reads it."""
+    return pose_of(target, lidar)
 
 
 def scan_animation(lidar, directory, targets=None, frame_start: int | None = None,
@@ -417,10 +421,9 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     from apcg_core.sensor import SensorParams, load_sensor
     from dataset_builder.scene import SceneScanner, write_sequence
     targets = _lidar_and_targets(lidar, targets)
-    check_values(seed=seed, supersample=supersample)
-    if not isinstance(directory, (str, Path)) or not str(directory).strip():
-        raise InputError(f"directory = {directory!r}: give the directory to write the "
-                         "sequence into (a new one, or one holding this same sequence)")
+    seed = check_values(seed=seed, supersample=supersample)["seed"]
+    directory = checked_path(directory, "directory", "the directory to write the sequence "
+                             "into (a new or empty one, or one holding this same sequence)")
     scene = bpy.context.scene
     start = scene.frame_start if frame_start is None else _frame("frame_start", frame_start)
     end = scene.frame_end if frame_end is None else _frame("frame_end", frame_end)
@@ -429,19 +432,20 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     fps = scene.render.fps / scene.render.fps_base
     pattern = make_pattern(scan, "Scan Animation")
     params = lidar_params(lidar)
-    # the scene file's check (Scene makes it again), before the timeline is read
-    check_scan_fits(pattern, params, end - start + 1, fps, "Scan Animation")
+    # the scene file's check (Scene makes it again), before the timeline is read; a timeline
+    # of one frame has a frame rate too, and its scan must end before the next frame
+    check_scan_fits(pattern, params, max(end - start + 1, 2), fps, "Scan Animation")
     # one Blender frame past the end when a frame's scan takes time: its last rows fire then
     last = end + (1 if pattern.groups(params).duration_s > 0 else 0)
     blender_frames = list(range(start, last + 1))
     now = scene.frame_current
-    poses = {t.name: [] for t in targets}
+    poses = [[] for _ in targets]  # by the object itself: names need not be unique
     try:
         for f in blender_frames:
             scene.frame_set(f)
             for k, t in enumerate(targets, start=1):
                 try:
-                    poses[t.name].append(_pose_in_lidar(lidar, t))
+                    poses[k - 1].append(_pose_in_lidar(lidar, t))
                 except ValueError as exc:  # on the lidar: no direction (an InputError)
                     raise InputError(f"Blender target {k} ({t.name}): at frame {f}: {exc}"
                                      ) from None
@@ -450,8 +454,7 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     times = (np.array(blender_frames) - start) / fps
     cat = default_catalog()
     scene_targets = []
-    for i, t in enumerate(targets, start=1):
-        ps = poses[t.name]
+    for i, (t, ps) in enumerate(zip(targets, poses, strict=True), start=1):
         pos, _ = poses_from_angles([p["range_m"] for p in ps], [p["azimuth"] for p in ps],
                                    [p["elevation"] for p in ps], 0.0, 0.0, 0.0)
         att = [[p["pitch"], p["yaw"], p["roll"]] for p in ps]
@@ -461,10 +464,11 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
             index, category = ty.index, ty.category
         except InputError:  # a made target of no catalog type
             index, category = -1, ""
+        mesh = body_mesh(t)
         scene_targets.append(SceneTarget(
             i, type_name, index, category, Sampled(times, pos, att),
-            f"Blender target {i} ({t.name})", mesh=body_mesh(t),
-            reflectivity=reflectivity_of_target(t), key=("blender-object", t.name)))
+            f"Blender target {i} ({t.name})", mesh=mesh,
+            reflectivity=reflectivity_of_target(t), key=mesh.key))
     az, el = default_pointing(scene_targets, 0.0)
     record = {"blender": {"lidar": lidar.name, "targets": [t.name for t in targets],
                           "frame_start": start, "frame_end": end, "fps": fps},
@@ -485,13 +489,17 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
 
 
 def _frame(name: str, value) -> int:
-    """A timeline frame number given to the API: an integer, or an InputError naming it."""
+    """A timeline frame number given to the API: an integer Blender's timeline holds (what
+    frame_set would clamp or refuse is refused here, named)."""
+    import bpy
+    limits = bpy.types.Scene.bl_rna.properties["frame_current"]
     try:
         ok = not isinstance(value, (bool, str)) and float(value) == int(value)
     except (TypeError, ValueError, OverflowError):
         ok = False
-    if not ok:
-        raise InputError(f"{name} = {value!r} not accepted: a frame number (an integer)")
+    if not ok or not limits.hard_min <= int(value) <= limits.hard_max:
+        raise InputError(f"{name} = {value!r} not accepted: a frame number (an integer from "
+                         f"{limits.hard_min} to {limits.hard_max}, Blender's timeline)")
     return int(value)
 
 
@@ -513,6 +521,8 @@ def import_sequence(directory, lidar=None, name: str | None = None):
     from apcg_core.scene.sequence import load_sequence
 
     from .clouds import _add_attr
+    directory = checked_path(directory, "directory", "a sequence directory (apcg scene "
+                             "sequence's or Scan Animation's)")
     seq = load_sequence(directory)
     blender = seq.header.get("blender") or {}
     first = blender.get("frame_start", bpy.context.scene.frame_start) if isinstance(

@@ -38,31 +38,44 @@ def is_cloud(obj) -> bool:
 
 # what a cloud object's record must hold for the cloud to be read back
 _INFO_KEYS = ("source", "origin", "azimuth", "r0")
+_AGAIN = "import or make the cloud again"
+
+
+def _damaged(obj, what: str) -> InputError:
+    return InputError(f"{obj.name!r}: {what}; {_AGAIN}")
 
 
 def cloud_info(obj) -> dict:
-    """A cloud object's record (its ``apcg_cloud`` property); a damaged one is named."""
+    """A cloud object's record (its ``apcg_cloud`` property), every field read back checked;
+    a damaged one is named."""
     try:
         info = json.loads(obj[CLOUD_KEY])
     except (TypeError, ValueError) as exc:
-        raise InputError(f"{obj.name!r}: its {CLOUD_KEY} property is not the JSON record an "
-                         f"APCG cloud carries ({exc}); import or make the cloud again") from exc
+        raise _damaged(obj, f"its {CLOUD_KEY} property is not the JSON record an APCG cloud "
+                            f"carries ({exc})") from exc
     missing = [k for k in _INFO_KEYS if not isinstance(info, dict) or k not in info]
     if missing:
-        raise InputError(f"{obj.name!r}: its {CLOUD_KEY} record lacks {', '.join(missing)}; "
-                         "import or make the cloud again")
+        raise _damaged(obj, f"its {CLOUD_KEY} record lacks {', '.join(missing)}")
 
     def real(v):
         return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
     origin = info["origin"]
+    fields = info.get("photon_fields", [])
     bad = [k for k, ok in (
         ("origin", isinstance(origin, list) and len(origin) == 3 and all(map(real, origin))),
         ("azimuth", real(info["azimuth"])),
-        ("r0", info["r0"] is None or real(info["r0"]))) if not ok]
+        ("r0", real(info["r0"])),
+        ("source", info["source"] in SOURCES),
+        ("meta", isinstance(info.get("meta", {}), dict)),
+        ("has_sample", isinstance(info.get("has_sample", False), bool)),
+        ("photon_fields", isinstance(fields, list) and set(fields) <= set(PHOTON_FIELDS)))
+        if not ok]
     if bad:
-        raise InputError(f"{obj.name!r}: its {CLOUD_KEY} record's {', '.join(bad)} "
-                         f"{'is' if len(bad) == 1 else 'are'} damaged (origin: 3 numbers, "
-                         "azimuth and r0: numbers); import or make the cloud again")
+        raise _damaged(obj, f"its {CLOUD_KEY} record's {', '.join(bad)} "
+                            f"{'is' if len(bad) == 1 else 'are'} damaged (origin: 3 numbers; "
+                            f"azimuth, r0: numbers; source: one of {', '.join(SOURCES)}; "
+                            "meta: a JSON object; has_sample: true or false; photon_fields: "
+                            f"some of {', '.join(PHOTON_FIELDS)})")
     return info
 
 
@@ -196,6 +209,7 @@ def cloud_object(cloud: PointCloud, name: str, lidar=None, source: str = "scan",
     origin = local.mean(axis=0) if len(local) else np.zeros(3)
     rng = cloud.range_m
     r0 = float(np.median(rng)) if r0 is None and len(rng) else float(r0 or 0.0)
+    _check_float32(name, local - origin, rng - r0)
     me = bpy.data.meshes.new(name)
     me.vertices.add(len(local))
     me.vertices.foreach_set("co", (local - origin).astype(np.float32).ravel())
@@ -234,10 +248,43 @@ def cloud_object(cloud: PointCloud, name: str, lidar=None, source: str = "scan",
     return obj
 
 
-def _get_attr(me, name: str, dtype, n: int):
-    a = me.attributes.get(name)
+# the kind of each point attribute a cloud object's own values are kept in
+_ATTR_KINDS = {np.float32: "FLOAT", np.int32: "INT"}
+
+
+def _check_float32(name: str, offsets, deltas) -> None:
+    """Refuse a cloud whose offsets from its origin (or ranges from r0) a float32 vertex or
+    attribute cannot hold: they would become infinities."""
+    big = np.finfo(np.float32).max
+    for what, a in (("coordinates", offsets), ("ranges", deltas)):
+        if len(a) and not np.abs(a).max() < big:
+            raise InputError(f"{name!r}: its {what} spread over {float(np.abs(a).max()):.3g} m,"
+                             f" more than Blender's float32 holds (accepted: under {big:.3g} m "
+                             "from the cloud's centre)")
+
+
+def _spacing_radius(xyz: np.ndarray) -> float:
+    """Half the typical spacing of points on a surface (its two largest extents shared among
+    the points): a radius for a cloud of no known lidar, wherever it lies (a georeferenced
+    cloud's range from the origin says nothing of its cells)."""
+    if len(xyz) < 2:
+        return 0.05
+    ext = np.sort(xyz.max(axis=0) - xyz.min(axis=0))[::-1]
+    area = float(ext[0] * max(ext[1], ext[0] * 1e-3))
+    return max(0.5 * math.sqrt(area / len(xyz)), 0.005)
+
+
+def _get_attr(obj, name: str, dtype, n: int):
+    """A cloud object's own point attribute ``name`` as ``dtype`` (None when it has none);
+    one of another kind or domain (edited, or added by another tool) is named."""
+    a = obj.data.attributes.get(name)
     if a is None:
         return None
+    kind = _ATTR_KINDS[dtype]
+    if a.data_type != kind or a.domain != "POINT" or len(a.data) != n:
+        raise _damaged(obj, f"its point attribute {name!r} is {a.data_type} on the "
+                            f"{a.domain} domain ({len(a.data)} values); a cloud's is {kind} on "
+                            f"the POINT domain, one value per point ({n})")
     out = np.zeros(n, dtype)
     a.data.foreach_get("value", out)
     return out
@@ -254,15 +301,18 @@ def cloud_from_object(obj) -> tuple[PointCloud, dict]:
     me.vertices.foreach_get("co", co)
     local = co.reshape(-1, 3).astype(np.float64) + np.asarray(info["origin"])
     xyz = lidar_local_to_observation(local, info["azimuth"])
-    delta = _get_attr(me, "delta_range", np.float32, n)
+    delta = _get_attr(obj, "delta_range", np.float32, n)
     rng = (info["r0"] + delta.astype(np.float64)) if delta is not None else np.linalg.norm(
         xyz, axis=1)
-    w = _get_attr(me, "cell_w", np.int32, n)
-    h = _get_attr(me, "cell_h", np.int32, n)
-    sample = _get_attr(me, "sample", np.int32, n) if info.get("has_sample") else None
+    w = _get_attr(obj, "cell_w", np.int32, n)
+    h = _get_attr(obj, "cell_h", np.int32, n)
+    sample = _get_attr(obj, "sample", np.int32, n) if info.get("has_sample") else None
     zeros = np.zeros(n, np.int32)
-    photon = {f: _get_attr(me, f, np.int32, n) for f in info.get("photon_fields", [])
-              if f in PHOTON_FIELDS}
+    photon = {f: _get_attr(obj, f, np.int32, n) for f in info.get("photon_fields", [])}
+    lost = [f for f, v in photon.items() if v is None]
+    if lost:
+        raise _damaged(obj, f"its record names the photon attributes {', '.join(lost)}, "
+                            "which it has no longer")
     return PointCloud(xyz, rng, zeros if w is None else w, zeros if h is None else h,
                       sample, **photon), info
 
@@ -273,15 +323,34 @@ def import_cloud(path, lidar=None, name: str | None = None):
     other per-point value of the file (intensity, classification, normals, extra bytes...)
     becomes a point attribute of the mesh, shown in the spreadsheet; red / green / blue also
     the colour attribute "Col". The attributes' names are kept in the info's "attributes"."""
-    from pathlib import Path
+    path = checked_path(path, "path", "a point cloud file (.ply, .npz, .las, .laz)")
     cloud, meta, attrs = read_cloud_attributes(path)
+    # a photon cloud's own fields are its attributes already (cloud_object)
+    attrs = {k: v for k, v in attrs.items() if k not in cloud.photon_fields}
     r0, beta0 = _pose_of_file(path, meta)
-    obj = cloud_object(cloud, name or Path(path).stem, lidar=lidar, source="imported",
-                       r0=r0, beta0=beta0, meta=meta)
+    # an APCG file's cells size its points; another tool's cloud, its own spacing
+    radius = None if "r_alpha_deg" in (meta.get("lidar") or {}) else _spacing_radius(cloud.xyz)
+    try:
+        obj = cloud_object(cloud, name or path.stem, lidar=lidar, source="imported",
+                           r0=r0, beta0=beta0, meta=meta, radius=radius)
+    except InputError as exc:
+        raise InputError(f"cannot import {path}: {exc}") from None
     info = cloud_info(obj)
     info["attributes"] = _add_file_attrs(obj.data, attrs)
     obj[CLOUD_KEY] = json.dumps(info)
     return obj
+
+
+def checked_path(value, what: str, accepted: str):
+    """``value`` as a Path when it names one (str, bytes or a path-like, not blank); else an
+    InputError naming ``what`` and what is ``accepted``."""
+    import os
+    from pathlib import Path
+    if isinstance(value, bytes):
+        value = os.fsdecode(value)
+    if not isinstance(value, (str, os.PathLike)) or not str(os.fspath(value)).strip():
+        raise InputError(f"{what} = {value!r}: give {accepted}")
+    return Path(value)
 
 
 def _number(path, what: str, v, lo: float, hi: float) -> float:
@@ -351,6 +420,7 @@ def _add_file_attrs(me, attrs: dict) -> list[str]:
 def export_cloud(obj, path) -> str:
     """Write a cloud object to PLY / NPZ / LAS / LAZ (by extension), observation frame, float64."""
     cloud, info = cloud_from_object(obj)
+    path = checked_path(path, "path", "a file path ending in .ply, .npz, .las or .laz")
     meta = dict(info.get("meta") or {})
     meta.update({"exported_from_blender": obj.name, "source": info["source"]})
     return str(write_cloud(path, cloud, meta))

@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import math
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import bpy
 import numpy as np
@@ -109,8 +110,14 @@ def is_lidar(obj) -> bool:
     return isinstance(obj, bpy.types.Object) and obj.get(LIDAR_KEY) is not None
 
 
-def is_target(obj) -> bool:
+def carries_pose(obj) -> bool:
     return isinstance(obj, bpy.types.Object) and obj.get(POSE_KEY) is not None
+
+
+def is_target(obj) -> bool:
+    """A mesh object carrying a pose: only a mesh has a surface to scan (an Empty that was
+    given the property by a copy is not a target)."""
+    return carries_pose(obj) and obj.type == "MESH"
 
 
 def named(obj) -> str:
@@ -125,26 +132,62 @@ def require_lidar(obj):
     return obj
 
 
-def require_target(obj):
-    """``obj`` if it is an APCG target parented to a lidar; else an InputError naming it."""
+def require_target(obj, lidar: bool = True):
+    """``obj`` if it is an APCG target (``lidar``: parented to a lidar, directly or through
+    other objects); else an InputError naming it."""
+    if carries_pose(obj) and not is_target(obj):
+        raise InputError(f"{obj.name!r} carries an APCG pose ({POSE_KEY}) but is a "
+                         f"{obj.type.lower()}, not a mesh: only a mesh object can be a target "
+                         "(remove the property, or make a target of a mesh with "
+                         "apcg.make_target)")
     if not is_target(obj):
         raise InputError(f"{named(obj)} is not an APCG target (add one with "
                          "apcg.add_aircraft, or make one from a mesh with apcg.make_target)")
-    if lidar_of(obj) is None:
-        raise InputError(f"target {obj.name!r} is not parented to an APCG lidar")
+    if lidar and lidar_of(obj) is None:
+        raise InputError(f"target {obj.name!r} is not parented to an APCG lidar (directly, or "
+                         "through other objects)")
     return obj
 
 
 def lidar_of(obj):
-    """The lidar a target (or cloud) belongs to: its parent when that is a lidar."""
-    if is_lidar(obj):
-        return obj
-    parent = obj.parent if isinstance(obj, bpy.types.Object) else None
-    return parent if is_lidar(parent) else None
+    """The lidar a target (or cloud) belongs to: its nearest lidar ancestor (an Empty between
+    them, a rig, keeps it the lidar's)."""
+    while isinstance(obj, bpy.types.Object):
+        if is_lidar(obj):
+            return obj
+        obj = obj.parent
+    return None
+
+
+# The lidar object's values, by their panel property: what Scan, Write Lidar File and Read
+# Lidar File take, within the panel's limits (a script or a hand-edited custom property is not
+# clamped by Blender).
+LIDAR_VALUES = ("r_alpha_deg", "r_beta_deg", "range_resolution_m", "width", "height")
+
+
+def check_lidar_values(lidar, values: dict, where: str) -> None:
+    """Refuse (InputError naming ``where``, the property, its panel label and limits) a value
+    of ``values`` (panel property name -> value) that the lidar object's panel does not take."""
+    props = lidar.apcg_lidar.bl_rna.properties
+    for name, v in values.items():
+        prop = props[name]
+        real = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        whole = prop.type != "INT" or (real and v == int(v))
+        if real and whole and prop.hard_min <= v <= prop.hard_max:
+            continue
+        how = ("more than" if real and v > prop.hard_max else
+               "less than" if real and v < prop.hard_min else "not what")
+        kind = "an integer" if prop.type == "INT" else "a number"
+        shown = f"{v:.6g}" if real and isinstance(v, float) else repr(v)
+        raise InputError(f"{where}: {name} = {shown} is {how} a lidar object holds; accepted: "
+                         f"{kind} from {prop.hard_min:.6g} to {prop.hard_max:.6g} (the "
+                         f"panel's {prop.name!r})")
 
 
 def lidar_params(lidar) -> LidarParams:
     p = lidar.apcg_lidar
+    check_lidar_values(lidar, {k: getattr(p, k) for k in LIDAR_VALUES},
+                       f"lidar {lidar.name!r}")
     # the UI stores float32; round to what a person types so 0.004 deg stays 0.004 deg
     return LidarParams.from_degrees(round(p.r_alpha_deg, 7), round(p.r_beta_deg, 7),
                                     round(p.range_resolution_m, 7), int(p.width),
@@ -190,6 +233,9 @@ def mesh_from_arrays(name: str, vertices: np.ndarray, faces: np.ndarray):
 
 def triangles_of(obj, depsgraph=None):
     """(vertices float64 (V, 3), faces int (F, 3)) of an object's evaluated mesh, local frame."""
+    if not isinstance(obj, bpy.types.Object) or obj.type != "MESH":
+        what = f"a {obj.type.lower()}" if isinstance(obj, bpy.types.Object) else "not an object"
+        raise InputError(f"{named(obj)} is {what}, not a mesh object: it has no surface")
     depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
     ev = obj.evaluated_get(depsgraph)
     me = ev.to_mesh()
@@ -204,16 +250,36 @@ def triangles_of(obj, depsgraph=None):
     return verts.reshape(-1, 3).astype(np.float64), tris.reshape(-1, 3)
 
 
-class _Mesh:  # what the simulator needs of a mesh
-    def __init__(self, vertices, faces):
-        self.vertices, self.faces = vertices, faces
+@dataclass
+class _Mesh(Mesh):
+    """A target's body mesh and its key for the simulator's caches: the object itself and a
+    digest of its mesh's bytes, so a swapped or edited mesh, or another object of the same
+    name (a linked library's), is never answered from another's caster."""
+    key: tuple = ()
+
+
+def checked_surface(label: str, vertices, faces, flat_ok: bool = True) -> Mesh:
+    """The mesh as the catalog importer takes it (finite coordinates, some area; ``flat_ok``
+    False: not flat either), without its zero-area triangles; else its InputError, naming
+    ``label``."""
+    from apcg_core.catalog.importer import check_not_flat, drop_degenerate
+    if len(faces) == 0:
+        raise InputError(f"{label} has no faces: a lidar would see nothing of it")
+    mesh, _ = drop_degenerate(Mesh(vertices, faces), label)
+    if not flat_ok:
+        check_not_flat(mesh, label)
+    return mesh
 
 
 def body_mesh(obj, depsgraph=None) -> _Mesh:
+    """A target's evaluated mesh in its body frame, as Blender shows it, checked as the
+    catalog importer checks a model's."""
+    import hashlib
     v, f = triangles_of(obj, depsgraph)
-    if len(f) == 0:
-        raise InputError(f"target {obj.name!r} has no faces to scan")
-    return _Mesh(v, f)
+    checked_surface(f"target {obj.name!r}", v, f)
+    digest = hashlib.blake2b(v.tobytes() + f.tobytes(), digest_size=16).hexdigest()
+    identity = getattr(obj, "session_uid", None) or obj.as_pointer()  # session_uid: 2.91+
+    return _Mesh(v, f, ("blender-object", identity, digest))
 
 
 def pose_from_degrees(range_m, elevation_deg, pitch_deg=0.0, yaw_deg=0.0, roll_deg=0.0,
@@ -236,52 +302,151 @@ def pose_from_degrees(range_m, elevation_deg, pitch_deg=0.0, yaw_deg=0.0, roll_d
 
 def set_pose(obj, range_m, elevation, pitch=0.0, yaw=0.0, roll=0.0, azimuth=0.0) -> None:
     """Place a target relative to its lidar (metres, radians; the angles in the project's one
-    order, POSE_NAMES); keeps the exact doubles."""
-    if not isinstance(obj, bpy.types.Object) or is_lidar(obj) or lidar_of(obj) is None:
+    order, POSE_NAMES); keeps the exact doubles. A target under other objects (an Empty below
+    the lidar) is placed through them."""
+    lidar = lidar_of(obj)
+    if not isinstance(obj, bpy.types.Object) or is_lidar(obj) or lidar is None:
         raise InputError(f"{named(obj)} is not a target of an APCG lidar: a pose places an "
                          "object parented to a lidar (apcg.add_aircraft, apcg.make_target)")
     vals = pose_from_degrees(range_m, *(_degrees(v) for v in (elevation, pitch, yaw, roll,
                                                                azimuth)))
     m = target_matrix_lidar_local(*vals)
+    if obj.type == "MESH":
+        check_clear_of_lidar(obj, vals, body_mesh(obj).vertices)
     obj[POSE_KEY] = dict(zip(POSE_NAMES, vals, strict=True))
-    obj.matrix_parent_inverse.identity()
-    obj.matrix_basis = Matrix([list(row) for row in m])  # rows (a bare list means columns)
+    if obj.parent == lidar and obj.parent_type == "OBJECT":
+        obj.matrix_parent_inverse.identity()
+        obj.matrix_basis = _blender_matrix(m)
+    else:  # through the objects between: Blender solves for the basis from the world matrix
+        bpy.context.evaluated_depsgraph_get()  # their matrices current
+        obj.matrix_world = lidar.matrix_world @ _blender_matrix(m)
 
 
-def _matrix_of(obj) -> np.ndarray:
-    return np.array([list(row) for row in obj.matrix_basis], dtype=np.float64)
+def _blender_matrix(m) -> Matrix:
+    return Matrix([list(row) for row in m])  # rows (a bare list means columns)
+
+
+def _numpy_matrix(m) -> np.ndarray:
+    return np.array([list(row) for row in m], dtype=np.float64)
+
+
+def _plain_child(obj, lidar) -> bool:
+    """Whether the target's matrix_basis alone places it in its lidar's frame (a target of
+    no lidar: in the world's)."""
+    return (obj.parent == lidar and (lidar is None or obj.parent_type == "OBJECT")
+            and np.array_equal(_numpy_matrix(obj.matrix_parent_inverse), np.eye(4))
+            and not any(not c.mute for c in obj.constraints))
+
+
+AS_DRAWN = "as drawn"  # placement's depsgraph for a panel: the matrices the redraw left
+
+
+def placement(obj, lidar=None, depsgraph=None) -> np.ndarray:
+    """The target's 4 x 4 matrix in ``lidar``'s frame (default: its own lidar's; a target of
+    no lidar: the world's), float64: the one placement that poses, scans, animations and the
+    panel read. A plain child of its lidar is placed by its matrix_basis (exact: a stored pose
+    keeps its doubles at 18 km); any other (constraints, a parent inverse, objects between) by
+    the evaluated world matrices, made current first (``depsgraph``: the one to read, as a
+    depsgraph handler has; None: the context's, evaluated now; AS_DRAWN: the objects' own
+    matrix_world, what a draw may read without evaluating the scene)."""
+    lidar = lidar_of(obj) if lidar is None else lidar
+    if _plain_child(obj, lidar):
+        return _numpy_matrix(obj.matrix_basis)
+    if depsgraph is AS_DRAWN:
+        lw, tw = (lidar.matrix_world if lidar else None), obj.matrix_world
+    else:
+        depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
+        lw = lidar.evaluated_get(depsgraph).matrix_world if lidar else None
+        tw = obj.evaluated_get(depsgraph).matrix_world
+    tw = _numpy_matrix(tw)
+    try:
+        return tw if lw is None else np.linalg.solve(_numpy_matrix(lw), tw)
+    except np.linalg.LinAlgError:
+        raise InputError(f"lidar {lidar.name!r} has a zero scale: no frame to place target "
+                         f"{obj.name!r} in; set its scale to 1") from None
 
 
 def stored_pose(obj) -> dict:
-    stored = obj[POSE_KEY]
-    if hasattr(stored, "to_dict"):
-        return {k: float(stored[k]) for k in POSE_NAMES}
-    return {k: float(v) for k, v in zip(_LEGACY_POSE_ORDER, stored, strict=True)}
-
-
-def pose_moved(obj) -> bool:
-    """True when the object's matrix no longer agrees with its stored pose."""
-    pose = stored_pose(obj)
-    p = [pose[k] for k in POSE_NAMES]
-    m = target_matrix_lidar_local(*p)
-    got = _matrix_of(obj)
-    tol = _MOVED_TOL_M + _MOVED_TOL_REL * p[0]
-    return bool(np.abs(got[:3, 3] - m[:3, 3]).max() > tol
-                or np.abs(got[:3, :3] - m[:3, :3]).max() > 1e-5)
-
-
-def pose_of(obj) -> dict:
-    """The target's pose: a dict of POSE_NAMES (m and rad)."""
-    if not is_target(obj):
-        raise InputError(f"{named(obj)} is not an APCG target (add one with "
-                         "apcg.add_aircraft)")
-    check_target_scale(obj)
-    if not pose_moved(obj):
-        return stored_pose(obj)
+    """The target's stored pose (POSE_NAMES -> finite float, m and rad); a damaged record
+    (a name missing, not a number, the legacy list's length) is an InputError naming it."""
+    stored = obj.get(POSE_KEY)
     try:
-        return pose_from_lidar_local(_matrix_of(obj))
+        if hasattr(stored, "to_dict"):
+            values = [stored[k] for k in POSE_NAMES]
+            names = POSE_NAMES
+        elif hasattr(stored, "to_list") and len(stored) == len(_LEGACY_POSE_ORDER):
+            values, names = stored.to_list(), _LEGACY_POSE_ORDER
+        else:
+            raise TypeError
+    except (KeyError, TypeError):
+        values = None
+    if values is None or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                 and math.isfinite(v) for v in values):
+        raise InputError(
+            f"target {obj.name!r}: its {POSE_KEY} property is damaged ({_short(stored)}); "
+            f"accepted: a record of {', '.join(POSE_NAMES)} as finite numbers (m, rad). "
+            "Set the pose again (the panel's fields, or apcg.set_pose)")
+    pose = dict(zip(names, map(float, values), strict=True))
+    return {k: pose[k] for k in POSE_NAMES}
+
+
+def _short(value) -> str:
+    value = value.to_dict() if hasattr(value, "to_dict") else (
+        value.to_list() if hasattr(value, "to_list") else value)
+    text = repr(value)
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def _differs(pose: dict, m: np.ndarray) -> bool:
+    """Whether the matrix ``m`` (in the lidar's frame) no longer agrees with ``pose``."""
+    p = [pose[k] for k in POSE_NAMES]
+    want = target_matrix_lidar_local(*p)
+    tol = _MOVED_TOL_M + _MOVED_TOL_REL * p[0]
+    return bool(np.abs(m[:3, 3] - want[:3, 3]).max() > tol
+                or np.abs(m[:3, :3] - want[:3, :3]).max() > 1e-5)
+
+
+def pose_moved(obj, depsgraph=None) -> bool:
+    """True when the object's placement no longer agrees with its stored pose (or that record
+    is damaged: the placement is then the pose)."""
+    try:
+        pose = stored_pose(obj)
+    except InputError:
+        return True
+    return _differs(pose, placement(obj, depsgraph=depsgraph))
+
+
+def pose_of(obj, lidar=None, depsgraph=None) -> dict:
+    """The target's pose in ``lidar``'s frame (default: its own lidar's): a dict of
+    POSE_NAMES (m and rad). The stored doubles while the placement agrees with them; else
+    (moved, or a damaged record) the pose of the placement."""
+    require_target(obj, lidar=False)
+    m = placement(obj, lidar, depsgraph)
+    check_unit_scale(obj.name, m[:3, :3])
+    if lidar is None or lidar == lidar_of(obj):
+        try:
+            pose = stored_pose(obj)
+        except InputError:  # recovered from the matrix, which is what Blender shows
+            pose = None
+        if pose is not None and not _differs(pose, m):
+            return pose
+    try:
+        return pose_from_lidar_local(m)
     except ValueError as exc:  # on the lidar: no range or direction
-        raise InputError(f"target {obj.name!r}: {exc}; move it away from its lidar") from None
+        raise InputError(f"{exc}: move target {obj.name!r} away from its lidar") from None
+
+
+def panel_pose(obj) -> dict | None:
+    """The pose the panel shows, never raising (it draws every redraw): the pose, else the
+    stored one (a target Scan would refuse: scaled, on its lidar), else None (nothing
+    readable: the fields show 0; Scan names the problem)."""
+    try:
+        return pose_of(obj, depsgraph=AS_DRAWN)
+    except InputError:
+        try:
+            return stored_pose(obj)
+        except InputError:
+            return None
 
 
 # A target's size is its mesh's (its type's, or the mesh it was made from): the float32 matrix
@@ -290,9 +455,9 @@ _SCALE_TOL = 1e-4
 
 
 def check_target_scale(obj) -> None:
-    """Refuse a target whose object scale is not 1: the simulator and the models cast its
-    mesh as it is, so a scaled target would not be what Blender shows."""
-    check_unit_scale(obj.name, np.array([list(r) for r in obj.matrix_basis.to_3x3()]))
+    """Refuse a target whose scale in its lidar's frame is not 1: the simulator and the
+    models cast its mesh as it is, so a scaled target would not be what Blender shows."""
+    check_unit_scale(obj.name, placement(obj)[:3, :3])
 
 
 def check_unit_scale(name: str, m3) -> None:
@@ -309,25 +474,52 @@ def check_unit_scale(name: str, m3) -> None:
             "object it was made from and make the target again (apcg.make_target)")
 
 
-def sync_pose(obj) -> bool:
+def check_clear_of_lidar(obj, pose, vertices) -> None:
+    """Refuse a pose (POSE_NAMES' order, or a dict of them) that puts the lidar inside the
+    target's bounding sphere (no ray could start outside it): the simulator's own check,
+    here naming the target, before it is placed or scanned."""
+    from dataset_builder.rays import bounding_radius, check_conditions
+    p = [pose[k] for k in POSE_NAMES] if isinstance(pose, dict) else list(pose)
+    try:
+        check_conditions([[0.0, *p[:5]]], bounding_radius(vertices) if len(vertices) else 0.0)
+    except InputError as exc:
+        why = str(exc).removeprefix("condition 0: ")
+        raise InputError(f"target {obj.name!r}: {why}") from None
+
+
+def sync_pose(obj, depsgraph=None) -> bool:
     """Store the pose of a moved target as its doubles; True if it had moved."""
-    if is_target(obj) and pose_moved(obj):
-        try:
-            check_target_scale(obj)
-            pose = pose_from_lidar_local(_matrix_of(obj))
-        except (InputError, ValueError):  # scaled, or on the lidar: it keeps its last pose,
-            return False  # and a scan names why
-        obj[POSE_KEY] = pose
-        return True
-    return False
+    if not (is_target(obj) and pose_moved(obj, depsgraph)):
+        return False
+    try:
+        pose = pose_of(obj, depsgraph=depsgraph)
+    except InputError:  # scaled, or on the lidar: it keeps its last pose, and a scan names why
+        return False
+    obj[POSE_KEY] = pose
+    return True
 
 
-def simulator_row(obj) -> np.ndarray:
+def simulator_row(obj, mesh=None) -> np.ndarray:
     """The target's pose as the simulator's one-row table [0, r0, beta0, pitch, yaw, roll]
-    (m, rad). The simulator is handed the target's own mesh, so the type column is unused and
-    left 0; a type crosses to a model by its name (TYPE_KEY), never by a code."""
+    (m, rad), checked clear of the lidar against ``mesh`` (default: its body mesh). The
+    simulator is handed the target's own mesh, so the type column is unused and left 0; a type
+    crosses to a model by its name (TYPE_KEY), never by a code."""
     p = pose_of(obj)
+    check_clear_of_lidar(obj, p, (mesh or body_mesh(obj)).vertices)
     return np.array([[0.0, p["range_m"], p["elevation"], p["pitch"], p["yaw"], p["roll"]]])
+
+
+def depth_length_of(obj, default=None):
+    """The target's depth length (LENGTH_KEY, m; ``default`` where it has none): a finite
+    number > 0, or an InputError naming the target and the property."""
+    if LENGTH_KEY not in obj:
+        return default
+    v = obj[LENGTH_KEY]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise InputError(f"target {obj.name!r}: its {LENGTH_KEY} property is {_short(v)}; "
+                         "accepted: a finite length in metres > 0 (make the target again, or "
+                         "set the property)")
+    return float(v)
 
 
 @leaves_nothing_on_error
@@ -370,8 +562,7 @@ def world_mesh(obj, depsgraph=None) -> Mesh:
         raise InputError(f"{named(obj)} is {what}, not a mesh object")
     depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
     v, f = triangles_of(obj, depsgraph)
-    if len(f) == 0:
-        raise InputError(f"{obj.name!r} has no faces: a lidar would see nothing of it")
+    checked_surface(repr(obj.name), v, f, flat_ok=False)  # what `apcg catalog add` takes
     m = obj.evaluated_get(depsgraph).matrix_world
     rot_scale = np.array([list(row)[:3] for row in list(m)[:3]], dtype=np.float64)
     if abs(np.linalg.det(rot_scale)) < 1e-30:
@@ -437,8 +628,11 @@ def body_frame(mesh: Mesh, forward: str, up: str) -> tuple[Mesh, str]:
 
 
 def default_range_m(extents) -> float:
-    """A first range for a made target: the middle of Table 1's band its size suggests."""
-    return 300.0 if float(max(extents[0], extents[1])) < 5.0 else 4500.0
+    """A first range for a made target: the middle of Table 1's band its size suggests, or
+    ten times its largest extent for an object too big for that band (the lidar stays well
+    outside its bounding sphere)."""
+    band = 300.0 if float(max(extents[0], extents[1])) < 5.0 else 4500.0
+    return max(band, 10.0 * float(max(extents)))
 
 
 @leaves_nothing_on_error
@@ -521,7 +715,11 @@ def source_of(obj):
 
 
 def targets_of(lidar, selected_only: bool = False) -> list:
-    kids = [o for o in require_lidar(lidar).children if is_target(o)]
+    """The lidar's targets: every target below it (through Empties, rigs...) whose nearest
+    lidar it is (a lidar below it has its own); Scan, Generate and Scan Animation all take
+    these. Objects that carry a pose but are no mesh are not targets."""
+    lidar = require_lidar(lidar)
+    kids = [o for o in lidar.children_recursive if is_target(o) and lidar_of(o) == lidar]
     if selected_only:
         kids = [o for o in kids if o.select_get()]
     return kids

@@ -443,7 +443,7 @@ class APCG_OT_generate(_ChunkedOperator, bpy.types.Operator):
 
     model_dir: StringProperty(name="Model", subtype="DIR_PATH", default="",
                               description="A model directory (empty: the default model)")
-    count: IntProperty(name="Samples", default=1, min=1, max=10000)
+    count: IntProperty(name="Samples", default=1, min=1, max=api.MAX_GENERATE_COUNT)
     seed: IntProperty(name="Seed", default=0, min=0)
     selected_only: BoolProperty(name="Selected targets only", default=True)
     runtime: EnumProperty(name="Runtime", items=[
@@ -562,8 +562,9 @@ class APCG_OT_scan_animation(bpy.types.Operator):
         ("rows", "Row by row", "Rows fired from the top, Line time apart: a fast target is "
                                "drawn where it was when its rows fired"),
         ("columns", "Column by column", "Columns fired from the left, Line time apart")])
-    line_time_s: FloatProperty(name="Line time (s)", default=1e-3, min=1e-7, max=1.0,
-                               precision=6)
+    line_time_s: FloatProperty(name="Line time (s)", default=0.0, min=0.0, max=1.0,
+                               precision=6, description="0: a frame's time shared by its "
+                               "lines (rows: H, columns: W), so the scan fits the frame")
     backend: EnumProperty(name="Ray casting", items=[
         ("blender", "Geometry Nodes", "One Geometry Nodes Raycast evaluation per group of "
                                       "cells"),
@@ -579,11 +580,12 @@ class APCG_OT_scan_animation(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        lidar = _active_lidar(context)
-        scan = None if self.pattern == "flash" else {"pattern": self.pattern,
-                                                     "line_time_s": self.line_time_s}
         wm = context.window_manager
         try:
+            lidar = _active_lidar(context)
+            scan = None if self.pattern == "flash" else {
+                "pattern": self.pattern, "line_time_s": self.line_time_s or _fitting_line_time(
+                    context.scene, lidar, self.pattern)}
             wm.progress_begin(0, 1)
             out = api.scan_animation(lidar, bpy.path.abspath(self.directory),
                                      backend=self.backend, scan=scan,
@@ -597,6 +599,15 @@ class APCG_OT_scan_animation(bpy.types.Operator):
             wm.progress_end()
         self.report({"INFO"}, f"wrote the sequence to {out}")
         return {"FINISHED"}
+
+
+def _fitting_line_time(scene, lidar, pattern: str) -> float:
+    """The line time that spreads a frame's lines over the frame (the last line fires one
+    line time before the next frame's first)."""
+    from .objects import lidar_params
+    params = lidar_params(lidar)
+    lines = params.height if pattern == "rows" else params.width
+    return scene.render.fps_base / scene.render.fps / lines
 
 
 class APCG_OT_import_sequence(bpy.types.Operator):

@@ -11,7 +11,7 @@ from bpy.props import FloatProperty, IntProperty, PointerProperty, StringPropert
 
 from apcg_core.errors import InputError
 
-from .objects import POSE_KEY, is_target, pose_of, set_pose, stored_pose
+from .objects import POSE_KEY, is_target, panel_pose, set_pose
 
 
 class APCG_PG_lidar(bpy.types.PropertyGroup):
@@ -36,26 +36,19 @@ class APCG_PG_lidar(bpy.types.PropertyGroup):
 
 
 def _pose_prop(key: str, label: str, degrees: bool, lo: float, hi: float, descr: str):
-    def pose(obj) -> dict:
-        # the panel draws every redraw: a target Scan would refuse (scaled, on its lidar)
-        # shows its last stored pose instead of raising here; Scan names the problem
-        try:
-            return pose_of(obj)
-        except InputError:
-            return stored_pose(obj)
-
     def get(self):
         obj = self.id_data
-        if not is_target(obj):
+        pose = panel_pose(obj) if is_target(obj) else None
+        if pose is None:  # nothing readable: Scan names why
             return 0.0
-        v = pose(obj)[key]
+        v = pose[key]
         return math.degrees(v) if degrees else v
 
     def set_(self, value):
         obj = self.id_data
-        if not is_target(obj):
+        p = panel_pose(obj) if is_target(obj) else None
+        if p is None:
             return
-        p = pose(obj)
         p[key] = math.radians(value) if degrees else float(value)
         try:
             set_pose(obj, **p)

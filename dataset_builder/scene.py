@@ -755,22 +755,51 @@ def not_this_frame(path: Path, frame: int, ours: dict) -> str | None:
 
 def check_sequence_directory(out: Path, header: bytes) -> bool:
     """Whether ``out`` already holds this sequence (its header, byte for byte: True) or none
-    yet (False); refused when it holds a different one (another scene, other options, another
-    Blender timeline), whose frames would otherwise be mixed with these or left stale beside
-    them, and when it is a file. Every sequence writer (`apcg scene sequence`, the add-on's
-    Scan Animation) asks here before it writes."""
+    yet (False: it is new or empty); refused when it holds a different one (another scene,
+    other options, another Blender timeline), whose frames would otherwise be mixed with these
+    or left stale beside them, when it holds anything else (someone's files: written over or
+    mixed with the sequence's) and when it is a file. Every sequence writer (`apcg scene
+    sequence`, the add-on's Scan Animation) asks here before it writes."""
     from apcg_core.scene.sequence import HEADER
     if out.exists() and not out.is_dir():
         raise InputError(f"{out} is a file; a sequence is written into a directory (a new one, "
                          "or one holding this same sequence)")
     head = out / HEADER
     if not head.exists():
+        _refuse_foreign_files(out)
         return False
     if not head.is_file() or head.read_bytes() != header:
         raise InputError(f"{out} already holds a different sequence (its {HEADER} differs "
                          "from this scene and these options); write into a new directory or "
                          "delete it")
     return True
+
+
+# What a sequence writer itself leaves before its header: its lock, its empty frames folder.
+_WRITERS_OWN = (".sequence.lock",)
+
+
+def _refuse_foreign_files(out: Path) -> None:
+    """Refuse a directory without a sequence header that holds anything but what a writer
+    makes before its header, naming what is there."""
+    from apcg_core.scene.sequence import HEADER
+    if not out.is_dir():
+        return
+    frames = out / "frames"
+    stray = sorted(frames.glob("*.npz")) if frames.is_dir() else []
+    if stray:
+        raise InputError(f"{frames} holds {len(stray)} frame file(s) ({stray[0].name}"
+                         f"{', ...' if len(stray) > 1 else ''}) but {out} has no {HEADER}, so "
+                         "nothing says which sequence made them; write into a new directory, "
+                         "or delete them")
+    there = sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir()
+                   if p.name not in _WRITERS_OWN
+                   and not (p == frames and p.is_dir() and not any(p.iterdir())))
+    if there:
+        listed = ", ".join(there[:5]) + (f" and {len(there) - 5} more" if len(there) > 5 else "")
+        raise InputError(f"{out} holds other files ({listed}) and no sequence (no {HEADER}); "
+                         "a sequence is written into a new or empty directory, or one holding "
+                         "this same sequence: choose another directory, or empty it")
 
 
 def finish_sequence(out: Path, frames) -> dict | None:

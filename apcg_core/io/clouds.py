@@ -1,7 +1,10 @@
 """Standard point clouds in files: PLY (binary), NPZ and LAS / LAZ, observation frame, metres.
 
 Every format carries the per-point attributes range_m (float64), cell_w and cell_h (centred cell
-indices), and, for stacked clouds, sample. Files are written through a ``.part`` file and
+indices), and, for stacked clouds, sample; a photon cloud also its label, count (and pulse),
+read back into the cloud wherever the file's meta names its sensor. LAS / LAZ headers carry
+a fixed creation date (SOURCE_DATE_EPOCH's day when set, else LAS_CREATION_DATE), so the
+same cloud gives the same bytes on any day. Files are written through a ``.part`` file and
 renamed, so a file with its final name is complete. Files of other lidar tools (PLY ascii or
 binary, LAS / LAZ of any point format) are read too, with all their per-point attributes.
 """
@@ -9,14 +12,16 @@ binary, LAS / LAZ of any point format) are read too, with all their per-point at
 from __future__ import annotations
 
 import copy
+import datetime
 import functools
 import io
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 
-from ..cloud import PointCloud
+from ..cloud import PHOTON_FIELDS, PointCloud
 from ..errors import InputError
 from .atomic import atomic_path, claim, name_the_file, publish, refuse_directory, scratch
 from .crc import crc32
@@ -30,6 +35,12 @@ _PHOTON_PROPS = {"label": "u1", "count": "i4", "pulse": "i4"}
 # LAS classification of a photon cloud's points: the ASPRS codes 1 (unclassified: signal)
 # and 7 (low point: noise).
 LAS_CLASS = {1: 1, 0: 7}
+# The creation date of every LAS / LAZ header without SOURCE_DATE_EPOCH: laspy would stamp
+# the day of writing, and the same call would give other bytes tomorrow.
+LAS_CREATION_DATE = datetime.date(2000, 1, 1)
+# What each of the cloud's own integer columns is stored as (PointCloud's types): a file's
+# value must fit, or it would wrap silently.
+_STORED = {"cell_w": np.int32, "cell_h": np.int32, "sample": np.int64, **PHOTON_FIELDS}
 _PLY_TYPES = {"f8": "double", "i4": "int", "f4": "float", "u1": "uchar", "i2": "short",
               "u2": "ushort", "u4": "uint", "i1": "char"}
 _PLY_NAMES = {v: k for k, v in _PLY_TYPES.items()} | {
@@ -445,8 +456,19 @@ class CloudWriter:
             name_the_file(exc, self.path, self.tmp)
 
 
+def las_creation_date() -> datetime.date:
+    """SOURCE_DATE_EPOCH's day (UTC) where it is set to a number of seconds, else
+    LAS_CREATION_DATE: never the day of writing (reproducible builds' convention)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    try:
+        return datetime.datetime.fromtimestamp(int(epoch), datetime.UTC).date()
+    except (ValueError, OverflowError, OSError):
+        return LAS_CREATION_DATE
+
+
 def _las_header(laspy, cloud: PointCloud, meta: dict):
     header = laspy.LasHeader(point_format=6, version="1.4")
+    header.creation_date = las_creation_date()
     # LAS stores scaled int32 coordinates: 0.1 mm steps around the (first) cloud's centre.
     centre = cloud.xyz.mean(axis=0) if len(cloud) else np.zeros(3)
     header.offsets = np.round(centre, 3)
@@ -502,23 +524,56 @@ def read_cloud_attributes(path) -> tuple[PointCloud, dict, dict[str, np.ndarray]
         raise InputError(f"cannot read point cloud {path}: {int(bad.sum())} of its {n} points "
                          f"have a coordinate that is not a finite number (the first: point "
                          f"{int(np.argmax(bad))}, {xyz[np.argmax(bad)].tolist()})")
-    own = {k: cols.pop(k, None) for k in _OWN}
-    for k, v in own.items():  # the cloud's own columns: numbers, whole where they count cells
-        if v is None:
-            continue
-        v = np.asarray(v)
-        finite = v.dtype.kind in "biu" or (v.dtype.kind == "f" and np.isfinite(v).all())
-        whole = k == "range_m" or v.dtype.kind in "biu" or (finite and (v == np.round(v)).all())
-        if v.shape != (n,) or not finite or not whole:
-            raise InputError(f"cannot read point cloud {path}: its {k!r} values are not "
-                             f"{'finite numbers' if k == 'range_m' else 'whole numbers'}, "
-                             f"one per point ({n} points; got shape {v.shape}, "
-                             f"type {v.dtype})")
+    own = {k: _own_column(path, k, cols.pop(k, None), n) for k in _OWN}
     r = own["range_m"] if own["range_m"] is not None else np.linalg.norm(xyz, axis=1)
     zeros = np.zeros(n, np.int32)
     cloud = PointCloud(xyz, r, own["cell_w"] if own["cell_w"] is not None else zeros,
-                       own["cell_h"] if own["cell_h"] is not None else zeros, own["sample"])
+                       own["cell_h"] if own["cell_h"] is not None else zeros, own["sample"],
+                       **_photon_columns(path, ext, cols, meta, n))
     return cloud, meta, cols
+
+
+def _own_column(path, k: str, v, n: int):
+    """One of the cloud's own columns as read: finite numbers (range_m), else whole numbers
+    that fit the type the cloud stores them in; else an InputError naming the file, the
+    field, a refused value and what is accepted."""
+    if v is None:
+        return None
+    v = np.asarray(v)
+    finite = v.dtype.kind in "biu" or (v.dtype.kind == "f" and np.isfinite(v).all())
+    whole = k == "range_m" or v.dtype.kind in "biu" or (finite and (v == np.round(v)).all())
+    if v.shape != (n,) or not finite or not whole:
+        raise InputError(f"cannot read point cloud {path}: its {k!r} values are not "
+                         f"{'finite numbers' if k == 'range_m' else 'whole numbers'}, "
+                         f"one per point ({n} points; got shape {v.shape}, "
+                         f"type {v.dtype})")
+    if k in _STORED and n:
+        info = np.iinfo(_STORED[k])
+        # compared as floats where the file holds floats: iinfo.max + 1 is exact there
+        above = v >= float(info.max) + 1 if v.dtype.kind == "f" else v > info.max
+        out = (v < info.min) | above
+        if out.any():
+            i = int(np.argmax(out))
+            raise InputError(f"cannot read point cloud {path}: its {k!r} value {v[i]!r} "
+                             f"(point {i}) does not fit; accepted: whole numbers from "
+                             f"{info.min} to {info.max}")
+    return v
+
+
+def _photon_columns(path, ext: str, cols: dict, meta, n: int) -> dict:
+    """A photon cloud's label, count and pulse where the file's meta names its sensor (an
+    APCG photon cloud; another tool's "label" column stays an attribute): PLY and NPZ store
+    them by name, LAS the label as its classification (LAS_CLASS). They stay in ``cols``
+    too, as the file's attributes."""
+    if not (isinstance(meta, dict) and meta.get("sensor")):
+        return {}
+    out = {k: _own_column(path, k, cols[k], n) for k in PHOTON_FIELDS if k in cols}
+    if ext in (".las", ".laz") and "classification" in cols:
+        code = np.asarray(cols["classification"])
+        signal, noise = LAS_CLASS[1], LAS_CLASS[0]
+        if np.isin(code, (signal, noise)).all():  # codes another tool gave: no labels
+            out["label"] = (code == signal).astype(np.uint8)
+    return out
 
 
 def _laspy(compressed: bool):
