@@ -50,12 +50,21 @@ RULES: dict[str, Rule] = {
     "pairs": Rule("an integer >= 0 (0: every held-out pair)", lo=0),
     "workers": Rule("an integer from 1 to 1024", lo=1, hi=1024),
     "threads": Rule("an integer from 1 to 1024", lo=1, hi=1024),
-    "columns": Rule("an integer from 1 to 64", lo=1, hi=64), "n_critic": COUNT,
-    "n_points": COUNT, "checkpoint_every": COUNT, "keep_every": COUNT, "log_every": COUNT,
+    "columns": Rule("an integer from 1 to 64", lo=1, hi=64),
+    # a critic trained 100 times a generator step is past any WGAN's use (the paper's 5)
+    "n_critic": Rule("an integer from 1 to 100", lo=1, hi=100),
+    # points a point-set network draws a cloud: 2^16 is 100 times the densest cloud here
+    "n_points": Rule("an integer from 1 to 65536", lo=1, hi=65536),
+    "checkpoint_every": COUNT, "keep_every": COUNT, "log_every": COUNT,
     "train_per_type": PER_TYPE, "test_per_type": PER_TYPE, "networks": COUNT,  # recognize
     "bootstrap": Rule("an integer >= 0 (0: no interval)", lo=0),
-    "sampling_steps": COUNT, "diffusion_steps": COUNT, "max_checkpoints": COUNT,
-    "memory_steps": Rule("an integer >= 0 (0: skip)", lo=0), "tasks_per_process": COUNT,
+    # a diffusion schedule of 10^4 steps is ten times DDPM's 1,000 (Ho et al., NeurIPS 2020)
+    "sampling_steps": Rule("an integer from 1 to 10000", lo=1, hi=10_000),
+    "diffusion_steps": Rule("an integer from 1 to 10000", lo=1, hi=10_000),
+    "max_checkpoints": COUNT,
+    # steps a memory measurement trains (compare): a few show the peak
+    "memory_steps": Rule("an integer from 0 to 1000 (0: skip)", lo=0, hi=1000),
+    "tasks_per_process": COUNT,
     "dpi": Rule("an integer from 10 to 1200", lo=10, hi=1200),
     "supersample": Rule("an integer from 1 to 16", lo=1, hi=16),
     "voxel_res": Rule("an integer 4 x 2^k from 8 to 256 (8, 16, 32, 64, 128, 256)", lo=8,
@@ -67,7 +76,9 @@ RULES: dict[str, Rule] = {
     # amounts of time and training
     "connect_timeout_s": Rule("a number of seconds > 0 and <= 3600", lo=0, hi=3600,
                               lo_open=True),
-    "epochs": POSITIVE, "hours": POSITIVE, "minutes": POSITIVE, "max_minutes": POSITIVE,
+    # beyond 10^6 epochs a step count overflows before any training is done
+    "epochs": Rule("a number > 0 and <= 1000000", lo=0, hi=1e6, lo_open=True),
+    "hours": POSITIVE, "minutes": POSITIVE, "max_minutes": POSITIVE,
     "width": Rule("a number > 0 and <= 4 (1.0 = the paper's width)", lo=0, hi=4,
                   lo_open=True),
     "ema": Rule("a number from 0 to 1, 1 excluded", lo=0, hi=1, hi_open=True),

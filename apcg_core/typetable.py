@@ -22,6 +22,39 @@ RECORD_KEYS = ("name", "catalog_index", "kind", "category", "range_band", "depth
                "bounding_radius_m")
 
 
+# What each recorded value may be (the catalog's own rules: apcg_core/catalog/catalog.py).
+KINDS = ("aircraft", "drone")
+RANGE_BANDS = ("far", "near")
+
+
+def _positive(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0
+
+
+def _record_problem(r: dict) -> str | None:
+    """What is wrong with one type entry's values, or None."""
+    if not isinstance(r["name"], str) or not normalize_name(r["name"]):
+        return f"name must be a non-empty text, got {r['name']!r}"
+    if not _positive(r["depth_length_m"]):
+        return f"depth_length_m must be a finite number of metres > 0, got {r['depth_length_m']!r}"
+    if "bounding_radius_m" in r and not _positive(r["bounding_radius_m"]):
+        return (f"bounding_radius_m must be a finite number of metres > 0, got "
+                f"{r['bounding_radius_m']!r}")
+    if "kind" in r and r["kind"] not in KINDS:
+        return f"kind must be one of {', '.join(KINDS)}, got {r['kind']!r}"
+    if "range_band" in r and r["range_band"] not in RANGE_BANDS:
+        return f"range_band must be one of {', '.join(RANGE_BANDS)}, got {r['range_band']!r}"
+    index = r.get("catalog_index")
+    if index is not None and (isinstance(index, bool) or not isinstance(index, int)):
+        return f"catalog_index must be an integer, got {index!r}"
+    return None
+
+
+def _shown(r: dict) -> str:
+    text = repr(r.get("name"))
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def normalize_name(name) -> str:
     """A type name as it is stored and shown: Unicode NFC, outer whitespace stripped."""
     return unicodedata.normalize("NFC", str(name)).strip()
@@ -68,6 +101,9 @@ class TypeTable:
             missing = [k for k in ("name", "depth_length_m") if k not in r]
             if missing:
                 raise InputError(f"{self.owner}: a type entry lacks {missing}: {r}")
+            bad = _record_problem(r)
+            if bad:
+                raise InputError(f"{self.owner}: type entry {_shown(r)}: {bad}")
         seen: dict = {}
         for r in recs:
             key = name_key(r["name"])

@@ -238,6 +238,20 @@ def _check_family_options(family: str, asked: str | None, over: dict) -> None:
                 pass
         raise InputError(f"--{name.replace('_', '-')} does not apply to the {family} family; "
                          f"it sizes {', '.join(others) or 'no installed family'} (--family)")
+    fam = get_family(family, need="train_options")
+    for name, option in _SWITCHES.items():
+        if over.get(name) is None or name in getattr(fam, "switches", ()):
+            continue
+        others = [o for o in family_names()
+                  if name in getattr(get_family(o), "switches", ())]
+        raise InputError(f"{option} does not apply to the {family} family (its training never "
+                         f"reads it); it changes {', '.join(others) or 'no installed family'} "
+                         "(--family)")
+
+
+# the ablation's switches: TrainConfig name -> the option that sets it
+_SWITCHES = {"conv": "--no-conv", "attention": "--no-attention", "loss": "--bce",
+             "norm": "--no-norm", "n_critic": "--n-critic"}
 
 
 def register_export(sub) -> None:
@@ -254,6 +268,10 @@ def register_export(sub) -> None:
                    help="output threshold to record (the cGAN's Im2PC tau, default -0.95; "
                         "APCG+'s hit logit, default 0); `apcg choose-tau` chooses it")
     p.add_argument("--checkpoint", help="a kept checkpoint of the run (default: the latest)")
+    p.add_argument("--data", default=None,
+                   help="the dataset the run trained on, where it is now (default: the path "
+                        "its train_config.json records); its types must be the run's, code by "
+                        "code")
     p.add_argument("--raw", action="store_true",
                    help="export the generator's raw weights, not their moving average")
     p.add_argument("--log-every", type=int, default=1, metavar="N",
@@ -268,8 +286,9 @@ def register_export(sub) -> None:
 
 def _run_export(args) -> int:
     from .export import export_model
-    out = export_model(args.run, args.output, tau=args.tau, checkpoint=args.checkpoint,
-                       raw=args.raw, sampling_steps=args.sampling_steps,
+    out = export_model(args.run, args.output, tau=args.tau, data_dir=args.data,
+                       checkpoint=args.checkpoint, raw=args.raw,
+                       sampling_steps=args.sampling_steps,
                        log_every=args.log_every, force=args.force)
     print(json.dumps({"model": str(out)}))
     return 0

@@ -19,7 +19,7 @@ from apcg_core.io.dataset import read_header
 from apcg_core.nn.cgan import COND_DIM, NOISE_DIM, Generator
 from apcg_core.typetable import TypeTable
 
-from .trainer import read_checkpoint, read_run_record
+from .trainer import check_same_dataset, read_checkpoint, read_run_record
 
 
 def ordinal(n: int) -> str:
@@ -69,7 +69,20 @@ def export_model(run_dir, out_dir, tau: float | None = None, data_dir=None,
     with staged_directory(out) as staging:
         _export(run, staging, tau, data_dir, checkpoint, raw, sampling_steps, log_every,
                 job=job)
+        _loads_back(staging, out)
     return out
+
+
+def _loads_back(staging: Path, out: Path) -> None:
+    """The staged model opened as `apcg generate --model` opens it, before it is published:
+    a model the loader would refuse (a threshold out of its family's range, a record a
+    damaged dataset gave it) is never written."""
+    from apcg_core.families import load_model
+    try:
+        load_model(staging)
+    except InputError as exc:
+        raise InputError("the model this export would write is one apcg cannot open: "
+                         + str(exc).replace(str(staging), str(out))) from None
 
 
 def _refuse_inputs(out: Path, inputs, what: str = "an input of this export") -> None:
@@ -145,6 +158,8 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     job = job or _read_run(run, checkpoint, data_dir)
     st, record, family, data = job["state"], job["record"], job["family"], job["data"]
     head = read_header(data)
+    if record is not None:
+        check_same_dataset(record, head, data, "export")
     averaged = st.get("G_ema") is not None and not raw
     if averaged:
         st["G"] = st["G_ema"]

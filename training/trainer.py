@@ -189,6 +189,10 @@ class Trainer:
         if self.world > 1:  # every rank looks before rank 0 writes the run's files
             import torch.distributed as dist
             dist.barrier()
+        if (self.run / "model.json").exists():  # export's or teach's output, not a run
+            raise InputError(f"-o {self.run} is a model directory (it holds model.json), not a "
+                             "training run: training would overwrite its files; choose another "
+                             "-o for the run")
         if existed and not resume and ckpt.exists():
             raise InputError(f"{self.run} already holds a training run; pass --resume to "
                              "continue it or choose another -o")
@@ -205,14 +209,24 @@ class Trainer:
             self._load(ckpt)
             record = self.run / "train_config.json"
             rec = read_run_record(self.run) if self.rank == 0 else None
+            if rec is not None:
+                check_same_dataset(rec, self.data.header, data_dir, "--resume")
+                ran = rec["train"].get("family", "cgan")
+                if ran != self.cfg.family:
+                    raise InputError(f"{ckpt} is a checkpoint of the {self.cfg.family} family "
+                                     f"but {self.run} is a {ran} run (its train_config.json): "
+                                     "it is another run's checkpoint; put the run's own back, "
+                                     "or train a new run with another -o")
             if rec is not None:  # show the budget in force, not the first's
                 rec["train"] = asdict(cfg)
                 write_atomic(record, json.dumps(rec, indent=1).encode())
         elif self.rank == 0:
             self.run.mkdir(parents=True, exist_ok=True)
             write_atomic(self.run / "train_config.json", json.dumps(
-                {"train": asdict(cfg), "net": net.to_dict(), "data": self.data_dir,
-                 "dataset": self.data.header.get("name"), "world": self.world}
+                {"train": asdict(cfg), "net": net.to_dict(),
+                 "data": str(Path(self.data_dir).resolve()),
+                 "dataset": self.data.header.get("name"),
+                 "dataset_types": dataset_type_names(self.data.header), "world": self.world}
                 | ({"preset": preset} if preset else {}),
                 indent=1).encode())
         if self.world > 1:
@@ -244,6 +258,11 @@ class Trainer:
 
     def _load(self, path: Path) -> None:
         st = read_checkpoint(path)
+        family = st["train"].get("family", "cgan") if isinstance(st.get("train"), dict) else None
+        if family != self.cfg.family:
+            raise InputError(f"checkpoint {path} is of the {family} family, not this run's "
+                             f"{self.cfg.family}: it is another run's; resume the run that "
+                             "wrote it")
         if st["net"] != self.net_config.to_dict():
             raise InputError(f"checkpoint {path} has network {st['net']}, not "
                              f"{self.net_config.to_dict()}; resume with the same preset")
@@ -474,6 +493,25 @@ def read_checkpoint(path) -> dict:
     if not isinstance(state, dict) or "step" not in state or "train" not in state:
         raise InputError(f"{path} is not an APCG training checkpoint (no step and settings)")
     return state
+
+
+def dataset_type_names(header: dict) -> list[str]:
+    """The type names of a dataset header in code order: what a run's network learnt code by
+    code, recorded with the run."""
+    from apcg_core.typetable import TypeTable
+    return TypeTable.from_records(header["types"]).names
+
+
+def check_same_dataset(record: dict, header: dict, data, what: str) -> None:
+    """Refuse (``what``: the step asking) a dataset whose types are not, code by code, those
+    the run trained on (its record's ``dataset_types``; a record before them is not checked):
+    a dataset rebuilt or replaced at the run's path would silently name every cloud wrong."""
+    ran = record.get("dataset_types")
+    now = dataset_type_names(header)
+    if ran is not None and list(ran) != now:
+        raise InputError(f"{what}: the dataset {data} holds the types {now}, code by code, but "
+                         f"the run trained on {list(ran)}: it is not the dataset the run "
+                         "learnt; give that one (or train a new run on this one)")
 
 
 def read_run_record(run) -> dict | None:

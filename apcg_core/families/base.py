@@ -6,6 +6,7 @@ helpers, and conditions from a CSV file. Numpy alone; onnxruntime where a model 
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -196,7 +197,36 @@ def load_model(directory=None, runtime: str = "auto"):
         family = get_family(name)
     except InputError as exc:
         raise InputError(f"{Path(d) / 'model.json'}: {exc}") from exc
-    return family.load(Path(d), runtime=runtime)
+    _check_network_types(d)
+    try:
+        return family.load(Path(d), runtime=runtime)
+    except InputError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError, RuntimeError,
+            EOFError, FileNotFoundError, zipfile.BadZipFile) as exc:
+        # a family's files that disagree with its model.json (a network of another shape, a
+        # missing record, a foreign or truncated weights file): one line, not a traceback
+        raise InputError(f"model directory {d} is damaged: its {name} files and its "
+                         f"model.json disagree or are incomplete ({type(exc).__name__}: "
+                         f"{_short(exc)}); {_BROKEN}") from exc
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def _check_network_types(directory) -> None:
+    """A network built for n types (model.json ``net.n_types``) serves exactly the model's
+    types: with more, a code past its table fails in the middle of generation; with fewer,
+    every name is drawn as another type's."""
+    meta = read_model_meta(directory)
+    net, types = meta.get("net"), meta.get("types")
+    if isinstance(net, dict) and isinstance(types, list) and "n_types" in net \
+            and net["n_types"] != len(types):
+        raise InputError(f"{Path(directory) / 'model.json'}: its network is built for "
+                         f"{net['n_types']!r} types but it lists {len(types)}: "
+                         f"{_BROKEN}")
 
 
 _BROKEN = ("a partial or corrupt file: export the model again (`apcg export`), or copy it "

@@ -226,7 +226,92 @@ def read_header(directory) -> dict:
         raise InputError(f"{path} is not an APCG dataset header (missing or wrong: "
                          f"{', '.join(missing) or 'format'}); rebuild the dataset with "
                          "`apcg dataset build`")
+    problem = header_problem(head)
+    if problem:
+        raise InputError(f"{path} is damaged: {problem}; rebuild the dataset with "
+                         "`apcg dataset build`")
     return head
+
+
+DATASET_FORMAT_VERSIONS = (1,)  # the header formats this reader knows
+SPLITS = ("train", "test")
+
+
+def _count(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+def header_problem(head: dict) -> str | None:
+    """What is wrong with a dataset header's values (every reader relies on them: the lidar,
+    the types, the condition space, the shards and their counts), or None."""
+    from ..condition import ConditionSpace
+    from ..lidar import lidar_from_table
+    from ..typetable import TypeTable
+    if head["format_version"] not in DATASET_FORMAT_VERSIONS:
+        return (f"format_version {head['format_version']!r} is not one this apcg reads "
+                f"({', '.join(map(str, DATASET_FORMAT_VERSIONS))})")
+    if not isinstance(head["config"], dict):
+        return f"config must be the table the dataset was built from, got {head['config']!r}"
+    from ..lidar import LIDAR_KEYS
+    if isinstance(head["lidar"], dict) and set(head["lidar"]) != set(LIDAR_KEYS):
+        return (f"its lidar records {sorted(head['lidar'])}; a dataset records every one of "
+                f"{', '.join(LIDAR_KEYS)}")
+    try:
+        lidar_from_table(head["lidar"], source="its lidar")
+        if not isinstance(head["types"], list):
+            return f"types must be a list of type entries, got {type(head['types']).__name__}"
+        types = TypeTable.from_records(head["types"], "its types")
+        space = head["condition_space"]
+        if not isinstance(space, dict):
+            return f"condition_space must be a table, got {space!r}"
+        space = ConditionSpace.from_dict(space)
+    except InputError as exc:
+        return str(exc)
+    except (TypeError, ValueError, KeyError, AttributeError) as exc:
+        return f"a value of the wrong kind ({type(exc).__name__}: {exc})"
+    if space.n_types != len(types):
+        return f"condition_space.n_types {space.n_types} but {len(types)} types"
+    near = tuple(i for i, r in enumerate(types.records) if r.get("range_band") == "near")
+    if "range_band" in types.records[0] and space.drone_types != near:
+        return (f"condition_space.drone_types {list(space.drone_types)} but the types in the "
+                f"near band are {list(near)}")
+    counts = {k: head[k] for k in ("n_samples", "n_train", "n_test") if k in head}
+    bad = [f"{k} = {v!r}" for k, v in counts.items() if not _count(v)]
+    if bad:
+        return f"{', '.join(bad)}: counts are integers >= 0"
+    if "n_train" in counts and "n_test" in counts \
+            and counts["n_train"] + counts["n_test"] != counts["n_samples"]:
+        return (f"n_train {counts['n_train']} + n_test {counts['n_test']} is not n_samples "
+                f"{counts['n_samples']}")
+    return _shards_problem(head["shards"], head["n_samples"], len(types))
+
+
+def _shards_problem(shards, n_samples: int, n_types: int) -> str | None:
+    if not isinstance(shards, list):
+        return f"shards must be a list, got {type(shards).__name__}"
+    for i, sh in enumerate(shards):
+        if not isinstance(sh, dict):
+            return f"shard entry {i} is not a table: {sh!r}"
+        missing = [k for k in ("file", "index", "n_samples", "split", "type_code")
+                   if k not in sh]
+        if missing:
+            return f"shard entry {i} lacks {', '.join(missing)}"
+        if sh["index"] != i or isinstance(sh["index"], bool):
+            return f"shard entry {i} has index {sh['index']!r}"
+        f = sh["file"]
+        if not isinstance(f, str) or not f or Path(f).is_absolute() or ".." in Path(f).parts:
+            return f"shard {i}'s file must be a path inside the dataset, got {f!r}"
+        if not _count(sh["n_samples"]):
+            return f"shard {i}'s n_samples must be an integer >= 0, got {sh['n_samples']!r}"
+        if sh["split"] not in SPLITS:
+            return f"shard {i}'s split must be one of {', '.join(SPLITS)}, got {sh['split']!r}"
+        code = sh["type_code"]
+        if isinstance(code, bool) or not isinstance(code, int) or not 0 <= code < n_types:
+            return f"shard {i}'s type_code must be a type code 0..{n_types - 1}, got {code!r}"
+    total = sum(sh["n_samples"] for sh in shards)
+    if total != n_samples:
+        return f"its shards hold {total} samples but n_samples is {n_samples}"
+    return None
 
 
 def read_manifest(directory) -> dict:

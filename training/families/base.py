@@ -32,6 +32,8 @@ class Family:
 
     name: str
     sizes: tuple[str, ...] = ()  # the family-specific TrainConfig sizes it takes
+    # the ablation's switches (TrainConfig names) its training reads; any other is refused
+    switches: tuple[str, ...] = ()
 
     def train_options(self) -> dict:
         from ..trainer import size_defaults
@@ -58,6 +60,8 @@ class Family:
 class GANFamily(Family):
     """A generator against a critic, WGAN-GP (or BCE, the ablation's loss), ``n_critic``
     critic batches per generator step; every random draw from the step's own generator."""
+
+    switches = ("loss", "n_critic")
 
     def batches_per_step(self, cfg) -> int:
         return cfg.n_critic

@@ -16,6 +16,7 @@ class CGANFamily(GANFamily):
     """The improved cGAN (SPEC section 7): depth images, exported to ONNX."""
 
     name = FAMILY
+    switches = ("conv", "attention", "loss", "norm", "n_critic")
 
     @staticmethod
     def load(directory, runtime: str = "auto"):
