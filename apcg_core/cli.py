@@ -77,7 +77,12 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
     resume_hint = [RUN_AGAIN]  # the command's own once parsed (its parser's resume_hint)
     restore = _terminate_as_interrupt()
     try:
-        return _run(argv, registrars, command, resume_hint)
+        code = _run(argv, registrars, command, resume_hint)
+        if argv is None:  # done: a stop from here on is held back (a stop before: 130)
+            _ignore_late_stops()
+            from .testpoints import wait_point
+            wait_point("cli.command-ended")
+        return code
     except BrokenPipeError:  # e.g. `apcg catalog list | head`
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - silence the flush at exit
         return 0
@@ -99,7 +104,24 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
               "gate_m, background_hz, dark_count_hz)", file=sys.stderr)
         return 1
     finally:
-        restore()
+        if argv is None:  # the `apcg` process itself: its command has ended, whatever its end
+            _ignore_late_stops()
+        else:
+            restore()
+
+
+def _ignore_late_stops() -> None:
+    """Ctrl-C or SIGTERM arriving after the command has ended (while the interpreter exits)
+    would kill the process by the signal (Python re-raises an uncaught KeyboardInterrupt as
+    SIGINT): the exit status would say "killed" of a command that had finished, or had
+    already stopped cleanly with 130. They are ignored from here on (the disposition is the
+    process's, whichever thread the signal reaches); the process exits with the command's own
+    status."""
+    import signal
+    import threading
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _interrupt(signum, frame):

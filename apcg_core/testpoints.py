@@ -48,6 +48,9 @@ POINTS = {
                    "under its temporary name and held; nothing is under a final name yet",
     "output.committing": "any command: its held outputs are being renamed to their final "
                          "names, Ctrl-C and SIGTERM held until they all are",
+    "cli.command-ended": "any apcg command, in its own process: the command has ended and its "
+                         "exit status is decided, the interpreter not yet gone; Ctrl-C and "
+                         "SIGTERM are held back from here on",
 }
 
 

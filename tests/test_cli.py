@@ -1,5 +1,7 @@
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -156,3 +158,17 @@ def test_a_shard_spec_takes_ascii_whole_numbers_only(spec):
     with pytest.raises(InputError, match="--shard takes I/N"):
         parse_shard_spec(spec)
     assert parse_shard_spec(" 1/ 4") == (1, 4)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_after_the_command_ended_does_not_change_its_status(hold, sig):
+    """Python re-raises an uncaught Ctrl-C as SIGINT: a stop while a finished command's
+    interpreter exits reported it killed (-2), as test_fuzz's build killed at 0.88 s once saw."""
+    p = subprocess.Popen([str(Path(sys.executable).parent / "apcg"), "catalog", "list"],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                         env=hold.env("cli.command-ended"))
+    pid = hold.wait("cli.command-ended", p)
+    os.kill(pid, sig)
+    hold.release("cli.command-ended")
+    err = p.communicate(timeout=120)[1]
+    assert p.returncode == 0 and "Traceback" not in err, (p.returncode, err)
