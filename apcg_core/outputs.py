@@ -281,13 +281,24 @@ class Guard:
 
 
 def _has_record(directory: str, patterns: tuple) -> bool:
-    for pattern in patterns:
-        parent = Path(directory) / os.path.dirname(pattern)
-        try:
-            names = os.listdir(parent)
-        except OSError:
+    """Whether a file matching one of ``patterns`` (relative paths whose every part may hold
+    wildcards: ``*/train_config.json`` is a run's record in any subdirectory) is in
+    ``directory``."""
+    return any(_matches(Path(directory), Path(pattern).parts) for pattern in patterns)
+
+
+def _matches(base: Path, parts: tuple) -> bool:
+    """Whether ``base`` holds a path whose components match ``parts`` one by one (fnmatch;
+    names starting with a dot included, as ``os.listdir`` lists them)."""
+    head, rest = parts[0], parts[1:]
+    try:
+        names = os.listdir(base)
+    except OSError:
+        return False
+    for name in names:
+        if not fnmatch.fnmatch(name, head):
             continue
-        if any(fnmatch.fnmatch(n, os.path.basename(pattern)) for n in names):
+        if not rest or (os.path.isdir(base / name) and _matches(base / name, rest)):
             return True
     return False
 

@@ -15,8 +15,10 @@ import itertools
 import json
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
+from apcg_core.errors import InputError
 from apcg_core.io.dataset import write_atomic
 
 from .trainer import Trainer, config_from
@@ -41,8 +43,17 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
 
     from . import protocol
     from .export import export_model
-    from .fd_depth import fd_depth, train_encoder
+    from .fd_depth import encoder_meta, fd_depth, load_encoder, train_encoder
     out = Path(out_dir)
+    plan = [(v, out / variant_name(v),
+             config_from("cpu", width=width, steps=steps, seed=seed, keep_every=0, **v))
+            for v in list(variants) + ([NO_NORM] if no_norm else [])]
+    # before any work: the runs already there are this ablation's (the same data, seed and
+    # network), and a given encoder can be read
+    check_resume(data_dir, plan, None if encoder is not None else out / "encoder", seed)
+    if encoder is not None:
+        encoder_meta(encoder)
+        load_encoder(encoder)
     out.mkdir(parents=True, exist_ok=True)
     given_encoder = encoder
     if encoder is None:
@@ -50,13 +61,11 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
         if not (encoder / "encoder.pt").exists():
             train_encoder(data_dir, encoder, epochs=encoder_epochs, seed=seed,
                           progress=progress)
-    enc_meta = json.loads((Path(encoder) / "encoder.json").read_text())
+    enc_meta = encoder_meta(encoder)
     test_pairs = protocol.draw_pairs(data_dir, pairs, seed, half="test")
     rows = []
-    for v in list(variants) + ([NO_NORM] if no_norm else []):
-        name = variant_name(v)
-        run = out / name
-        cfg = config_from("cpu", width=width, steps=steps, seed=seed, keep_every=0, **v)
+    for v, run, cfg in plan:
+        name = run.name
         resume = (run / "checkpoint.pt").exists()
         if not resume and (run / "train_config.json").exists():
             (run / "train_config.json").unlink()  # a start that never checkpointed: redo it
@@ -102,6 +111,45 @@ def run_ablation(data_dir, out_dir, steps: int = 500, width: float = 0.25, encod
     write_atomic(out / "table3.json", (json.dumps(report, indent=1) + "\n").encode())
     write_atomic(out / "table3.md", markdown(report).encode())
     return report
+
+
+def check_resume(data_dir, plan, own_encoder, seed: int) -> None:
+    """Refuse to resume an ablation with other settings than its runs were started with:
+    each variant's run that has a checkpoint must have the variant's training settings (all
+    but those a resume may change, ``trainer.RESUMABLE``: steps and the like) and the same
+    dataset, and the ablation's own encoder (``own_encoder``, None when one is given) the
+    same dataset and seed. Names every setting that differs, with the runs' value."""
+    from .trainer import RESUMABLE, TrainConfig, read_checkpoint, read_run_record
+    flags = {"seed": "--seed", "width": "--width"}
+    differ: dict[str, str] = {}
+
+    def note(key: str, given, theirs, where: Path) -> None:
+        flag = flags.get(key, key)
+        differ.setdefault(key, f"{flag} {given} (the run's in {where}: {theirs})")
+
+    for _, run, cfg in plan:
+        ck = run / "checkpoint.pt"
+        if not ck.exists():
+            continue
+        ran = TrainConfig.from_dict(read_checkpoint(ck)["train"])
+        for k, v in asdict(cfg).items():
+            if k not in RESUMABLE and getattr(ran, k) != v:
+                note(k, v, getattr(ran, k), run)
+        rec = read_run_record(run)
+        if rec is not None and Path(rec["data"]).resolve() != Path(data_dir).resolve():
+            note("--data", data_dir, rec["data"], run)
+    if own_encoder is not None and (Path(own_encoder) / "encoder.pt").exists():
+        from .fd_depth import encoder_meta
+        meta = encoder_meta(own_encoder)
+        if "seed" in meta and meta["seed"] != seed:
+            note("seed", seed, meta["seed"], Path(own_encoder))
+        if "data" in meta and Path(meta["data"]).resolve() != Path(data_dir).resolve():
+            note("--data", data_dir, meta["data"], Path(own_encoder))
+    if differ:
+        raise InputError("this ablation's runs were started with other settings: "
+                         + "; ".join(differ.values()) + ". Resume them with the runs' "
+                         "settings (only --steps, --pairs and --encoder may change), or "
+                         "give another -o")
 
 
 def _f(v, d=3) -> str:

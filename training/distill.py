@@ -12,6 +12,11 @@ Determinism: the conditions of step k come from (seed, k) alone, so a resumed ru
 an uninterrupted one would. The step count fixes the schedule (cosine decay); ``--minutes``
 caps the run's time, and a run stopped by the cap has followed the schedule by time instead
 (so its rate has reached the end too), which no longer depends on the step count alone.
+
+Resuming (``--resume``): the settings that define the run (teacher, compared as a path; width,
+head, batch size, learning rate, seed) must be the run's, and those left out on the command
+line are taken from its checkpoint; ``--steps``, ``--minutes`` and ``--checkpoint-every`` may
+change (:data:`RESUMABLE`). Every torch file read back goes through :func:`read_torch_state`.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +64,111 @@ class DistillConfig:
             raise InputError(f"--ema must be in [0, 1), got {self.ema!r}")
         if self.minutes is not None and not check_finite("--minutes", self.minutes) > 0:
             raise InputError(f"--minutes must be > 0, got {self.minutes!r}")
+
+
+# What may change when a run is resumed (as `apcg train` lets its budget change): the length of
+# the run and how often it writes. Every other setting defines the run; a resume that gives
+# another value is refused, and one that leaves a setting out takes the run's.
+RESUMABLE = ("steps", "minutes", "checkpoint_every", "log_every")
+# How the CLI says to continue an interrupted run (the Ctrl-C message; apcg_core.cli)
+RESUME_HINT = "Add --resume to the same command (or run `apcg distill --resume -o RUN`) to " \
+              "continue from the last checkpoint."
+
+
+def _one_line(exc: BaseException, limit: int = 200) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+# What a torch file of this project holds, by its keys: how a foreign one is named.
+_KINDS = ((("train", "step"), "a checkpoint of `apcg train` (continue it with `apcg train "
+                              "--resume`)"),
+          (("config", "student", "step"), "a checkpoint of `apcg distill`"),
+          (("state", "n_types", "shape"), "an FD-depth encoder of `apcg fd-depth train`"))
+
+
+def holds(state) -> str:
+    """What a loaded torch file holds, in words, for a message."""
+    if isinstance(state, dict):
+        for keys, name in _KINDS:
+            if all(k in state for k in keys):
+                return name
+        keys = sorted(map(str, state))
+        shown = ", ".join(keys[:8]) + (f" ... ({len(keys)} keys)" if len(keys) > 8 else "")
+        return f"a dict of {shown}" if keys else "an empty dict"
+    return f"a {type(state).__module__}.{type(state).__qualname__}".replace("builtins.", "")
+
+
+def read_torch_state(path, what: str, needs: tuple, made_by: str,
+                     remedy: str | None = None) -> dict:
+    """The dict a torch file of this project holds (a distillation checkpoint, an FD-depth
+    encoder; ``training.trainer.read_checkpoint`` reads training checkpoints the same way):
+    a missing, empty, truncated or corrupt file, or one holding something else, is one
+    InputError naming the file, what it holds and what was expected, never a traceback.
+    Loaded with ``weights_only``: a foreign pickle runs no code. ``remedy``: what to do about
+    a damaged file (default: make it again with ``made_by``)."""
+    import torch
+    path = Path(path)
+    remedy = remedy or f"{made_by} writes it again"
+    if path.is_dir():
+        raise InputError(f"{path} is a directory, not {what}; {made_by} writes one")
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise InputError(f"{path} does not exist; expected {what}, which {made_by} "
+                         "writes") from None
+    if size == 0:
+        raise InputError(f"{path} is empty (0 bytes), not {what}: an interrupted copy or a "
+                         f"full disk? {remedy}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except PermissionError:
+        raise  # the CLI names the file and says to check its permissions
+    except Exception as exc:  # noqa: BLE001 - zip, pickle and torch raise many types
+        raise InputError(f"{path} ({size} bytes) cannot be read as {what} "
+                         f"({type(exc).__name__}: {_one_line(exc)}): truncated, corrupt or "
+                         f"another kind of file; {remedy}") from exc
+    missing = [k for k in needs if not isinstance(state, dict) or k not in state]
+    if missing:
+        raise InputError(f"{path} holds {holds(state)}, not {what} (which holds "
+                         f"{', '.join(needs)}); {made_by} writes one")
+    return state
+
+
+def read_distill_checkpoint(path) -> dict:
+    """A distillation run's checkpoint (see :func:`read_torch_state`), its settings checked
+    to be a :class:`DistillConfig`'s."""
+    st = read_torch_state(path, "an `apcg distill` checkpoint",
+                          ("config", "student", "opt", "ema", "step", "elapsed_s"),
+                          "`apcg distill`", remedy="the run cannot continue from it: start it "
+                          "over with --force (without --resume), or choose another -o")
+    names = {f.name for f in fields(DistillConfig)}
+    cfg = st["config"]
+    if not isinstance(cfg, dict) or "teacher" not in cfg or set(cfg) - names:
+        raise InputError(f"{path} holds settings {holds(cfg)}, not an `apcg distill` run's "
+                         f"({', '.join(sorted(names))})")
+    return st
+
+
+def same_path(a, b) -> bool:
+    """Whether two spellings name one file or directory (./m and m, a link and its target)."""
+    return Path(a).expanduser().resolve() == Path(b).expanduser().resolve()
+
+
+def resume_differences(run_cfg: dict, cfg: DistillConfig) -> list[str]:
+    """The settings that define a run (all but :data:`RESUMABLE`) in which ``cfg`` differs
+    from the run's own, as ``--name value (the run's: value)``; the teacher compared as a
+    path (``./m`` and ``m`` are one teacher)."""
+    new = asdict(cfg)
+    out = []
+    for k, v in new.items():
+        if k in RESUMABLE or k not in run_cfg:
+            continue
+        old = run_cfg[k]
+        if k == "teacher" and same_path(old, v) or old == v:
+            continue
+        out.append(f"--{k.replace('_', '-')} {v} (the run's: {old})")
+    return out
 
 
 def step_conditions(n_types: int, n: int, seed: int, step: int):
@@ -112,11 +222,19 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
                          "alone); distil an apcg-plus model (the default)")
     run = Path(run_dir)
     ck_path = run / "checkpoint.pt"
-    if run.is_dir() and any(run.iterdir()) and not (resume or force):
+    # a run of ours that stopped before its first checkpoint has nothing to keep: the same
+    # command, with --resume or without, starts it over
+    unstarted = (run / "distill_config.json").is_file() and not ck_path.exists()
+    if run.is_dir() and any(run.iterdir()) and not (resume or force or unstarted):
         raise InputError(f"{run} exists and is not empty; --resume continues the run there, "
                          "or choose another -o")
-    if resume and not ck_path.is_file():
-        raise InputError(f"--resume: {ck_path} does not exist; nothing to continue")
+    if resume and not ck_path.exists():
+        if not unstarted:
+            raise InputError(f"--resume: {ck_path} does not exist; nothing to continue")
+        resume = False
+    if unstarted and progress:
+        print(f"distill: {run} stopped before its first checkpoint; starting it over",
+              file=sys.stderr)
     dev = pick_device(device)
     torch.manual_seed(cfg.seed)
     # the student first: a refused width or head leaves nothing on disk
@@ -128,15 +246,27 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
     opt = torch.optim.Adam(student.parameters(), lr=cfg.lr, betas=(0.9, 0.99))
     step, elapsed = 0, 0.0
     if resume:
-        st = torch.load(ck_path, map_location=dev, weights_only=False)
-        if st["config"] != asdict(cfg):
-            diff = sorted(k for k in st["config"] if st["config"][k] != asdict(cfg).get(k))
-            raise InputError(f"--resume: the run in {run} was started with other settings "
-                             f"({', '.join(diff)}); resume it with the same ones")
-        student.load_state_dict(st["student"])
-        opt.load_state_dict(st["opt"])
-        ema = [t.to(dev) for t in st["ema"]]
-        step, elapsed = st["step"], st["elapsed_s"]
+        st = read_distill_checkpoint(ck_path)
+        diff = resume_differences(st["config"], cfg)
+        if diff:
+            raise InputError(f"--resume: the run in {run} was started with other settings: "
+                             f"{'; '.join(diff)}; leave them out (or give the run's) to "
+                             "resume it, or choose another -o for a new run")
+        try:
+            student.load_state_dict(st["student"])
+            opt.load_state_dict(st["opt"])
+            ema = [t.to(dev) for t in st["ema"]]
+            if len(ema) != len(list(student.parameters())):
+                raise ValueError(f"{len(ema)} averaged tensors for "
+                                 f"{len(list(student.parameters()))} parameters")
+        except (RuntimeError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise InputError(f"{ck_path} does not fit the student of its own settings "
+                             f"({_one_line(exc)}); it is not this run's checkpoint: "
+                             "choose another -o for a new run") from exc
+        step, elapsed = int(st["step"]), float(st["elapsed_s"])
+        if step > cfg.steps:
+            raise InputError(f"--steps {cfg.steps}: the run in {run} is at step {step} "
+                             f"already; give --steps >= {step} to resume it")
     # every file through the running command's guard (an input is never written), whole
     write_atomic(run / "distill_config.json", (json.dumps(
         {**asdict(cfg), "device": str(dev), "teacher_tau": teacher_model.tau}, indent=1)
@@ -206,8 +336,11 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
         except KeyboardInterrupt:
             # Ctrl-C may land inside a step: the last checkpoint, whole and consistent, is
             # kept, and --resume redoes the steps after it exactly as they were
-            print(f"distill: interrupted at step {step}; `apcg distill --resume -o {run}` "
-                  f"goes on from the checkpoint at step {saved}", file=sys.stderr, flush=True)
+            import shlex
+            print(f"distill: interrupted at step {step}; `apcg distill --resume -o "
+                  f"{shlex.quote(str(run))}` goes on from the checkpoint at step {saved}"
+                  + ("" if saved else " (none written yet: it starts over)"),
+                  file=sys.stderr, flush=True)
             raise
     elapsed = time.perf_counter() - t_start
     if saved != step or not ck_path.is_file():  # else written at its last step already
@@ -234,44 +367,70 @@ def distill(teacher_dir, run_dir, cfg: DistillConfig, device: str = "auto",
 def register_distill(sub) -> None:
     from apcg_core.families.plus_heads import HEADS
     d = DistillConfig(teacher="")
+    left = " (on --resume: the run's)"
     p = sub.add_parser("distill", help="fit a cheaper network to a trained model (no dataset)",
                        description="Distils a model of the apcg-plus family into a smaller "
                                    "network: conditions drawn over the model's space, the "
                                    "teacher's sheets as targets. Writes RUN/checkpoint.pt, "
-                                   "RUN/log.csv and the model, RUN/model.")
+                                   "RUN/log.csv and the model, RUN/model. --resume continues "
+                                   "a run: settings left out are the run's, --steps and "
+                                   "--minutes may change, any other setting must be the "
+                                   "run's.")
     p.add_argument("--teacher", default=None, metavar="DIR",
-                   help="the model to distil (default: the shipped default model)")
+                   help="the model to distil (default: the shipped default model; on "
+                        "--resume: the run's)")
     add_output(p, "-o", "--output", kind=DIRECTORY, required=True, help="run directory",
                files=("distill_config.json", "checkpoint.pt", "log.csv"),
                record=("distill_config.json",))
     p.add_argument("--resume", action="store_true", help="continue the run in -o")
-    p.add_argument("--width", type=float, default=d.width,
-                   help=f"the student's channel width (default {d.width})")
-    p.add_argument("--head", choices=HEADS, default=d.head,
-                   help=f"how the student draws its sheet (default {d.head})")
-    p.add_argument("--steps", type=int, default=d.steps, help=f"default {d.steps}")
-    p.add_argument("--minutes", type=float, default=None, help="cap on the run's time")
-    p.add_argument("--batch-size", type=int, default=d.batch_size,
-                   help=f"conditions a step (default {d.batch_size})")
-    p.add_argument("--lr", type=float, default=d.lr, help=f"peak learning rate ({d.lr:g})")
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every)
+    p.add_argument("--width", type=float, help=f"the student's channel width (default "
+                                               f"{d.width}){left}")
+    p.add_argument("--head", choices=HEADS,
+                   help=f"how the student draws its sheet (default {d.head}){left}")
+    p.add_argument("--steps", type=int, help=f"default {d.steps}{left}; may change on resume")
+    p.add_argument("--minutes", type=float,
+                   help=f"cap on the run's time, summed over resumes{left}; may change on "
+                        "resume")
+    p.add_argument("--batch-size", type=int,
+                   help=f"conditions a step (default {d.batch_size}){left}")
+    p.add_argument("--lr", type=float, help=f"peak learning rate ({d.lr:g}){left}")
+    p.add_argument("--seed", type=int, help=f"default {d.seed}{left}")
+    p.add_argument("--checkpoint-every", type=int,
+                   help=f"default {d.checkpoint_every}{left}; may change on resume")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                    help="auto (a GPU when torch sees one, default), cpu or cuda")
     p.add_argument("--no-progress", action="store_true")
-    p.set_defaults(func=_run_distill)
+    p.set_defaults(func=_run_distill, resume_hint=RESUME_HINT)
+
+
+# the options that are DistillConfig's fields (None: not given)
+_OPTIONS = ("width", "head", "steps", "minutes", "batch_size", "lr", "seed", "checkpoint_every")
+
+
+def config_of(args) -> DistillConfig:
+    """The run's settings from the command line: those given; on --resume of a run that has
+    a checkpoint, the run's own for those left out (teacher included), else the defaults."""
+    given = {k: getattr(args, k) for k in _OPTIONS if getattr(args, k, None) is not None}
+    if args.teacher:
+        # a path that means the same from any directory (a resume may run elsewhere)
+        given["teacher"] = str(Path(args.teacher).expanduser().absolute())
+    ck = Path(args.output) / "checkpoint.pt"
+    if args.resume and ck.exists():
+        values = {**read_distill_checkpoint(ck)["config"], **given}
+    else:
+        from apcg_core.families import default_model_dir
+        values = {**asdict(DistillConfig(teacher=str(default_model_dir()))), **given}
+    return DistillConfig(**values)
 
 
 def _run_distill(args) -> int:
-    from apcg_core.families import default_model_dir
-    teacher = args.teacher or str(default_model_dir())
-    cfg = DistillConfig(teacher=str(teacher), width=args.width, head=args.head,
-                        steps=args.steps, minutes=args.minutes, batch_size=args.batch_size,
-                        lr=args.lr, seed=args.seed, checkpoint_every=args.checkpoint_every)
-    out = distill(teacher, args.output, cfg, device=args.device, resume=args.resume,
+    cfg = config_of(args)
+    out = distill(cfg.teacher, args.output, cfg, device=args.device, resume=args.resume,
                   force=args.force, progress=not args.no_progress)
     print(json.dumps(out))
     return 0
 
 
-__all__ = ["DistillConfig", "distill", "register_distill", "schedule", "step_conditions"]
+__all__ = ["RESUMABLE", "DistillConfig", "config_of", "distill", "read_distill_checkpoint",
+           "read_torch_state", "register_distill", "resume_differences", "schedule",
+           "step_conditions"]

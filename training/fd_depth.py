@@ -14,6 +14,7 @@ features of the test split's real images with those of generated images at the s
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -51,8 +52,29 @@ class DepthEncoder(nn.Module):
         return self.head(self.embed(x))
 
 
+# The encoder's accuracy settles within a few epochs (default 4); beyond this many a request
+# is a mistake (1e308 would be a step count no machine finishes, and no integer for ceil).
+MAX_EPOCHS = 1000
+
+
+def check_epochs(epochs) -> float:
+    from numbers import Real
+    if isinstance(epochs, bool) or not isinstance(epochs, Real) or not (
+            math.isfinite(epochs) and 0 < epochs <= MAX_EPOCHS):
+        raise InputError(f"--epochs {epochs!r} not accepted: a number > 0 and <= {MAX_EPOCHS} "
+                         "(default 4: the encoder's accuracy settles within a few epochs, and "
+                         "more only lengthens the run)")
+    return float(epochs)
+
+
 def train_encoder(data_dir, out_dir, epochs: float = 4.0, batch: int = 64, seed: int = 0,
                   lr: float = 1e-3, progress: bool = True) -> dict:
+    from apcg_core.errors import check_int
+    epochs = check_epochs(epochs)
+    check_int("batch", batch, 2, 65536)
+    check_int("seed", seed, 0, 2**32 - 1)
+    if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
+        raise InputError(f"lr must be a finite number > 0, got {lr!r}")
     torch.manual_seed(seed)
     train, test = DepthDataset(data_dir, "train"), DepthDataset(data_dir, "test")
     n_types = len(train.types)
@@ -89,14 +111,56 @@ def train_encoder(data_dir, out_dir, epochs: float = 4.0, batch: int = 64, seed:
     return meta
 
 
+MADE_BY = "`apcg fd-depth train`"
+
+
 def load_encoder(path) -> DepthEncoder:
+    """The encoder in directory ``path``; a missing, empty, truncated or foreign encoder.pt is
+    one InputError naming it (``training.distill.read_torch_state``), as is one whose weights
+    do not fit the network its own header describes."""
+    from .distill import holds, read_torch_state
+    if Path(path).is_file():
+        raise InputError(f"--encoder {path} is a file; give the encoder's directory (the -o "
+                         f"of {MADE_BY}, holding encoder.pt)")
     p = Path(path) / "encoder.pt"
     if not p.exists():
-        raise InputError(f"{path} holds no encoder.pt (make one with `apcg fd-depth train`)")
-    st = torch.load(p, map_location="cpu", weights_only=False)
-    enc = DepthEncoder(st["n_types"], *st["shape"])
-    enc.load_state_dict(st["state"])
+        raise InputError(f"{path} holds no encoder.pt (make one with {MADE_BY})")
+    st = read_torch_state(p, "an FD-depth encoder", ("state", "n_types", "shape"), MADE_BY)
+    n, shape = st["n_types"], st["shape"]
+
+    def whole(v) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool) and v >= 1
+
+    if not (whole(n) and isinstance(shape, (list, tuple)) and len(shape) == 2
+            and all(whole(v) and v <= 1 << 16 for v in shape) and n <= 1 << 20):
+        raise InputError(f"{p} describes no encoder: n_types {n!r}, shape {shape!r} (expected "
+                         f"a type count >= 1 and [height, width] in pixels); {MADE_BY} "
+                         "writes it again")
+    enc = DepthEncoder(n, *shape)
+    try:
+        enc.load_state_dict(st["state"])
+    except (RuntimeError, TypeError, AttributeError, KeyError) as exc:
+        raise InputError(f"{p}: its weights ({holds(st['state'])}) do not fit the encoder "
+                         f"of {n} types and {shape[0]} x {shape[1]} images it describes; "
+                         f"{MADE_BY} writes it again") from exc
     return enc.eval()
+
+
+def encoder_meta(path) -> dict:
+    """An encoder directory's ``encoder.json`` (its accuracy, data, seed), checked."""
+    p = Path(path) / "encoder.json"
+    try:
+        meta = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path} holds no encoder.json (make the encoder with "
+                         f"{MADE_BY})") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{p} is corrupt ({exc}); {MADE_BY} writes it again") from exc
+    need = ("test_accuracy_type", "chance")
+    if not isinstance(meta, dict) or any(k not in meta for k in need):
+        raise InputError(f"{p} is not an FD-depth encoder's record (needs "
+                         f"{', '.join(need)}); {MADE_BY} writes it")
+    return meta
 
 
 @torch.no_grad()

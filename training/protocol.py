@@ -229,26 +229,59 @@ def untrained(model, out_dir, seed: int = 0):
     return get_family(model.family, need="untrained").untrained(model, out_dir, seed)
 
 
+def tau_key(tau: float) -> str:
+    """A candidate threshold as a report's key: the shortest text that reads back as exactly
+    ``tau`` ("0.5", "-0.99", "0.1234561"), so two candidates never share a key and the key is
+    the value that was scored."""
+    short = f"{tau:g}"
+    return short if float(short) == tau else repr(float(tau))
+
+
+def check_taus(model, taus) -> list[float]:
+    """Every candidate threshold checked against the model's range (``check_tau``) before any
+    is scored, duplicates (by exact value) dropped in order; an empty list is refused."""
+    try:
+        values = list(taus)
+    except TypeError:
+        raise InputError(f"taus must be a list of numbers, got {taus!r}") from None
+    if not values:
+        raise InputError("taus: no candidate thresholds given; give at least one (or leave "
+                         "them out for the model's own)")
+    checked = []
+    for tau in values:
+        try:
+            v = model.check_tau(tau)
+        except InputError as exc:
+            raise InputError(f"--taus: {exc}; no threshold was scored") from exc
+        if v not in checked:
+            checked.append(v)
+    return checked
+
+
 def choose_tau(model, data, taus=None, n_pairs: int = 400, seed: int = 0) -> dict:
     """The model's output threshold tau (the cGAN's Im2PC threshold, APCG+'s hit logit: the
     model's ``TAUS`` are the candidates unless ``taus`` are given) with the lowest mean (over
     bands) MMD among those that leave at most 1% of the clouds empty, on the **validation**
-    half only (same pairs and noise for every threshold)."""
+    half only (same pairs and noise for every threshold). Every candidate is checked against
+    the model's range before any is scored; ``best`` is exactly a scored candidate, and the
+    sweep's keys (:func:`tau_key`) read back as the values scored."""
     if getattr(model, "tau", None) is None:
         raise InputError(f"{model.directory} is a {model.family} model, which has no output "
                          "threshold to choose")
-    taus = model.TAUS if taus is None else taus
+    taus = check_taus(model, model.TAUS if taus is None else taus)
     pairs = draw_pairs(data, n_pairs, seed, half="validation")
     kept = model.tau
-    rows = {}
+    rows, value = {}, {}
     try:
         for tau in taus:
-            model.tau = model.check_tau(tau)
+            model.tau = tau
             rep = score(model, pairs, floor=False, pointflow=False)
             no_score = sum(b["no_score"] for b in rep["bands"].values())
             ratios = [b["points_ratio_p10_p50_p90"][1] for b in rep["bands"].values()
                       if b["points_ratio_p10_p50_p90"][1] is not None]
-            rows[f"{tau:g}"] = {
+            key = tau_key(tau)
+            value[key] = tau
+            rows[key] = {
                 "mmd": rep["mean"]["mmd"], "jsd": rep["mean"]["jsd"], "no_score": no_score,
                 "points_ratio_median_mean_over_bands": float(np.mean(ratios)) if ratios else None}
     finally:
@@ -260,9 +293,10 @@ def choose_tau(model, data, taus=None, n_pairs: int = 400, seed: int = 0) -> dic
                          "validation clouds empty; the model generates (almost) nothing")
     best = min(allowed, key=lambda k: rows[k]["mmd"])
     return {**pairs.record(), "protocol": constants(), "model": str(model.directory),
-            "taus": rows, "best": float(best)}
+            "taus": rows, "best": value[best]}
 
 
 __all__ = ["BANDS_M", "DEFAULT_PAIRS", "JSD_BINS", "MAX_POINTS", "MIN_POINTS", "Pairs",
-           "band_mean", "band_of", "band_order", "choose_tau", "draw_pairs", "generate",
-           "half_mask", "per_type", "score", "score_pair", "summarise", "untrained"]
+           "band_mean", "band_of", "band_order", "check_taus", "choose_tau", "draw_pairs",
+           "generate", "half_mask", "per_type", "score", "score_pair", "summarise", "tau_key",
+           "untrained"]

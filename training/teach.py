@@ -7,6 +7,12 @@ condition space, the model's lidar), then asks the model's family to fit the new
 knew generate exactly as before), and writes a new model directory with the type added. The
 report beside it scores the new type on the held-out half of that dataset with the evaluation
 protocol (MMD, point counts, faithfulness).
+
+The type is named as the catalog names it (a bare number is refused, not taken for an index).
+``--minutes`` bounds building the dataset and fitting (at least :data:`MIN_MINUTES`): it is
+checked between fitting steps, the fit runs at least 5 s unless ``--steps`` stops it sooner,
+and the scoring after it is not counted; ``teach.json`` records each phase's seconds and
+whether the budget was kept.
 """
 
 from __future__ import annotations
@@ -23,6 +29,33 @@ from apcg_core.families import get_family
 from apcg_core.outputs import ANY, DIRECTORY, add_output
 
 TEST_FRACTION = 0.25
+# The least --minutes a teach can keep to: the family's fit runs at least 5 s (one step at
+# least), after the type's dataset is built. The budget is checked between fitting steps (the
+# fit ends after the step that crosses it); scoring the taught type afterwards is not counted.
+MIN_MINUTES = 0.1
+
+
+def catalog_type(catalog, key):
+    """The catalog type named ``key``. A type is taught by its name (the README's, `apcg
+    catalog list`'s): a bare number (an int, or a string of digits) is refused, unless some
+    type is named so, rather than taken for the type at that index."""
+    import re
+
+    from apcg_core.typetable import name_key, normalize_name
+    numeric = isinstance(key, int) and not isinstance(key, bool) or (
+        isinstance(key, str) and re.fullmatch(r"[+-]?[0-9]+", normalize_name(key)))
+    if numeric:
+        named = [t for t in catalog.types if name_key(t.name) == name_key(str(key))]
+        if named:
+            return named[0]
+        at = next((t for t in catalog.types if str(t.index) == normalize_name(str(key))),
+                  None)
+        hint = f" (the type at index {key} is {at.name!r})" if at is not None else ""
+        raise InputError(f"--type {str(key)!r} is a number, not a type's name{hint}; teach "
+                         "takes a catalog type by name (`apcg catalog list` shows them)")
+    if not isinstance(key, str):
+        raise InputError(f"--type must be a catalog type's name, got {key!r}")
+    return catalog.get(key)  # refuses an unknown name, naming close matches
 
 
 def teach_config(model, type_name: str, samples: int, seed: int) -> dict:
@@ -56,8 +89,11 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
     check_int("seed", seed, 0)
     if steps is not None:
         check_int("steps", steps, 1)
-    if not (minutes > 0):
-        raise InputError(f"--minutes must be > 0, got {minutes!r}")
+    from apcg_core.errors import check_finite
+    if not check_finite("--minutes", minutes) >= MIN_MINUTES:
+        raise InputError(f"--minutes {minutes!r} not accepted: at least {MIN_MINUTES:g} "
+                         "(the type's dataset is built and then fitted for at least 5 s; give "
+                         "--steps to shorten the fit, --samples to shorten the dataset)")
     model = load_model(model_dir)
     if lidar is not None:
         model.use_lidar(lidar)  # refused by a family that draws at its own lidar only
@@ -66,7 +102,7 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
         raise InputError(f"{model.directory} is a {model.family} model, which cannot be taught "
                          "a type (its network takes the type as one scaled number); teach an "
                          "apcg-plus model (the default), or train a new model with the type")
-    t = default_catalog().get(type_name)  # refuses an unknown type, naming what is accepted
+    t = catalog_type(default_catalog(), type_name)  # by name; refuses an unknown one
     if t.name in model.types:
         raise InputError(f"{model.directory} already knows {t.name!r}; nothing to teach")
     out = Path(out_dir)
@@ -91,6 +127,7 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
             t_data = time.perf_counter() - t0
             fit = family.teach(model, data_dir, stage, minutes=minutes - t_data / 60.0,
                                steps=steps, seed=seed, progress=progress)
+            t_fit = time.perf_counter() - t0 - t_data
             taught = load_model(stage)
             taught.use_lidar(model.lidar)
             # nothing is chosen on this small dataset's validation half: score all it holds out
@@ -101,7 +138,11 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
             report = {"type": t.name, "model": str(model.directory), "taught_model": str(out),
                       "samples": samples, "seed": seed, "fit": fit,
                       "lidar": model.lidar.to_dict(),
-                      "seconds": {"dataset": round(t_data, 2),
+                      "budget": {"minutes": minutes, "counts": "dataset and fit",
+                                 "kept": t_data + t_fit <= 60.0 * minutes},
+                      "seconds": {"dataset": round(t_data, 2), "fit": round(t_fit, 2),
+                                  "score": round(time.perf_counter() - t0 - t_data - t_fit,
+                                                 2),
                                   "total": round(time.perf_counter() - t0, 2)},
                       "score": score}
             write_atomic(stage / "teach.json", (json.dumps(report, indent=1) + "\n").encode())
@@ -111,6 +152,11 @@ def teach(model_dir, type_name: str, out_dir, samples: int = 400, minutes: float
     if progress:
         print(f"taught {t.name} in {report['seconds']['total']:.0f} s -> {out}",
               file=sys.stderr)
+    if not report["budget"]["kept"]:
+        sec = report["seconds"]
+        print(f"teach: the dataset ({sec['dataset']:.0f} s) and the fit ({sec['fit']:.0f} s) "
+              f"took longer than --minutes {minutes:g}: the budget is checked between "
+              "fitting steps, and the fit runs at least 5 s", file=sys.stderr)
     return report
 
 
@@ -121,7 +167,8 @@ def register_teach(sub) -> None:
                                    "the model (APCG+: a new type embedding, all else frozen) "
                                    "and scores it on the dataset's held-out conditions.")
     p.add_argument("--model", required=True, metavar="DIR", help="the trained model")
-    p.add_argument("--type", required=True, help="catalog name of the type to teach")
+    p.add_argument("--type", required=True,
+                   help="catalog name of the type to teach (a name, not an index)")
     add_output(p, "-o", "--output", kind=DIRECTORY, required=True, files=ANY,
                help="the new model directory",
                force_help="write into a -o that holds files (files of the same names are "
@@ -129,7 +176,10 @@ def register_teach(sub) -> None:
     p.add_argument("--samples", type=int, default=400,
                    help="conditions of the type to simulate (default 400, a quarter held out)")
     p.add_argument("--minutes", type=float, default=10.0,
-                   help="time budget, dataset included (default 10)")
+                   help=f"time budget of building the type's dataset and fitting it (default "
+                        f"10, at least {MIN_MINUTES:g}); checked between fitting steps, the "
+                        "fit runs at least 5 s, and scoring the taught type afterwards is "
+                        "extra")
     p.add_argument("--steps", type=int, help="stop after this many fitting steps")
     p.add_argument("--workers", type=int, default=1, help="dataset build processes")
     p.add_argument("--seed", type=int, default=0)
