@@ -116,6 +116,14 @@ def hold(tmp_path_factory) -> Hold:
 
 
 @pytest.fixture
+def lidar_and_jet(addon_scene, request):
+    """``addon_scene`` with a lidar and an A320neo target at the test module's pose ``GOOD``."""
+    from blender_addon import api
+    lidar = api.add_lidar()
+    return lidar, api.add_aircraft(lidar, "A320neo", **request.module.GOOD)
+
+
+@pytest.fixture
 def addon_scene(tmp_path, monkeypatch):
     """An empty Blender scene (the bpy module) with the add-on registered, and a user catalog
     of its own (APCG_DATA_DIR)."""

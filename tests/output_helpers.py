@@ -26,6 +26,7 @@ NOT_OUTPUTS = {
     ("choose-tau", "taus"): VALUE,
     ("compare", "data"): INPUT, ("compare", "model"): INPUT,
     ("condition", "type"): VALUE, ("condition", "model"): INPUT,
+    ("export", "data"): INPUT,
     ("dataset build", "config"): INPUT, ("dataset build", "shard"): VALUE,
     ("dataset build", "engine"): VALUE, ("dataset build", "address"): VALUE,
     ("dataset info", "directory"): INPUT,

@@ -12,19 +12,17 @@ bpy = pytest.importorskip("bpy")
 from apcg_core.catalog import default_catalog  # noqa: E402
 from apcg_core.errors import InputError  # noqa: E402
 from blender_addon import api  # noqa: E402
+from tests.addon_helpers import blender_state  # noqa: E402
 
 GOOD = dict(range_m=4500.0, elevation_deg=3.4, pitch_deg=2.3)
 
 
 @pytest.fixture
-def scene(addon_scene):
-    """conftest.py's scene with a lidar and an A320neo target."""
-    lidar = api.add_lidar()
-    return lidar, api.add_aircraft(lidar, "A320neo", **GOOD)
+def scene(lidar_and_jet):
+    return lidar_and_jet
 
 
-def _state():
-    return (sorted(o.name for o in bpy.data.objects), len(bpy.data.meshes))
+_state = blender_state
 
 
 BAD_POSES = [dict(range_m=float("nan")), dict(range_m=0.0), dict(range_m=-5.0),

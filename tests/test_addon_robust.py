@@ -21,19 +21,17 @@ from apcg_core.scene.sequence import load_sequence  # noqa: E402
 from blender_addon import api  # noqa: E402
 from blender_addon.clouds import CLOUD_KEY  # noqa: E402
 from blender_addon.objects import LENGTH_KEY, POSE_KEY, pose_moved, stored_pose  # noqa: E402
+from tests.addon_helpers import blender_state  # noqa: E402
 
 GOOD = dict(range_m=4500.0, elevation_deg=3.4, pitch_deg=2.0)
 
 
 @pytest.fixture
-def scene(addon_scene):
-    """conftest.py's scene (its own user catalog) with a lidar and an A320neo target."""
-    lidar = api.add_lidar()
-    return lidar, api.add_aircraft(lidar, "A320neo", **GOOD)
+def scene(lidar_and_jet):
+    return lidar_and_jet
 
 
-def _state():
-    return (sorted(o.name for o in bpy.data.objects), len(bpy.data.meshes))
+_state = blender_state
 
 
 def _ranges(obj) -> np.ndarray:

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from apcg_core.cli import main
 from apcg_core.families import default_model_dir, load_model
 from apcg_core.lidar import LIDAR_KEYS, LidarParams, lidar_preset_names, load_lidar
 from apcg_core.lidar_options import lidar_of
+from tests.cli_run import one_error, run
 from tests.output_helpers import commands
 
 DEFAULT_MODEL = default_model_dir()
@@ -34,23 +34,6 @@ NO_LIDAR = {
     "fd-depth score": "the encoder reads depth images of the dataset's own lidar",
     "export": "writes the run's model; model.json records its training lidar",
 }
-
-
-def run(argv, capsys) -> tuple[int, str, str]:
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as exc:
-        rc = exc.code if isinstance(exc.code, int) else 2
-    out = capsys.readouterr()
-    return rc, out.out, out.err
-
-
-def one_error(rc: int, err: str, *words: str) -> str:
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert rc == 2 and len(lines) == 1 and "error:" in lines[0], err
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    return lines[0]
 
 
 def lidar_file(tmp: Path, name: str = "mine.toml", **values) -> Path:

@@ -24,29 +24,12 @@ from apcg_core.sensor.detector import work_per_window
 from apcg_core.sensor.link import bin_seconds, noise_per_bin
 from apcg_core.sensor.params import MAX_NAME_CHARS, check_sensor
 from apcg_core.sensor.stage import MAX_WORK_PER_CLOUD, check_sensor_at
+from tests.cli_run import one_error, run
 
 BIG = "1" + "0" * 400  # a TOML integer of 401 digits: tomllib reads it, float() cannot
 DAY = dataclasses.asdict(load_sensor("1550nm-day"))
 SIM = ["simulate", "--type", "A320neo", "--range-m", "4500", "--elevation-deg", "3.4",
        "--pitch-deg", "2"]
-
-
-def run(argv, capsys) -> tuple[int, str, str]:
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as exc:
-        rc = exc.code if isinstance(exc.code, int) else 2
-    out = capsys.readouterr()
-    return rc, out.out, out.err
-
-
-def one_error(rc: int, err: str, *words: str) -> str:
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert rc == 2 and len(lines) == 1 and "error:" in lines[0], err
-    assert "Traceback" not in err
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    return lines[0]
 
 
 def sensor_file(tmp: Path, name="s.toml", **over) -> Path:
