@@ -171,7 +171,8 @@ def test_apcg_train_sizes_a_family_from_the_command_line(data, tmp_path, capsys)
     for argv, message in (
             (["--family", "voxel-gan", "--voxel-res", "24"], "voxel_res must be 4 * 2^k"),
             (["--family", "diffusion", "--diffusion-steps", "0"], "--diffusion-steps 0 not "
-                                                                    "accepted: an integer >= 1"),
+                                                                    "accepted: an integer from 1 "
+                                                                    "to 10000"),
             (["--n-points", "64"], "--n-points does not apply to the cgan family; it sizes "
                                    "diffusion, point-gan (--family)"),
             (["--family", "point-gan", "--voxel-res", "16"], "--voxel-res does not apply to "

@@ -295,7 +295,7 @@ def test_photons_figure_counts_covered_cells_of_a_wide_window(tmp_path):
     counted under another cell's key; the covered cells are the distinct cells hit."""
     from dataset_builder.simulate import Simulator
     from training.figures import PHOTON_TYPES, fig_photons  # noqa: F401
-    lidar = LidarParams.from_degrees(0.0005, 0.0019, 0.15, 1400, 96)
+    lidar = LidarParams.from_degrees(0.0005, 0.0019, 0.15, 1400, 32)
     data = fig_photons(tmp_path / "f.png", types=("A320neo",), sensors=("1550nm-night",),
                        poses=1, seed=2, lidar=lidar)
     assert data["lidar"] == lidar.to_dict()
