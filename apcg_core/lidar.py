@@ -30,15 +30,12 @@ LIDAR_FILE_TABLES = ("lidar", "sensor")
 # bin is 6.7 fs of flight time, far below any timing electronics (SPAD TCSPC jitter is tens
 # of ps: Hadfield, Nature Photonics 3, 696 (2009)); a 1 km bin is beyond any range gate's use.
 # A 1e-7 deg cell is 0.03 mm at 18 km; one of 10 deg gives 18 cells across a 180 deg window.
-_BOUNDS = {  # name: (lowest, highest, unit shown, factor to the unit shown)
-    "r_alpha": (1e-7 * DEG, 10.0 * DEG, "_deg", DEG),
-    "r_beta": (1e-7 * DEG, 10.0 * DEG, "_deg", DEG),
-    "r_r": (1e-6, 1e3, "_m", 1.0),
-}
-_BOUND_WHY = {
-    "r_alpha": "an azimuth cell from 1e-7 deg (0.03 mm at 18 km) to 10 deg",
-    "r_beta": "an elevation cell from 1e-7 deg (0.03 mm at 18 km) to 10 deg",
-    "r_r": "a range bin from 1 um (6.7 fs of flight) to 1 km",
+_BOUNDS = {  # name: (lowest, highest, unit shown, factor to the unit shown, what it is)
+    "r_alpha": (1e-7 * DEG, 10.0 * DEG, "_deg", DEG,
+                "an azimuth cell from 1e-7 deg (0.03 mm at 18 km) to 10 deg"),
+    "r_beta": (1e-7 * DEG, 10.0 * DEG, "_deg", DEG,
+               "an elevation cell from 1e-7 deg (0.03 mm at 18 km) to 10 deg"),
+    "r_r": (1e-6, 1e3, "_m", 1.0, "a range bin from 1 um (6.7 fs of flight) to 1 km"),
 }
 
 
@@ -57,12 +54,12 @@ class LidarParams:
     height: int = 64  # elevation cells H
 
     def __post_init__(self) -> None:
-        for name, (lo, hi, unit, scale) in _BOUNDS.items():
+        for name, (lo, hi, unit, scale, what) in _BOUNDS.items():
             v = check_finite(name, getattr(self, name))
             if not lo <= v <= hi:
                 raise InputError(
                     f"{name}{unit} = {v / scale!r} is outside [{lo / scale!r}, {hi / scale!r}]"
-                    f"{'' if v > 0 else ' (it must be > 0)'}: {_BOUND_WHY[name]}")
+                    f"{'' if v > 0 else ' (it must be > 0)'}: {what}")
         for name in ("width", "height"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or v < 2 or v % 2:

@@ -12,9 +12,9 @@ import sys
 from .lidar import (
     DEFAULT_LIDAR_PRESET,
     LidarParams,
+    lidar_from_table,
     lidar_preset_names,
-    lidar_sensor_file,
-    load_lidar,
+    read_lidar_file,
 )
 
 
@@ -31,11 +31,11 @@ def _load_checked(ref) -> LidarParams:
     """The lidar of ``ref``, its file's ``[sensor]`` table (when it has one) checked too: a
     mistake there is named now, whether or not this command reads the table, instead of
     passing unseen."""
-    from .sensor import load_sensor
-    lidar = load_lidar(ref)
-    path = lidar_sensor_file(ref)
-    if path is not None:
-        load_sensor(path, lidar_file=True)
+    from .sensor import sensor_from_table
+    path, doc = read_lidar_file(ref)
+    lidar = lidar_from_table(doc["lidar"], source=str(path))
+    if "sensor" in doc:
+        sensor_from_table(doc["sensor"], source=str(path), name=path.stem)
     return lidar
 
 

@@ -31,6 +31,17 @@ def lock_owner(text: str) -> tuple[int | None, str | None]:
     return int(parts[0]), parts[1]
 
 
+def is_lock_file(name: str, lock_name: str) -> bool:
+    """Whether the file ``name`` is the lock ``lock_name`` or one it makes on the way (a
+    taker's draft ``LOCK.PID.new``, a dead owner's lock moved aside ``LOCK.stale.PID``): what
+    a directory check counts as the job's own, not a user's file."""
+    if name == lock_name:
+        return True
+    rest = name[len(lock_name) + 1:] if name.startswith(lock_name + ".") else ""
+    pid_new = rest.endswith(".new") and rest[:-len(".new")].isdigit()
+    return pid_new or (rest.startswith("stale.") and rest[len("stale."):].isdigit())
+
+
 class ProcessLock:
     """``path``, held by this process while the job runs; ``job`` names the job in messages
     ("a build of --shard 0/2 into data/x")."""

@@ -674,14 +674,9 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
                 if k not in ("frame", "fallback")}
     finally:
         scanner.close()
-    if not check_sequence_directory(out, header) and \
-            (stray := sorted((out / "frames").glob("*.npz"))):
-        raise InputError(f"{out / 'frames'} holds {len(stray)} frame file(s) ({stray[0].name}"
-                         f"{', ...' if len(stray) > 1 else ''}) but {out} has no {HEADER}, so "
-                         "nothing says which sequence made them; write into a new directory, "
-                         "or delete them")
+    check_sequence_directory(out, header)  # stray frames, others' files: refused, named
     (out / "frames").mkdir(parents=True, exist_ok=True)
-    lock = ProcessLock(out / ".sequence.lock", f"scene sequence into {out}")
+    lock = ProcessLock(out / SEQUENCE_LOCK, f"scene sequence into {out}")
     lock.acquire()
     try:
         head = out / HEADER
@@ -775,13 +770,15 @@ def check_sequence_directory(out: Path, header: bytes) -> bool:
     return True
 
 
-# What a sequence writer itself leaves before its header: its lock, its empty frames folder.
-_WRITERS_OWN = (".sequence.lock",)
+# A sequence writer's lock: with its drafts, all a writer leaves before its header (and an
+# empty frames folder).
+SEQUENCE_LOCK = ".sequence.lock"
 
 
 def _refuse_foreign_files(out: Path) -> None:
     """Refuse a directory without a sequence header that holds anything but what a writer
     makes before its header, naming what is there."""
+    from apcg_core.lock import is_lock_file
     from apcg_core.scene.sequence import HEADER
     if not out.is_dir():
         return
@@ -793,7 +790,7 @@ def _refuse_foreign_files(out: Path) -> None:
                          "nothing says which sequence made them; write into a new directory, "
                          "or delete them")
     there = sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir()
-                   if p.name not in _WRITERS_OWN
+                   if not is_lock_file(p.name, SEQUENCE_LOCK)
                    and not (p == frames and p.is_dir() and not any(p.iterdir())))
     if there:
         listed = ", ".join(there[:5]) + (f" and {len(there) - 5} more" if len(there) > 5 else "")

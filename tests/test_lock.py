@@ -55,3 +55,21 @@ def test_a_dead_processs_draft_is_cleared_and_a_live_ones_kept(tmp_path):
     with ProcessLock(lock, "test job"):
         assert lock.read_text().split()[0] == str(os.getpid())
     assert not (tmp_path / f".job.lock.{dead.pid}.new").exists() and live.exists()
+
+
+def test_a_lock_and_its_drafts_are_a_jobs_own_files_not_a_users(tmp_path):
+    import pytest
+
+    from apcg_core.errors import InputError
+    from apcg_core.lock import is_lock_file
+    from dataset_builder.scene import SEQUENCE_LOCK, check_sequence_directory
+    lock = ".job.lock"
+    assert all(is_lock_file(n, lock) for n in (lock, f"{lock}.123.new", f"{lock}.stale.9"))
+    assert not any(is_lock_file(n, lock) for n in (f"{lock}.x.new", f"{lock}.123", "job.lock",
+                                                   f"{lock}.stale.", "notes.txt"))
+    # a sequence directory holding a dead writer's draft is still a new one; a user's file not
+    (tmp_path / f"{SEQUENCE_LOCK}.4242.new").write_text("4242 host\n")
+    assert check_sequence_directory(tmp_path, b"header") is False
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match=r"holds other files \(notes\.txt\)"):
+        check_sequence_directory(tmp_path, b"header")

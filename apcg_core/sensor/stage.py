@@ -47,6 +47,7 @@ MAX_SPREAD_BINS = 4096
 MAX_WORK_PER_CLOUD = 2e7
 
 
+@lru_cache(maxsize=64)  # every batch of a build asks again; the answer is the pair's
 def check_sensor_at(sensor: SensorParams, lidar: LidarParams) -> int:
     """The range gate's bins of ``sensor`` at ``lidar``, once their pairing is checked: a gate
     of at least one bin, a threshold the pulses can reach, and a cloud's draws that fit in
