@@ -16,9 +16,13 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 # The tests' user catalog is their own, never the developer's (~/.local/share/apcg): a test that
 # adds a type must not leave it there, and a type left there must not change a test. Set
 # before anything reads the catalog; the commands the tests start inherit it.
+# Each test process (pytest-xdist starts several) makes its own and removes it when it exits:
+# a run leaves nothing in the machine's temporary directory.
 if "APCG_TEST_KEEP_DATA_DIR" not in os.environ:
+    import atexit
     import tempfile
     os.environ["APCG_DATA_DIR"] = tempfile.mkdtemp(prefix="apcg-tests-data-")
+    atexit.register(shutil.rmtree, os.environ["APCG_DATA_DIR"], ignore_errors=True)
 
 
 def pytest_sessionfinish(session, exitstatus):

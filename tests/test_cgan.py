@@ -3,6 +3,7 @@ parallelism, export to ONNX and generation."""
 
 import csv
 import json
+import os
 import subprocess
 import sys
 from dataclasses import replace
@@ -193,12 +194,20 @@ def test_training_reduces_the_distance_to_the_data(data, tmp_path):
     assert after < 0.5 * before, (before, after)
 
 
+def _in_own_temp(tmp_path) -> dict:
+    """The environment of a torchrun under test: its temporary files (torchelastic's log
+    folder, which it never removes) in the test's own folder, not the machine's."""
+    (tmp_path / "tmp").mkdir(exist_ok=True)
+    return {**os.environ, "TMPDIR": str(tmp_path / "tmp")}
+
+
 def test_two_process_data_parallel_training_stays_in_sync(data, tmp_path):
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
            "-m", "apcg_core.cli", "train", "--data", str(data),
            "-o", str(tmp_path / "ddp"), "--preset", "tiny", "--steps", "3", "--no-progress",
            "--threads", "1"]
-    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600,
+                         env=_in_own_temp(tmp_path))
     assert run.returncode == 0, run.stderr[-3000:]
     rows = [json.loads(line) for line in run.stdout.splitlines() if line.startswith("{")]
     assert sorted(r["rank"] for r in rows) == [0, 1]
@@ -294,7 +303,8 @@ def test_two_processes_stop_together_on_an_hours_budget(data, tmp_path):
            "-m", "apcg_core.cli", "train", "--data", str(data), "-o", str(tmp_path / "ddp"),
            "--preset", "tiny", "--steps", "100000", "--hours", "0.001", "--no-progress",
            "--threads", "1"]
-    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300,
+                         env=_in_own_temp(tmp_path))
     assert run.returncode == 0, run.stderr[-3000:]
     rows = [json.loads(line) for line in run.stdout.splitlines() if line.startswith("{")]
     assert sorted(r["rank"] for r in rows) == [0, 1]

@@ -51,13 +51,16 @@ TALLY: list[dict] = []
 def _own_mesh() -> Path:
     """A real aircraft mesh file to import (the catalog's A320neo as PLY, in metres), made
     once per session: the suite needs nothing outside the repository."""
+    import atexit
+    import shutil
     import tempfile
 
     from apcg_core.catalog.catalog import default_catalog
     from apcg_core.catalog.importer import export_mesh
-    path = Path(tempfile.gettempdir()) / f"apcg-fuzz-{os.getpid()}" / "a320neo.ply"
-    if not path.exists():
-        export_mesh(default_catalog().mesh("A320neo"), path)
+    folder = tempfile.mkdtemp(prefix="apcg-fuzz-")
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)  # nothing left behind
+    path = Path(folder) / "a320neo.ply"
+    export_mesh(default_catalog().mesh("A320neo"), path)
     return path
 
 
@@ -913,13 +916,15 @@ def test_a_name_in_another_spelling_is_the_same_type(tmp_path_factory, capsys, b
     with user_catalog(data):
         rc, _, err = run(["catalog", "add", MESH, "--name", base], capsys)
         assert rc == 0, err
-        rc, out, err = run(["catalog", "add", MESH, "--name", other], capsys)
+        # --name=VALUE: a spelling may begin with a dash ("  Jet A" with dashes for spaces),
+        # which argparse would take for an option after a separate --name
+        rc, out, err = run(["catalog", "add", MESH, f"--name={other}"], capsys)
         case = f"catalog add {other!r} after {base!r}"
         if other.strip() == base:  # the same name
             clear_error("new type name", case, rc, err, repr(base))
             return
         clear_error("new type name", case, rc, err, repr(base), "--force")
-        rc, out, err = run(["catalog", "add", MESH, "--name", other, "--force"], capsys)
+        rc, out, err = run(["catalog", "add", MESH, f"--name={other}", "--force"], capsys)
         assert rc == 0 and f"replaced {base!r}" in out, err
         rc, out, _ = run(["catalog", "list", "--json"], capsys)
     users = [r["name"] for r in json.loads(out) if r["index"] >= 1000]
