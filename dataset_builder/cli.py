@@ -262,40 +262,39 @@ def register_scene(sub) -> None:
     q.set_defaults(func=_run_scene_sequence)
 
 
-def _scene_warnings(args, summary: dict) -> None:
+def _scene_warnings(args, summary: dict, found: list) -> None:
     from .scene import fallback_warning, sequence_warnings
-    for w in sequence_warnings(args.scene, lidar_of(args), args.generator):
-        print(f"apcg scene: warning: {w}", file=sys.stderr)
-    w = fallback_warning(summary.get("generator", {}))
-    if w:
-        print(f"apcg scene: warning: {w}", file=sys.stderr)
+    for w in [*sequence_warnings(args.scene, lidar_of(args), args.generator), *found,
+              fallback_warning(summary.get("generator", {}))]:
+        if w:
+            print(f"apcg scene: warning: {w}", file=sys.stderr)
 
 
 def _run_scene_scan(args) -> int:
     from .scene import scan_scene
+    found = []
     summary = scan_scene(args.scene, args.output, args.backend, args.supersample,
                          not args.no_quantize, sensor_of(args), args.seed, lidar_of(args),
-                         args.generator)
+                         args.generator, warnings=found)
     print(json.dumps(summary))
-    _scene_warnings(args, summary)
-    if any(summary["clipped"]):
-        print("apcg scene: warning: a target reaches beyond the lidar's window; its cloud is "
-              "cut at the window's edge", file=sys.stderr)
+    _scene_warnings(args, summary, found)
     return 0
 
 
 def _run_scene_sequence(args) -> int:
     from .build import BuildInterrupted
     from .scene import build_sequence
+    found = []
     try:
         summary = build_sequence(args.scene, args.output, args.backend, args.supersample,
                                  not args.no_quantize, sensor_of(args), args.seed,
                                  lidar_of(args), workers=args.workers, engine=args.engine,
                                  address=args.address, connect_timeout_s=args.connect_timeout_s,
-                                 progress=not args.no_progress, generator=args.generator)
+                                 progress=not args.no_progress, generator=args.generator,
+                                 warnings=found)
     except BuildInterrupted as stop:  # Ctrl-C among the frames: how far it got
         print(f"apcg scene: {stop}", file=sys.stderr)
         return 130
     print(json.dumps(summary))
-    _scene_warnings(args, summary)
+    _scene_warnings(args, summary, found)
     return 0

@@ -491,11 +491,82 @@ def check_targets_seen(scanner: SceneScanner, frames, every_frame: bool) -> np.n
     return seen
 
 
+# Centres closer than this share of the smaller target's bounding radius: bodies that pass
+# through each other (two aircraft flying in formation keep their centres at least a span
+# apart, about twice the bounding radius).
+OVERLAP_SHARE = 0.5
+
+
+def overlap_warnings(scanner: SceneScanner, frames) -> list[str]:
+    """One warning per pair of targets whose centres come within OVERLAP_SHARE of the smaller
+    one's bounding radius at some frame's start: the scan is made (each cell takes whichever
+    surface is nearer), but two bodies in one place are rarely what was meant."""
+    scene = scanner.scene
+    n = len(scene.targets)
+    if n < 2:
+        return []
+    t0 = scene.frame_times(frames)
+    radii = np.asarray(scanner.radii, np.float64)
+    hits = {}  # (i, j) -> [frames, first time, distance then]
+    for a in range(0, len(t0), 4096):  # bounded memory at 10^5 frames
+        tt = t0[a:a + 4096]
+        pos = np.stack([t.poses(tt)[0] for t in scene.targets])  # (T, n, 3)
+        for i in range(n - 1):
+            d = np.sqrt(((pos[i + 1:] - pos[i][None]) ** 2).sum(-1))  # (T - i - 1, n)
+            close = d < OVERLAP_SHARE * np.minimum(radii[i], radii[i + 1:])[:, None]
+            for j in np.flatnonzero(close.any(axis=1)):
+                k = int(np.argmax(close[j]))
+                h = hits.setdefault((i, i + 1 + int(j)), [0, float(tt[k]), float(d[j, k])])
+                h[0] += int(close[j].sum())
+    out = []
+    for (i, j), (count, t, d) in sorted(hits.items()):
+        a, b = scene.targets[i], scene.targets[j]
+        out.append(f"{a.source} and {b.source} overlap: their centres are {d:.4g} m apart at "
+                   f"t = {t:.6g} s ({count} of {len(frames)} frame(s)), less than half the "
+                   f"smaller one's bounding radius ({min(radii[i], radii[j]):.4g} m), so their "
+                   "bodies pass through each other and each cell takes the nearer surface")
+    return out
+
+
+def frame_warnings(scene: Scene, facts, sensor) -> list[str]:
+    """Per target, over frames ``facts`` ((t_s, position (T, 3), points (T,), in_window (T,),
+    clipped (T,)) each): the frames where its cloud is cut at the window's edge, and, with a
+    sensor, those where it is in the window but none of its returns was recorded (outside
+    the photon gate, or hidden), naming the target, the frames and the first time."""
+    facts = list(facts)
+    out = []
+    for i, target in enumerate(scene.targets):
+        cut = [f for f in facts if f[4][i]]
+        if cut:
+            out.append(f"{target.source} reaches beyond the lidar's window in {len(cut)} of "
+                       f"{len(facts)} frame(s) (first at t = {cut[0][0]:.6g} s): its cloud is "
+                       "cut at the window's edge")
+        if sensor is None:
+            continue
+        empty = [f for f in facts if f[3][i] and f[2][i] == 0]
+        if not empty:
+            continue
+        t, pos = empty[0][0], empty[0][1]
+        r = float(np.sqrt((pos[i] ** 2).sum()))
+        gate = (scene.gate_range_m if scene.gate_range_m is not None
+                else float(np.sqrt((pos[0] ** 2).sum())))
+        why = (f"its range {r:.6g} m lies outside the photon gate ({gate:.6g} +- "
+               f"{sensor.gate_m / 2:.6g} m: [pointing] range_m, else the first target's range, "
+               "and the sensor's gate_m)" if abs(r - gate) > sensor.gate_m / 2
+               else "hidden behind another target, or too few photons return from it")
+        out.append(f"{target.source} is in the window but the sensor recorded none of its "
+                   f"returns in {len(empty)} of {len(facts)} frame(s) (first at t = {t:.6g} "
+                   f"s): {why}")
+    return out
+
+
 def scan_scene(scene_path, output, backend: str = "embree", supersample: int | None = None,
                quantize: bool = True, sensor=None, seed: int = 0, lidar=None,
-               generator: str | None = None) -> dict:
+               generator: str | None = None, warnings: list | None = None) -> dict:
     """`apcg scene scan`: the scene's first frame (its [sequence] start_s) to one NPZ file.
-    ``generator``: `--generator`, the model of every target that does not name its own."""
+    ``generator``: `--generator`, the model of every target that does not name its own.
+    ``warnings``: a list the scan's warnings are appended to (overlapping targets, a cloud
+    cut at the window's edge or emptied by the sensor)."""
     from apcg_core.io.dataset import write_atomic
     scene = load_scene(scene_path, lidar=lidar, generator=generator)
     k = supersample or (4 if sensor else 1)  # as `apcg simulate`: 4 rays a side feed a sensor
@@ -503,9 +574,14 @@ def scan_scene(scene_path, output, backend: str = "embree", supersample: int | N
     try:
         check_targets_seen(scanner, [0], every_frame=True)
         data, scan = frame_npz(scanner, 0)
+        found = overlap_warnings(scanner, [0]) + frame_warnings(
+            scene, [(scan.t_s, scan.position, scan.points_of(), scan.in_window,
+                     scan.clipped)], sensor)
     finally:
         scanner.close()
     write_atomic(Path(output), data)
+    if warnings is not None:
+        warnings += found
     summary = {"output": str(output), "points": len(scan.cloud),
                "points_per_target": scan.points_of().tolist(),
                "clipped": scan.clipped.tolist()}
@@ -643,10 +719,11 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
                    quantize: bool = True, sensor=None, seed: int = 0, lidar=None,
                    workers: int = 1, engine: str = "local", address: str | None = None,
                    connect_timeout_s: float | None = None, progress: bool = True,
-                   generator: str | None = None) -> dict:
+                   generator: str | None = None, warnings: list | None = None) -> dict:
     """`apcg scene sequence`: every frame of the scene's [sequence] into ``out_dir``
     (``apcg_core.scene.sequence``'s format); resumes where a killed run stopped, the same
-    bytes whatever the engine and the number of workers. ``generator``: `--generator`."""
+    bytes whatever the engine and the number of workers. ``generator``: `--generator`.
+    ``warnings``: a list the sequence's warnings are appended to (as :func:`scan_scene`)."""
     from apcg_core.io.dataset import json_bytes, write_atomic
     from apcg_core.lock import ProcessLock
     from apcg_core.progress import Progress
@@ -668,6 +745,7 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
     frames = list(range(scene.frames))
     try:
         check_targets_seen(scanner, frames, every_frame=False)
+        found = overlap_warnings(scanner, frames)
         header = json_bytes(sequence_header(scene, scanner))
         # what each frame file of this sequence says of itself (its own frame index aside)
         ours = {k: v for k, v in scan_meta(scene, scanner, 0).items()
@@ -721,9 +799,12 @@ def build_sequence(scene_path, out_dir, backend: str = "embree", supersample: in
         elapsed = time.perf_counter() - t0
         _remove_dead_parts(out / "frames")
         _remove_dead_parts(out)
-        stats = finish_sequence(out, frames)
+        facts = []
+        stats = finish_sequence(out, frames, facts)
     finally:
         lock.release()
+    if warnings is not None:
+        warnings += found + frame_warnings(scene, facts, sensor)
     summary = {"directory": str(out), "frames": len(frames), "built_frames": len(todo),
                "skipped_frames": len(frames) - len(todo), "seconds": round(elapsed, 3),
                "complete": True}
@@ -799,10 +880,12 @@ def _refuse_foreign_files(out: Path) -> None:
                          "this same sequence: choose another directory, or empty it")
 
 
-def finish_sequence(out: Path, frames) -> dict | None:
+def finish_sequence(out: Path, frames, facts: list | None = None) -> dict | None:
     """poses.csv from every frame file, then the manifest (last: the sequence is complete);
     with generated targets the manifest's ``generator`` counts, per track, the frames its
-    model drew and those it could not (:func:`generator_stats`), which are returned."""
+    model drew and those it could not (:func:`generator_stats`), which are returned.
+    ``facts``: a list each frame's (t_s, position, points, in_window, clipped) is appended to
+    (:func:`frame_warnings`)."""
     from apcg_core.io.dataset import json_bytes, sha256_file, write_atomic
     from apcg_core.scene.sequence import HEADER, MANIFEST, POSES
 
@@ -811,6 +894,8 @@ def finish_sequence(out: Path, frames) -> dict | None:
 
     def read(f):
         fr = read_frame(out / frame_file(f))
+        if facts is not None:
+            facts.append((fr.t_s, fr.position, fr.points, fr.in_window, fr.clipped))
         if fr.generated is not None:
             seen.append((f, fr.generated, fr.in_window, fr.meta.get("fallback", {})))
         return fr

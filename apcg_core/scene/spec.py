@@ -104,8 +104,10 @@ class Scene:
     def __post_init__(self) -> None:
         """Every scene, however made (a scene file, the add-on's Scan Animation), is checked
         here: one frame's scan ends before the next frame starts, and every target's
-        trajectory holds every time a frame's scan reads (none is extrapolated)."""
+        trajectory holds every time a frame's scan reads (none is extrapolated), and every frame
+        has a time of its own."""
         check_scan_fits(self.pattern, self.lidar, self.frames, self.frame_rate_hz, self.source)
+        check_frame_times(self.frames, self.frame_rate_hz, self.start_s, self.source)
         span = scan_span(self.pattern, self.lidar, self.frames, self.frame_rate_hz,
                          self.start_s)
         for t in self.targets:
@@ -130,6 +132,27 @@ def check_scan_fits(pattern, lidar: LidarParams, frames: int, rate: float,
                          f"than a frame at {rate:g} Hz ({1.0 / rate:.6g} s); accepted: a scan "
                          "shorter than a frame (lower the frame rate, or the scan's "
                          "line_time_s / cell_time_s)")
+
+
+# Scene times (s) a sequence may reach: Unix times until the year 2286, where float64 still
+# tells apart times 2 us apart. Beyond, frames at another time came out at the same t_s.
+MAX_TIME_S = 1e10
+
+
+def check_frame_times(frames: int, rate: float, start_s: float, source: str) -> None:
+    """Refuse a sequence whose frame times leave +-MAX_TIME_S or are not each later than the
+    one before in float64 (a start so large that a frame period is below its resolution)."""
+    t = start_s + np.arange(frames) / rate
+    if abs(float(t[-1])) > MAX_TIME_S:
+        raise InputError(f"{source} [sequence]: its last frame is at {float(t[-1]):.6g} s "
+                         f"(start_s = {start_s!r}, frames = {frames}, frame_rate_hz = {rate!r})"
+                         f"; accepted: frame times within +-{MAX_TIME_S:g} s")
+    if frames > 1 and not (np.diff(t) > 0).all():
+        k = int(np.argmax(np.diff(t) <= 0))
+        raise InputError(f"{source} [sequence]: frames {k} and {k + 1} both fall at "
+                         f"{float(t[k]):.17g} s in float64 (start_s = {start_s!r}, "
+                         f"frame_rate_hz = {rate!r}); accepted: a start_s small enough, or a "
+                         "frame rate low enough, that every frame has its own time")
 
 
 def scan_span(pattern, lidar: LidarParams, frames: int, rate: float,
@@ -221,10 +244,11 @@ def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = No
     # lidars of driving datasets (KITTI's HDL-64E, nuScenes' HDL-32E at 20 Hz: 10 is the lower).
     rate = _get(seq, "frame_rate_hz", f"{source} [sequence]", 0, 1e6,
                 "a frame rate in Hz > 0 and <= 1e6", default=10.0, open_lo=True)
-    start_s = _get(seq, "start_s", f"{source} [sequence]", accepted="a time in seconds",
-                   default=0.0)
+    start_s = _get(seq, "start_s", f"{source} [sequence]", -MAX_TIME_S, MAX_TIME_S,
+                   f"a time in seconds from {-MAX_TIME_S:g} to {MAX_TIME_S:g}", default=0.0)
     pattern = make_pattern(doc.get("scan"), source)
     check_scan_fits(pattern, lidar, frames, rate, source)
+    check_frame_times(frames, rate, start_s, source)
     record = {"lidar": lidar.to_dict(), "scan": pattern.to_dict(),
               "sequence": {"frames": frames, "frame_rate_hz": rate, "start_s": start_s},
               "targets": []}

@@ -221,12 +221,15 @@ class Turn(Trajectory):
     def poses(self, t):
         t = np.atleast_1d(np.asarray(t, np.float64))
         h = self.h0 + self.omega * t
-        if self.omega == 0.0:
-            dx, dz = self.v * t * math.sin(self.h0), self.v * t * math.cos(self.h0)
-        else:
-            k = self.v / self.omega
-            dx, dz = k * (math.cos(self.h0) - np.cos(h)), k * (np.sin(h) - math.sin(self.h0))
-        p = self.p0[None] + np.stack([dx, np.zeros_like(t), dz], -1)
+        # The chord of the arc flown in t: length v t sin(half) / half, along the mean heading
+        # h0 + half. The same as (v / omega) (cos h0 - cos h, sin h - sin h0), without its
+        # cancellation: that form lost metres at 1e-13 deg/s and made NaN at 1e-320; this
+        # one tends to the straight line as omega -> 0 and is it at omega = 0.
+        half = 0.5 * self.omega * t
+        chord = self.v * t * np.sinc(half / math.pi)
+        mid = self.h0 + half
+        p = self.p0[None] + np.stack([chord * np.sin(mid), np.zeros_like(t),
+                                      chord * np.cos(mid)], -1)
         return p, flight_matrices(h, 0.0, np.full(len(t), self.bank))
 
     def warnings(self, category, what):
