@@ -24,8 +24,12 @@ def register_generate(sub) -> None:
     add_pose_arguments(p, required=False)  # not needed with --conditions
     # None: not given (0 with --type, refused with --conditions, whose rows hold the pose)
     p.set_defaults(pitch_deg=None, yaw_deg=None, roll_deg=None)
-    p.add_argument("--count", type=int, default=1, help="clouds per condition (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--count", type=int, default=1,
+                   help="clouds per condition (default 1); a model without noise (APCG+) "
+                        "draws the same cloud each time, unless --sensor adds photons")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the model's noise and of --sensor's photons (default 0); "
+                        "a model without noise (APCG+) and no --sensor: no effect")
     p.add_argument("--runtime", choices=["auto", "onnx", "torch"], default="auto",
                    help="cGAN inference: auto (torch when installed, else onnxruntime), onnx, "
                         "torch; the same points either way, ranges equal to float32 rounding "
@@ -125,6 +129,7 @@ def _run_generate(args) -> int:
                          f"clouds: at most {job.MAX_CLOUDS:,} in one request; split it into "
                          "several (other rows, other seeds)")
     model.expect_clouds(total)
+    _warn_unseeded(model, sensor, args)
     window = _warn_window(model, table)
     meta = {"model": str(model.directory), "family": model.family,
             "runtime": getattr(model, "runtime", None), "seed": args.seed,
@@ -197,6 +202,23 @@ def _run_generate(args) -> int:
                       "empty_clouds": empty,
                       "family": model.family, "runtime": getattr(model, "runtime", None)}))
     return 0
+
+
+def _warn_unseeded(model, sensor, args) -> None:
+    """A model whose clouds are a function of the condition (``SEEDED`` False), without a
+    sensor's photons: --count writes identical copies and --seed changes nothing; say so
+    rather than let a user take copies for variations."""
+    if getattr(model, "SEEDED", True) or sensor is not None:
+        return
+    from .progress import say
+    what = f"the model ({model.family})"
+    if args.count > 1:
+        say(f"apcg generate: warning: {what} draws one cloud per condition: --count "
+            f"{args.count} writes {args.count} identical copies of each (with --sensor, each "
+            "copy gets photons of its own)")
+    if args.seed != 0:
+        say(f"apcg generate: warning: {what} has no noise: --seed {args.seed} changes "
+            "nothing without --sensor")
 
 
 def _warn_window(model, table):

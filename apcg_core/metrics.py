@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, check_int
 
 CHUNK_ELEMENTS = 1 << 22  # distances computed at once (32 MB of float64)
 JSD_BINS_DEFAULT = 28  # the point-cloud literature's habit; the evaluation chooses c by measurement
@@ -27,16 +27,24 @@ def as_cloud(points, name: str = "cloud") -> np.ndarray:
         raise InputError(f"{name} must have shape (N, 3), got {p.shape}")
     if not np.isfinite(p).all():
         raise InputError(f"{name} contains NaN or infinite coordinates")
+    if len(p) and (big := float(np.abs(p).max())) > MAX_COORDINATE_M:
+        # squared distances of coordinates past ~1e154 overflow to inf, and a NaN score
+        # clipped to 0 read as a perfect one
+        raise InputError(f"{name} has a coordinate of {big:.6g} m; accepted: coordinates "
+                         f"within +-{MAX_COORDINATE_M:g} m")
     return p
+
+
+MAX_COORDINATE_M = 1e12  # far past any lidar's range, and its squares far from overflow
 
 
 def subsample(points, max_points: int | None, seed: int = 0) -> np.ndarray:
     """At most ``max_points`` points, drawn without replacement (seeded); small clouds as is."""
     p = as_cloud(points)
+    if max_points is not None:
+        check_int("max_points", max_points, 1)
     if max_points is None or len(p) <= max_points:
         return p
-    if max_points < 1:
-        raise InputError(f"max_points must be >= 1, got {max_points}")
     idx = np.random.default_rng(seed).choice(len(p), size=max_points, replace=False)
     return p[np.sort(idx)]
 
@@ -154,8 +162,7 @@ def jsd(a, b, bins: int = JSD_BINS_DEFAULT, max_points: int | None = None,
     per axis. 0 <= JSD <= 1. Returns None when either cloud is empty. On sparse clouds JSD
     saturates (SPEC section 9): always report it with its ``bins`` and the point counts.
     """
-    if not isinstance(bins, (int, np.integer)) or bins < 1:
-        raise InputError(f"bins must be an integer >= 1, got {bins!r}")
+    check_int("bins", bins, 1)
     a, b = _centred_pair(a, b, max_points, seed)
     if len(a) == 0 or len(b) == 0:
         return None

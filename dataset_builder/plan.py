@@ -109,14 +109,24 @@ def _pair(cfg: dict, key: str, default) -> tuple[float, float]:
     return float(v[0]), float(v[1])
 
 
-def _resolve_types(cfg: dict, catalog) -> list:
+def _resolve_types(cfg: dict, catalog, source: str = "dataset config") -> list:
     spec = cfg["types"]  # "all" or a list of names (the schema)
     if spec == "all":
         return [t for t in catalog if t.source == "builtin"]
-    types = [catalog.get(name) for name in spec]
-    dup = {t.name for t in types if sum(u.index == t.index for u in types) > 1}
+    types = []
+    for name in spec:
+        try:
+            types.append(catalog.get(name))
+        except InputError as exc:
+            raise InputError(f"{source}: types: {exc}") from None
+    seen: dict = {}
+    for name, t in zip(spec, types, strict=True):
+        seen.setdefault(t.index, []).append(name)
+    dup = {types[[u.index for u in types].index(i)].name: names
+           for i, names in seen.items() if len(names) > 1}
     if dup:
-        raise InputError(f"types lists {sorted(dup)} more than once")
+        raise InputError(f"{source}: types names one type more than once: " + "; ".join(
+            f"{', '.join(repr(n) for n in names)} are all {t!r}" for t, names in dup.items()))
     return types
 
 
@@ -194,7 +204,7 @@ def make_plan(cfg: dict, catalog, backend: str | None = None,
     check_config(cfg)
     seed = cfg.get("seed", 0)
     lidar = LidarParams.from_dict(cfg["lidar"]) if "lidar" in cfg else LidarParams()
-    types = _resolve_types(cfg, catalog)
+    types = _resolve_types(cfg, catalog, source)
     ranges = cfg.get("ranges", {})
     check_ranges(ranges, source)
     space = ConditionSpace(

@@ -119,8 +119,23 @@ def draw_pairs(data, n_pairs: int | None = DEFAULT_PAIRS, seed: int = 0,
                  half, seed, n_pairs)
 
 
+def check_model_covers(model, pairs: Pairs) -> None:
+    """Refuse, before any work, a model whose condition space does not hold every pair's
+    condition, naming the dataset, the sample and the model (the model's own check would say
+    only "row i" of a chunk)."""
+    ds = pairs.ds
+    ids = ds.sample_id[pairs.idx]
+    try:
+        model.space.check(ds.condition_rows(pairs.idx).recoded(model.types),
+                          where=lambda i, j: f"dataset {ds.directory}, sample {ids[i]}")
+    except InputError as exc:
+        raise InputError(f"{exc}: the model {model.directory} is not made for this "
+                         "dataset's conditions (its condition space: model.json)") from None
+
+
 def generate(model, pairs: Pairs) -> tuple[list[np.ndarray], float]:
     """One generated cloud (n, 3) per pair, and the seconds generation took."""
+    check_model_covers(model, pairs)
     t0 = time.perf_counter()
     out: list[np.ndarray] = []
     for s in range(0, len(pairs), CHUNK):

@@ -140,6 +140,7 @@ class PlusModel(ModelTypes):
     TAUS = (-1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 3.0)  # hit-logit thresholds choose-tau sweeps
     DEFAULT_TAU = 0.0
     ANY_LIDAR = True  # the sheet is drawn in the target's own scale, read at any lidar's cells
+    SEEDED = False  # the standard data are a function of the condition, and so is this model
 
     @staticmethod
     def check_tau(tau) -> float:

@@ -92,6 +92,9 @@ class ModelTypes:
     # Whether the family draws at any lidar's cells (APCG+ reads its sheet at them), or only
     # at the lidar it was trained on (the cGAN's fixed H x W image; the baselines' point counts).
     ANY_LIDAR = False
+    # Whether a cloud depends on the seed (a family that draws noise: --count gives that many
+    # different clouds a condition), or is a function of the condition alone (APCG+).
+    SEEDED = True
 
     @property
     def trained_lidar(self) -> LidarParams:

@@ -479,9 +479,24 @@ def _las_header(laspy, cloud: PointCloud, meta: dict):
                            laspy.ExtraBytesParams("sample", np.int32)]
                           + [laspy.ExtraBytesParams(k, np.int32) for k in ("count", "pulse")
                              if getattr(cloud, k) is not None])
-    header.vlrs.append(laspy.VLR(user_id="APCG", record_id=1, description="meta",
-                                 record_data=json.dumps(meta).encode()))
+    # A VLR holds at most 65,535 bytes; a request's meta (its conditions listed) can hold
+    # more: records 1, 2, ... in order, joined on reading (_las_meta)
+    data = json.dumps(meta).encode()
+    parts = [data[i:i + LAS_VLR_BYTES] for i in range(0, len(data), LAS_VLR_BYTES)] or [b""]
+    for k, part in enumerate(parts, start=1):
+        header.vlrs.append(laspy.VLR(user_id="APCG", record_id=k, record_data=part,
+                                     description="meta" if len(parts) == 1
+                                     else f"meta {k} of {len(parts)}"))
     return header
+
+
+LAS_VLR_BYTES = 65535  # a LAS VLR's record length is an unsigned 16-bit integer
+
+
+def _las_meta(vlrs) -> dict:
+    """The meta of _las_header's records (one, or several in record order)."""
+    parts = sorted((v.record_id, bytes(v.record_data)) for v in vlrs if v.user_id == "APCG")
+    return json.loads(b"".join(p for _, p in parts).decode()) if parts else {}
 
 
 def _write_las(tmp: Path, cloud: PointCloud, meta: dict, compress: bool) -> None:
@@ -630,11 +645,7 @@ def _read_las(path: Path):
             cols.update({f"{name}_{i}": a[:, i].copy() for i in range(a.shape[1])})
         else:
             cols[name] = a
-    meta = {}
-    for v in las.header.vlrs:
-        if v.user_id == "APCG":
-            meta = json.loads(bytes(v.record_data).decode())
-    return xyz, cols, meta
+    return xyz, cols, _las_meta(las.header.vlrs)
 
 
 def _ply_header(path: Path, data: bytes):

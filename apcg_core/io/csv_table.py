@@ -213,6 +213,12 @@ def read_csv(path, required: Iterable[str] = (), what: str = "CSV file",
 
 
 def _header(path: Path, cells: list[str], line: int) -> CSVTable:
+    for sep, name in ((";", "semicolons"), ("\t", "tabs")):
+        if any(sep in c for c in cells):  # no column name holds one: another separator
+            raise InputError(f"{path}, line {line}: the header is separated by {name}; this "
+                             "CSV file must be separated by commas, with '.' as the decimal "
+                             "point (a spreadsheet set to a locale with decimal commas saves "
+                             "';': export as CSV with ',' between values)")
     header = [c.lower() for c in cells]
     while header and not header[-1]:
         header.pop()  # a spreadsheet's empty columns past the last one
