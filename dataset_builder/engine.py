@@ -56,12 +56,18 @@ class RunSettings:
         return self.address is None
 
 
-def worker_init() -> None:
+def worker_init(parent: int | None = None) -> None:
     """Set-up of every worker process this machine starts.
 
     Ctrl-C reaches the whole foreground process group; the workers ignore it (they are also
     started with it blocked, see _sigint_held), so that only the build's own process reacts
     (stops the workers, reports, exits 130) and no worker prints a traceback of its own.
+
+    A worker ends with the process that started it (``parent``, its pid): killed outright
+    (SIGKILL, the OOM killer), that process cannot stop its pool, whose workers went on with
+    their tasks and then printed pages of BrokenPipe tracebacks. On Linux the kernel sends
+    the worker SIGTERM when its parent dies (prctl PR_SET_PDEATHSIG); a shard it was writing
+    stays a temporary file, which the next run removes.
 
     A spawned child inherits its parent's sys.path; once the parent has imported the bpy
     module that includes Blender's own scripts/modules folder, whose ``bpy`` package would
@@ -70,6 +76,23 @@ def worker_init() -> None:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     marker = f"{os.sep}bpy{os.sep}"
     sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
+    if parent is not None:
+        _end_with_parent(parent)
+
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _end_with_parent(parent: int) -> None:
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM))
+    except (OSError, AttributeError):  # no prctl: the worker lives on as before
+        return
+    if os.getppid() != parent:  # the parent died before the call: nobody would signal
+        os._exit(1)
 
 
 class LocalEngine:
@@ -98,6 +121,7 @@ class LocalEngine:
         with contextlib.ExitStack() as stack:
             with _sigint_held():
                 pool = stack.enter_context(ctx.Pool(settings.workers, initializer=worker_init,
+                                                    initargs=(os.getpid(),),
                                                     maxtasksperchild=per))
                 wait_point("build.workers-starting")
             yield pool.imap_unordered

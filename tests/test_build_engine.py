@@ -451,3 +451,30 @@ def test_a_local_dask_cluster_beside_another_says_nothing_of_its_dashboard(tmp_p
     assert r.returncode == 0, r.stderr
     assert "8787" not in r.stderr and "Warning" not in r.stderr, r.stderr
     _assert_same(tmp_path / "ds", demo_reference)
+
+
+def test_a_killed_builds_workers_end_with_it(tmp_path, hold):
+    """SIGKILL of a build (the OOM killer, kill -9) leaves no worker behind: each ends with
+    its parent (PR_SET_PDEATHSIG) instead of finishing its shard into a closed pipe and
+    printing tracebacks. Here a worker holds mid-shard, so without that it would wait."""
+    point = "build.shard-computing"
+    cmd = _build_cmd(tmp_path / "ds", "--workers", "2")
+    build = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             env=hold.env(point))
+    try:
+        worker = hold.wait(point, build)
+        assert worker != build.pid  # a pool worker holds, not the build
+        build.kill()
+        build.wait()
+        deadline = time.monotonic() + 30
+        while _alive(worker) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _alive(worker), "a worker outlived its killed build"
+    finally:
+        hold.release(point)
+        if build.poll() is None:
+            build.kill()
+            build.wait()
+        with contextlib.suppress(ProcessLookupError, UnboundLocalError):
+            os.kill(worker, signal.SIGKILL)
+    assert not list((tmp_path / "ds").glob("manifest.json"))
