@@ -97,11 +97,12 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
         print(f"{' '.join(command)}: error: {os_error_message(exc)}", file=sys.stderr)
         return 1
     except MemoryError as exc:  # the request's arrays outgrew the machine: say so in one line
+        from .sensor.stage import COST_SETTINGS  # what drives the photon stage's cost
         detail = f" ({exc})" if str(exc) else ""
         print(f"{' '.join(command)}: error: out of memory{detail}; nothing half-written is "
               "left under a final name. Ask for less at once: fewer clouds or conditions a "
-              "call, a smaller lidar window, or sensor values that make fewer events (pulses, "
-              "gate_m, background_hz, dark_count_hz)", file=sys.stderr)
+              "call, a smaller lidar window, or sensor values that make fewer events "
+              f"({COST_SETTINGS})", file=sys.stderr)
         return 1
     finally:
         if argv is None:  # the `apcg` process itself: its command has ended, whatever its end

@@ -202,10 +202,11 @@ def lidar_from_table(table, source: str = "") -> LidarParams:
 
 def lidar_file(ref) -> Path:
     """The file of a lidar preset name or a lidar file path; a named error otherwise."""
+    from .typetable import find_preset  # the one preset lookup (names in any spelling)
+    preset = find_preset(ref, LIDAR_PRESET_DIR)
+    if preset is not None:
+        return preset
     ref_s = str(ref).strip()
-    path = LIDAR_PRESET_DIR / f"{ref_s}.toml"
-    if ref_s and "/" not in ref_s and path.is_file():
-        return path
     path = Path(ref_s).expanduser()
     if ref_s and path.is_dir():
         raise InputError(f"lidar {ref_s!r} is a directory; give a preset or a TOML file with "

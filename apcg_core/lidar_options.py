@@ -11,6 +11,7 @@ import sys
 
 from .lidar import (
     DEFAULT_LIDAR_PRESET,
+    LIDAR_PRESET_DIR,
     LidarParams,
     lidar_from_table,
     lidar_preset_names,
@@ -32,10 +33,13 @@ def _load_checked(ref) -> LidarParams:
     mistake there is named now, whether or not this command reads the table, instead of
     passing unseen."""
     from .sensor import sensor_from_table
+    from .sensor.params import check_own_name
     path, doc = read_lidar_file(ref)
     lidar = lidar_from_table(doc["lidar"], source=str(path))
     if "sensor" in doc:
-        sensor_from_table(doc["sensor"], source=str(path), name=path.stem)
+        sensor = sensor_from_table(doc["sensor"], source=str(path), name=path.stem)
+        if sensor is not None and path.parent != LIDAR_PRESET_DIR:
+            check_own_name(sensor, str(path))
     return lidar
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import difflib
 import unicodedata
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -66,6 +67,40 @@ def name_key(name) -> str:
     lookup of a type by name (the catalog, a dataset's or a model's table) goes through it."""
     return "".join(c for c in normalize_name(name).casefold()
                    if not c.isspace() and unicodedata.category(c) not in ("Pd", "Pc"))
+
+
+# Unicode categories no name may hold (a type's, a sensor's): controls, format (zero-width,
+# direction marks), surrogates (undecodable bytes), private use and unassigned.
+ODD_CATEGORIES = {"Cc", "Cf", "Cs", "Co", "Cn"}
+
+
+def odd_characters(text: str) -> str:
+    """What ``text`` holds that no name may ("" when nothing): a control character, or an
+    invisible or unassigned one, worded for a message ("it holds ...")."""
+    odd = sorted({unicodedata.category(c) for c in text} & ODD_CATEGORIES)
+    if not odd:
+        return ""
+    return "a control character" if odd == ["Cc"] else (
+        "an invisible or unassigned character (Unicode category "
+        f"{', '.join(odd)}: a zero-width space, a direction mark)")
+
+
+def find_preset(ref, directory) -> Path | None:
+    """The preset file in ``directory`` (``NAME.toml``) that ``ref`` names, None when it names
+    none: the one lookup of every preset, lidar (``lidar_presets/``) and sensor
+    (``sensor/presets/``). Names are folded as type names are (:func:`name_key`: case,
+    spaces, dashes and underscores), so ``1550NM_day`` is ``1550nm-day``; a reference with a
+    path separator is a file, never a preset."""
+    directory = Path(directory)
+    ref_s = str(ref).strip()
+    if not ref_s or "/" in ref_s or "\\" in ref_s:
+        return None
+    exact = directory / f"{ref_s}.toml"
+    if exact.is_file():
+        return exact
+    key = name_key(ref_s)
+    hits = [p for p in sorted(directory.glob("*.toml")) if name_key(p.stem) == key]
+    return hits[0] if len(hits) == 1 else None
 
 
 def _listing(names, limit: int = 12) -> str:

@@ -56,8 +56,9 @@ def load_config(ref: str) -> dict:
         # a sensor file named relative to the config is found beside it, as a scene file's
         # trajectories are, whatever directory the build runs from
         beside = path.parent / Path(sensor.strip()).expanduser()
-        from apcg_core.sensor import preset_names
-        if sensor.strip() not in preset_names() and beside.is_file():
+        from apcg_core.sensor.params import PRESET_DIR
+        from apcg_core.typetable import find_preset
+        if find_preset(sensor, PRESET_DIR) is None and beside.is_file():
             cfg["sensor"] = str(beside)
     check_config(cfg, f"dataset config {path}")
     cfg.setdefault("name", path.stem)

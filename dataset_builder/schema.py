@@ -95,9 +95,13 @@ def resolve_sensor(value, source: str = "dataset config"):
     """A config's ``sensor`` (preset, file or table) as a SensorParams, None for the ideal
     lidar; every value checked by the sensor module, named with the config it came from."""
     from apcg_core.sensor import load_sensor, sensor_from_table
+    from apcg_core.sensor.params import check_own_name
     try:
         if isinstance(value, dict):
-            return sensor_from_table(value, source=f"{source} [sensor]")
+            sensor = sensor_from_table(value, source=f"{source} [sensor]")
+            if sensor is not None and "name" in value:  # a preset's name is the preset's
+                check_own_name(sensor, f"{source} [sensor]")
+            return sensor
         return load_sensor(value)
     except InputError as exc:
         msg = str(exc)

@@ -62,7 +62,7 @@ def test_photon_cloud_files_carry_labels_and_counts(tmp_path):
     from apcg_core.sensor import PRESET_DIR
     noisy = tmp_path / "noisy.toml"  # the day preset at threshold 2: noise points for sure
     noisy.write_text((PRESET_DIR / "1550nm-day.toml").read_text().replace(
-        "threshold = 3", "threshold = 2"))
+        "threshold = 3", "threshold = 2").replace('"1550nm-day"', '"noisy"'))
     las_path = simulate(tmp_path, "a.las", "--sensor", str(noisy), "--seed", "3")
     las = laspy.read(las_path)
     npz = simulate(tmp_path, "d.npz", "--sensor", str(noisy), "--seed", "3")

@@ -33,7 +33,7 @@ SIM = ["simulate", "--type", "A320neo", "--range-m", "4500", "--elevation-deg", 
 
 
 def sensor_file(tmp: Path, name="s.toml", **over) -> Path:
-    table = {**DAY, **over}
+    table = {**DAY, "name": "my-day", **over}  # its own name: a preset's is the preset's
     body = "[sensor]\n" + "".join(
         f"{k} = {v}\n" if isinstance(v, str) and v.isdigit() and len(v) > 30
         else f"{k} = {json.dumps(v)}\n" for k, v in table.items())
@@ -209,12 +209,12 @@ def test_a_gate_just_under_a_bin_is_shown_with_all_its_digits():
 
 def test_a_sensor_name_longer_than_a_cloud_file_holds_is_refused(tmp_path, capsys):
     path = sensor_file(tmp_path, name="long.toml")
-    path.write_text(path.read_text().replace('name = "1550nm-day"',
+    path.write_text(path.read_text().replace('name = "my-day"',
                                              f'name = "{"A" * (MAX_NAME_CHARS + 1)}"'))
     one_error(*run([*SIM, "-o", tmp_path / "o.las", "--sensor", path], capsys)[::2],
               "name", f"at most {MAX_NAME_CHARS}")
     ok = sensor_file(tmp_path, name="ok.toml")
-    ok.write_text(ok.read_text().replace('name = "1550nm-day"',
+    ok.write_text(ok.read_text().replace('name = "my-day"',
                                          f'name = "{"A" * MAX_NAME_CHARS}"'))
     assert run([*SIM, "-o", tmp_path / "o.las", "--sensor", ok], capsys)[0] == 0
 

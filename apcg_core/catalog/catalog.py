@@ -28,7 +28,7 @@ from ..errors import InputError
 from ..io.atomic import atomic_path
 from ..io.csv_table import read_csv
 from ..lock import ProcessLock
-from ..typetable import name_key, normalize_name
+from ..typetable import name_key, normalize_name, odd_characters
 from .checks import check_size
 from .mesh import Mesh, sample_surface
 
@@ -435,11 +435,8 @@ class Catalog:
             raise InputError(f"type name {name!r} not accepted: it must have a letter or "
                              "digit, not be a number such as 7, +7 or -5 (numbers are catalog "
                              "indices) and have no '/' or '\\'")
-        odd = sorted({unicodedata.category(c) for c in clean} & {"Cc", "Cf", "Cs", "Co", "Cn"})
-        if odd:
-            what = "a control character" if odd == ["Cc"] else (
-                "an invisible or unassigned character (Unicode category "
-                f"{', '.join(odd)}: a zero-width space, a direction mark)")
+        what = odd_characters(clean)
+        if what:
             raise InputError(f"type name {name!r} not accepted: it holds {what}")
         # a name that reads as another (a fullwidth 'Ａ', a ligature) is that name
         self._conflict(clean, force, given=name, lookalike=True)

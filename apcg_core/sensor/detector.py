@@ -243,6 +243,39 @@ def work_per_window(n_cells: int, n_bins: int, noise: float, dead_bins: float, p
     return float(n_cells) * pulses * per_pulse
 
 
+def signal_work(loud_total: np.ndarray, loud_sample: np.ndarray, contributions: np.ndarray,
+                n_bins: int, noise: float, dead_bins: float, pulses: int, points: bool,
+                events: bool) -> np.ndarray:
+    """Expected work of each sample's signal, an upper bound, beside ``work_per_window``'s
+    noise. ``loud_total``: the mean signal counts per pulse of each cell the signal reaches
+    (an upper bound does), ``loud_sample`` its sample; ``contributions`` per sample: the
+    (sub-ray, bin) terms its spread makes (``stage.signal_bins`` holds each; one work each).
+    Following every event (``events``, or ``points`` with a dead time shorter than the gate),
+    a pulse of a loud cell gives at least its first event, 1 - exp(-C), and at most
+    min(C, 1 + n_bins / dead_bins) (C = the gate's signal + noise): at most 1 - exp(-C) once
+    the dead time holds the gate. The events output also draws one uniform per (loud cell,
+    pulse) for the pulse numbers (``_pulse_numbers``). ``points`` with a dead time of at
+    least the gate (``points.batch_points``): a loud cell costs its pieces (at most two per
+    signal bin) and the events of its stretches, whose faint bins expect under
+    ``BRIGHT_COUNTS`` (3) counts each and whose noise gives at most a first event a pulse:
+    5 per term more, plus pulses (1 - exp(-noise n_bins)) a loud cell."""
+    loud_total = np.asarray(loud_total, np.float64)
+    contributions = np.asarray(contributions, np.float64)
+    n = len(contributions)
+    if points and dead_bins >= n_bins:
+        per_cell = np.full(len(loud_total), pulses * float(-np.expm1(-noise * n_bins)))
+        return contributions * 6.0 + np.bincount(loud_sample, per_cell, minlength=n)
+    c = loud_total + noise * n_bins
+    first = -np.expm1(-c)
+    if dead_bins >= n_bins:
+        per_pulse = first
+    else:
+        cap = 1.0 + n_bins / dead_bins if dead_bins > 0 else np.inf
+        per_pulse = np.maximum(first, np.minimum(c, cap))
+    per_cell = pulses * (per_pulse + (1.0 if events else 0.0))
+    return contributions + np.bincount(loud_sample, per_cell, minlength=n)
+
+
 def _signal_share(signal: SignalBins, k: np.ndarray, noise: float) -> np.ndarray:
     """The chance that an event is signal: the signal's part of its bin's mean (0 in a bin the
     signal does not reach)."""
@@ -313,13 +346,25 @@ def detect_points(rng: np.random.Generator, signal: SignalBins, n_cells: int, n_
     return Histogram(*(c[keep][order] for c in cat))
 
 
+# The most uniforms ``_pulse_numbers`` holds at once (rows of ``pulses``): about 25 bytes each
+# with their two argsorts, so about 50 MB whatever the loud cells and pulses.
+PULSE_NUMBER_CHUNK = 1 << 21
+
+
 def _pulse_numbers(rng: np.random.Generator, fired: np.ndarray, pulses: int) -> np.ndarray:
     """For each fired pulse of the loud cells (grouped by cell), its number among the cell's
     ``pulses``: a uniformly random subset of that size (pulses of a static scene are
-    exchangeable)."""
-    ranks = np.argsort(np.argsort(rng.random((len(fired), pulses)), axis=1), axis=1)
-    chosen = ranks < fired[:, None]  # row-major: each cell's subset in pulse order
-    return np.nonzero(chosen)[1].astype(np.int64)
+    exchangeable). Drawn a block of cells at a time (the generator's stream read in the same
+    order, so the same numbers as one (cells, pulses) draw), in bounded memory; its time is
+    one uniform per (loud cell, pulse), which ``signal_work`` counts."""
+    rows = max(1, PULSE_NUMBER_CHUNK // max(int(pulses), 1))
+    out = []
+    for lo in range(0, len(fired), rows):
+        f = fired[lo:lo + rows]
+        ranks = np.argsort(np.argsort(rng.random((len(f), pulses)), axis=1), axis=1)
+        chosen = ranks < f[:, None]  # row-major: each cell's subset in pulse order
+        out.append(np.nonzero(chosen)[1].astype(np.int64))
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
 
 
 @dataclass

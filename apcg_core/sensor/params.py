@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..io.toml_file import read_toml
+from ..typetable import find_preset, odd_characters
 
 PRESET_DIR = Path(__file__).with_name("presets")
 OUTPUTS = ("points", "events")
@@ -110,6 +111,11 @@ def check_sensor(table: dict, source: str = "", name: str = "") -> SensorParams:
         raise InputError(f"sensor value name{' in ' + source if source else ''} is "
                          f"{len(given)} characters long ({given[:40]!r}...); accepted: at most "
                          f"{MAX_NAME_CHARS}")
+    odd = odd_characters(given)
+    if odd:
+        raise InputError(f"sensor value name{' in ' + source if source else ''} = {given!r} "
+                         f"not accepted: it holds {odd}; give it a name of visible "
+                         "characters")
     name = given or "custom"
     unknown = sorted(set(table) - set(KEYS))
     if unknown:
@@ -126,6 +132,27 @@ def check_sensor(table: dict, source: str = "", name: str = "") -> SensorParams:
         raise InputError(f"sensor value output must be one of {', '.join(OUTPUTS)}, "
                          f"got {output!r}")
     return SensorParams(name=name, output=output, **values)
+
+
+def check_own_name(sensor: SensorParams, source: str) -> SensorParams:
+    """A user's sensor (a file's) under a preset's name (in any spelling) must be that preset:
+    else every output would call it the preset. Refused in one line; the ``output`` may
+    differ (it is recorded beside the name, as ``--photon-output`` sets it)."""
+    preset = find_preset(sensor.name, PRESET_DIR)
+    if preset is None:
+        return sensor
+    own = load_sensor(preset)
+    same = own is not None and all(getattr(own, k) == getattr(sensor, k)
+                                   for k in KEYS if k != "output")
+    if not same:
+        differ = ("it is no photon sensor" if own is None else ", ".join(
+            f"{k} = {getattr(sensor, k)!r} (the preset's {getattr(own, k)!r})"
+            for k in KEYS if k != "output" and getattr(own, k) != getattr(sensor, k)))
+        raise InputError(f"{source}: the sensor is named {sensor.name!r}, the preset "
+                         f"{preset.stem!r}, but its values are not the preset's ({differ}); "
+                         "give your sensor its own name (name = \"...\"), or drop name to "
+                         "take the file's name")
+    return sensor
 
 
 def check_gate(sensor: SensorParams, r_r_m: float) -> int:
@@ -149,8 +176,9 @@ def load_sensor(ref: str | Path | None, lidar_file: bool = False) -> SensorParam
     if ref is None:
         return None
     ref_s = str(ref).strip()
-    path = PRESET_DIR / f"{ref_s}.toml"
-    if not path.is_file():
+    path = find_preset(ref_s, PRESET_DIR)  # a preset's name, in any spelling
+    preset = path is not None
+    if not preset:
         path = Path(ref_s).expanduser()
         if ref_s and path.is_dir():
             raise InputError(f"sensor {ref_s!r} is a directory; give a preset or a TOML file "
@@ -170,7 +198,10 @@ def load_sensor(ref: str | Path | None, lidar_file: bool = False) -> SensorParam
     if others:
         raise InputError(f"{path}: {', '.join(_toml_key(k, doc[k]) for k in others)} unknown "
                          "in a sensor file; accepted: the [sensor] table alone")
-    return sensor_from_table(doc["sensor"], source=str(path), name=path.stem)
+    sensor = sensor_from_table(doc["sensor"], source=str(path), name=path.stem)
+    if sensor is not None and not (preset or path.resolve().parent == PRESET_DIR.resolve()):
+        check_own_name(sensor, str(path))
+    return sensor
 
 
 def _toml_key(key: str, value) -> str:

@@ -18,7 +18,7 @@ from ..errors import InputError
 from ..frames import spherical_to_cartesian
 from ..lidar import LidarParams
 from . import kernels
-from .detector import SignalBins, detect, detect_points, work_per_window
+from .detector import SignalBins, detect, detect_points, signal_work, work_per_window
 from .link import (
     LIGHT_M_S,
     bin_seconds,
@@ -41,17 +41,50 @@ SPREAD_ROWS = 4096
 # The most range bins one return's Gaussian may reach at once (the spread table is
 # (SPREAD_ROWS + 1) x that many float64: 134 MB, and a few times that while it is made).
 MAX_SPREAD_BINS = 4096
-# The most detector arrivals one cloud's draws may follow (the detector's own cost model,
-# detector.work_per_window): about 60 bytes each at the peak, so about 1.2 GB. The presets
-# at the paper's lidar need 5e3 to 1.2e6.
+# The most detector arrivals one cloud's draws may follow (the detector's own cost model:
+# detector.work_per_window for the noise of the window, detector.signal_work for the signal
+# and its (sub-ray, bin) terms): about 60 bytes each at the peak, so about 1.2 GB. The
+# presets at the paper's lidar need 5e3 to 1.2e6 for the noise, 1.5e5 to 4.5e5 for the signal.
 MAX_WORK_PER_CLOUD = 2e7
+# The sensor values a cloud's cost follows, named wherever too much is refused (and what a
+# MemoryError's advice should name).
+COST_SETTINGS = ("pulses, dead_time_ns, pulse_energy_j (the signal), gate_m, background_hz, "
+                 "dark_count_hz")
+
+
+def check_work(sensor: SensorParams, lidar: LidarParams, n_bins: int,
+               signal: np.ndarray | None = None) -> None:
+    """The one check of a cloud's draws against MAX_WORK_PER_CLOUD: the noise of the W x H
+    window (``detector.work_per_window``) plus, once the rays are cast and before anything is
+    drawn, ``signal``: each sample's signal work (``detector.signal_work``). A named error,
+    not a MemoryError after minutes."""
+    dead_bins = sensor.dead_time_ns * 1e-9 / bin_seconds(lidar.r_r)
+    noise = work_per_window(lidar.width * lidar.height, n_bins,
+                            noise_per_bin(sensor, lidar.r_r), dead_bins, sensor.pulses,
+                            sensor.threshold, sensor.output == "points")
+    sig = float(np.max(signal)) if signal is not None and len(signal) else 0.0
+    if noise + sig <= MAX_WORK_PER_CLOUD:
+        return
+    raise InputError(
+        f"sensor {sensor.name!r} at the lidar ({lidar.describe()}): one cloud would draw "
+        f"about {noise + sig:.3g} detector arrivals (noise {noise:.3g}: the window's "
+        f"{lidar.width} x {lidar.height} cells x pulses = {sensor.pulses} x the noise in a "
+        f"gate of {n_bins} bins, gate_m = {sensor.gate_m!r}, background_hz + dark_count_hz = "
+        f"{sensor.noise_hz:.4g}; signal {sig:.3g}: the cells the target lights x pulses x "
+        f"the events a pulse, pulse_energy_j = {sensor.pulse_energy_j!r}, cells_per_pulse = "
+        f"{sensor.cells_per_pulse}; dead_time_ns = {sensor.dead_time_ns!r}, output = "
+        f"{sensor.output}); accepted: at most {MAX_WORK_PER_CLOUD:.3g}. Lower one of "
+        f"{COST_SETTINGS}, make dead_time_ns at least the gate (one event a pulse), or use a "
+        "smaller window")
 
 
 @lru_cache(maxsize=64)  # every batch of a build asks again; the answer is the pair's
 def check_sensor_at(sensor: SensorParams, lidar: LidarParams) -> int:
     """The range gate's bins of ``sensor`` at ``lidar``, once their pairing is checked: a gate
-    of at least one bin, a threshold the pulses can reach, and a cloud's draws that fit in
-    memory (a named error before anything is drawn, not a MemoryError after minutes)."""
+    of at least one bin, a threshold the pulses can reach, a return's spread, and a cloud's
+    noise draws that fit in memory (``check_work``: a named error before anything is drawn,
+    not a MemoryError after minutes; its signal part follows in ``photon_cloud`` once the
+    rays are cast, before any draw)."""
     n_bins = check_gate(sensor, lidar.r_r)
     dead_bins = sensor.dead_time_ns * 1e-9 / bin_seconds(lidar.r_r)
     where = f"sensor {sensor.name!r} at the lidar ({lidar.describe()})"
@@ -69,17 +102,7 @@ def check_sensor_at(sensor: SensorParams, lidar: LidarParams) -> int:
             f"jitter_ps = {sensor.jitter_ps!r}: sigma {range_sigma_m(sensor):.4g} m) reaches "
             f"{spread} range bins of r_r_m = {lidar.r_r!r} at once; accepted: at most "
             f"{MAX_SPREAD_BINS} (less spread, or a coarser r_r_m)")
-    work = work_per_window(lidar.width * lidar.height, n_bins,
-                           noise_per_bin(sensor, lidar.r_r), dead_bins, sensor.pulses,
-                           sensor.threshold, sensor.output == "points")
-    if work > MAX_WORK_PER_CLOUD:
-        raise InputError(
-            f"{where}: one cloud would draw about {work:.3g} detector arrivals (the window's "
-            f"{lidar.width} x {lidar.height} cells x pulses = {sensor.pulses} x the noise "
-            f"in a gate of {n_bins} bins: gate_m = {sensor.gate_m!r}, background_hz + "
-            f"dark_count_hz = {sensor.noise_hz:.4g}, dead_time_ns = {sensor.dead_time_ns!r}); "
-            f"accepted: at most {MAX_WORK_PER_CLOUD:.3g}. Lower one of them, or use a smaller "
-            "window")
+    check_work(sensor, lidar, n_bins)  # the noise now; the signal once the rays are cast
     return n_bins
 
 
@@ -186,9 +209,17 @@ def signal_bins(cell: np.ndarray, range_m: np.ndarray, mean: np.ndarray, first_b
                 mean[order]
         lo, row = k_.spread_start(range_m, np.ascontiguousarray(first_bin), float(r_r),
                                   float(half), float(len(weights) - 1))
-        c, b, total = k_.spread_sum(cell, lo, row, np.ascontiguousarray(mean, np.float64),
-                                    weights, int(n_bins))
-        return SignalBins(c, b, total)
+        nb = weights.shape[1]
+        heads = np.flatnonzero(np.concatenate([[True], cell[1:] != cell[:-1]])) \
+            if len(cell) else np.zeros(0, np.int64)
+        runs = int((np.maximum.reduceat(lo, heads) - np.minimum.reduceat(lo, heads)
+                    + nb).sum()) if len(cell) else 0
+        if _dense_fits(runs, len(cell) * nb):  # the kernel's slots: each cell's run
+            c, b, total = k_.spread_sum(cell, lo, row, np.ascontiguousarray(mean, np.float64),
+                                        weights, int(n_bins))
+            return SignalBins(c, b, total)
+        # wide runs: the numpy terms, added up by sorting (the same bytes)
+        return _spread_terms(cell, lo, row, mean, weights, n_bins)
     u = range_m / r_r - first_bin  # position in the gate, in bins
     if sigma_bins > 0:
         half, weights = spread_table(sigma_bins)
@@ -198,12 +229,20 @@ def signal_bins(cell: np.ndarray, range_m: np.ndarray, mean: np.ndarray, first_b
         start = u - half
         lo = np.floor(start)
         row = np.rint((start - lo) * (len(weights) - 1)).astype(np.int64)
-        m = mean[:, None] * weights[row]
-        b = lo.astype(np.int64)[:, None] + np.arange(weights.shape[1])[None, :]
-        c = np.broadcast_to(cell[:, None], b.shape)
-        b, m, c = b.ravel(), m.ravel(), c.ravel()
-    else:
-        b, m, c = np.floor(u).astype(np.int64), mean, cell
+        return _spread_terms(cell, lo.astype(np.int64), row, mean, weights, n_bins)
+    return _gated_sum(np.floor(u).astype(np.int64), mean, cell, n_bins)
+
+
+def _spread_terms(cell, lo, row, mean, weights, n_bins) -> SignalBins:
+    """Hit i's mean times weights[row[i], j] in bin lo[i] + j, added up per (cell, bin)."""
+    m = mean[:, None] * weights[row]
+    b = lo[:, None] + np.arange(weights.shape[1])[None, :]
+    c = np.broadcast_to(cell[:, None], b.shape)
+    return _gated_sum(b.ravel(), m.ravel(), c.ravel(), n_bins)
+
+
+def _gated_sum(b, m, c, n_bins) -> SignalBins:
+    """The terms in the gate (and > 0) added up per (cell, bin)."""
     keep = (b >= 0) & (b < n_bins) & (m > 0)
     b, m, c = b[keep], m[keep], c[keep]
     if len(c) == 0:
@@ -211,11 +250,41 @@ def signal_bins(cell: np.ndarray, range_m: np.ndarray, mean: np.ndarray, first_b
     if (np.diff(c) < 0).any():  # the simulator gives hits cell by cell; others may not
         order = np.argsort(c, kind="stable")
         b, m, c = b[order], m[order], c[order]
-    # Add up per (cell, bin) without sorting the entries: each cell's bins lie in a short run
-    # [lo, hi]; one dense slot per bin of those runs, filled by bincount.
+    return _sum_cell_bins(c, b, m)
+
+
+# signal_bins adds up per (cell, bin) through one dense slot per bin of each cell's run of
+# bins while the runs hold at most this many slots per (sub-ray, bin) term (plus
+# DENSE_SLOTS_FREE); past that (fine bins under a sharp pulse: a cell's sub-rays a metre
+# apart are 1e6 bins of 1 um) it sorts the terms instead: memory follows the terms.
+DENSE_SLOTS_PER_TERM = 4
+DENSE_SLOTS_FREE = 1 << 16
+
+
+def _dense_fits(runs: int, terms: int) -> bool:
+    return runs <= DENSE_SLOTS_PER_TERM * terms + DENSE_SLOTS_FREE
+
+
+def _sum_cell_bins(c: np.ndarray, b: np.ndarray, m: np.ndarray) -> SignalBins:
+    """The terms ``m`` (> 0) added up per (cell ``c``, bin ``b``), ``c`` sorted, each sum
+    taken in the terms' order (as bincount adds): by (cell, bin). The dense slots and the
+    sort give the same bytes."""
     first = np.flatnonzero(np.concatenate([[True], c[1:] != c[:-1]]))
     lo = np.minimum.reduceat(b, first)
     width = np.maximum.reduceat(b, first) - lo + 1
+    if not _dense_fits(int(width.sum()), len(c)):
+        # a stable sort by (cell, bin): a sum's terms keep their order
+        order = np.lexsort((b, c))
+        cs, bs = c[order], b[order]
+        new = np.empty(len(cs), bool)
+        new[0] = True
+        new[1:] = (cs[1:] != cs[:-1]) | (bs[1:] != bs[:-1])
+        total = np.bincount(np.cumsum(new) - 1, weights=m[order])
+        slot = np.flatnonzero(total > 0)
+        head = np.flatnonzero(new)[slot]
+        return SignalBins(cs[head].astype(np.int64), bs[head].astype(np.int64), total[slot])
+    # each cell's bins lie in a short run [lo, hi]; one dense slot per bin of those runs,
+    # filled by bincount, without sorting the terms
     start = np.concatenate([[0], np.cumsum(width)])
     group = np.repeat(np.arange(len(first)), np.diff(np.append(first, len(c))))
     total = np.bincount(start[group] + b - lo[group], weights=m, minlength=int(start[-1]))
@@ -280,6 +349,23 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
                                sensor, hits.sub_rays)
     cell_all = ((hits.h.astype(np.int64) - lidar.h_min) * lidar.width
                 + (hits.w.astype(np.int64) - lidar.w_min))
+    # per target cell: the expected signal photo-electrons per pulse
+    key = hits.sample.astype(np.int64) * n_cells + cell_all
+    if len(key) and (np.diff(key) >= 0).all():  # the simulator's order: np.unique's, unsorted
+        new = np.empty(len(key), bool)
+        new[0] = True
+        np.not_equal(key[1:], key[:-1], out=new[1:])
+        uniq, inv = key[new], np.cumsum(new) - 1
+    else:
+        uniq, inv = np.unique(key, return_inverse=True)
+    tpe = np.bincount(inv, weights=pe, minlength=len(uniq))
+    # the draws' cost with the signal now known (an upper bound: a cell's whole signal, gated
+    # or not), refused before anything is drawn (check_work, as the noise was)
+    terms = np.bincount(hits.sample, minlength=n).astype(np.float64) * (
+        int(np.ceil(2.0 * SIGMA_CUT * sigma_bins)) + 1 if sigma_bins > 0 else 1)
+    check_work(sensor, lidar, n_bins, signal_work(
+        tpe, (uniq // n_cells).astype(np.int64), terms, n_bins, noise, dead_bins,
+        sensor.pulses, sensor.output == "points", sensor.output == "events"))
     # the loops compiled once the process has enough hits for them (kernels.py: the same bytes)
     compiled = kernels.use_for(len(hits.range_m))
     if sensor.output == "points" and dead_bins >= n_bins:
@@ -302,16 +388,6 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
     w = (cell % lidar.width + lidar.w_min).astype(np.int32)
     h = (cell // lidar.width + lidar.h_min).astype(np.int32)
     range_m = (first[s] + b + 0.5) * lidar.r_r if len(s) else np.zeros(0)
-    # per target cell: the expected signal photo-electrons per pulse
-    key = hits.sample.astype(np.int64) * n_cells + cell_all
-    if len(key) and (np.diff(key) >= 0).all():  # the simulator's order: np.unique's, unsorted
-        new = np.empty(len(key), bool)
-        new[0] = True
-        np.not_equal(key[1:], key[:-1], out=new[1:])
-        uniq, inv = key[new], np.cumsum(new) - 1
-    else:
-        uniq, inv = np.unique(key, return_inverse=True)
-    tpe = np.bincount(inv, weights=pe, minlength=len(uniq))
     tcell = uniq % n_cells
     return PhotonCells(s.astype(np.int64), w, h, range_m.astype(np.float64),
                        label.astype(np.uint8), count.astype(np.int32), pulse.astype(np.int32),
