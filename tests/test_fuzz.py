@@ -313,14 +313,15 @@ CONFIGS = st.fixed_dictionaries({}, optional={"types": st.sampled_from(
 def test_a_config_is_refused_by_key_or_plans(tmp_path_factory, capsys, parts):
     from apcg_core.catalog.catalog import default_catalog
     from apcg_core.errors import InputError
-    from dataset_builder.plan import load_config, make_plan
+    from dataset_builder.plan import config_path, load_config, make_plan
     base, top, tables = parts
     cfg = {**base, **top, **tables}
     tmp = tmp_path_factory.mktemp("cfg")
     path = tmp / "c.toml"
     path.write_text(toml_text(cfg))
-    try:
-        plan = make_plan(load_config(str(path)), default_catalog())
+    try:  # as `apcg dataset build` plans it (its messages name the config)
+        plan = make_plan(load_config(str(path)), default_catalog(),
+                         source=f"dataset config {config_path(str(path))}")
     except InputError as exc:
         message = str(exc)
         rc, _, err = run(["dataset", "build", "--config", path, "-o", tmp / "ds"], capsys)
