@@ -129,7 +129,6 @@ def _run_generate(args) -> int:
                          f"clouds: at most {job.MAX_CLOUDS:,} in one request; split it into "
                          "several (other rows, other seeds)")
     model.expect_clouds(total)
-    _warn_unseeded(model, sensor, args)
     window = _warn_window(model, table)
     meta = {"model": str(model.directory), "family": model.family,
             "runtime": getattr(model, "runtime", None), "seed": args.seed,
@@ -194,6 +193,7 @@ def _run_generate(args) -> int:
                 progress.update(n)
         progress.close()
     window.result()  # its line printed (above the bar) before the command's last ones
+    _warn_unseeded(model, sensor, args)
     from .plausibility import empty_clouds_warning
     if (warning := empty_clouds_warning(empty, total, sensor is not None)) is not None:
         import sys

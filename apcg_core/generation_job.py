@@ -6,23 +6,26 @@ file: a request of at least :data:`RESUMABLE_CLOUDS` clouds keeps its finished w
 ``OUT.parts/``: ``job.json`` (what the request is: the output's header, the digests of the
 model's files and of the conditions file), one ``part-NNNNNN.npz`` per :data:`PART_CLOUDS`
 clouds (or per block, ``generation_cli.BLOCK_CLOUDS``, where a model's blocks are larger) (each
-written whole through ``NAME.PID.part`` + fsync + rename, ``apcg_core.io.dataset.write_npz``),
-and the lock ``.generate.lock`` (one live process per
-job, ``apcg_core.lock``). Ctrl-C (or SIGTERM) stops it with a line saying how far it got; the
-same command then skips the parts present and continues. When every part is there they are
-copied into the output in order (``CloudWriter``: memory flat in the number of clouds) and the
-directory is removed. Every block is computed as the one-process path computes it (the same
-blocks, seeds and sample offsets), so the output's bytes do not depend on where or in how many
-runs its parts were made.
+written whole through ``NAME.PID.part`` + fsync + rename, ``apcg_core.io.dataset.write_npz``,
+each recording its job's digest and its place in it, :data:`JOB_KEY`: a part another job made
+is made again, never written into this output), and the lock ``.generate.lock`` (one live
+process per job, ``apcg_core.lock``). Ctrl-C (or SIGTERM) stops it with a line saying how far
+it got; the same command then skips the parts present and continues. When every part is there
+they are copied into the output in order (``CloudWriter``: memory flat in the number of clouds)
+and the directory is removed. Every block is computed as the one-process path computes it (the
+same blocks, seeds and sample offsets), so the output's bytes do not depend on where or in how
+many runs its parts were made.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import sys
 import zipfile
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +50,11 @@ PART_CLOUDS = 2048
 MAX_CLOUDS = 10**9
 ENGINES_GROUP = "apcg.engines"  # entry points: name -> run_tasks(...) context (the builder's)
 _FIELDS = ("xyz", "range_m", "cell_w", "cell_h", "sample")
+# Each part also holds this member (last, after the clouds and counts): a short JSON string
+# naming the job that made it (the digest of its job.json record) and which part of it it is
+# (its number and sub-block range), so that a part copied from another job, or from another
+# part, is made again instead of going into the output (:func:`_part_problem`).
+JOB_KEY = "job"
 
 
 def clouds_with_points(sample) -> int:
@@ -95,6 +103,7 @@ class PartTask:
     seed: int
     sensor: object  # SensorParams, or None: the ideal lidar
     photon_fields: tuple
+    job: str | None = None  # what the part records of its job (:func:`part_stamp`)
 
 
 _MODELS: dict = {}  # a worker's models, opened once per process
@@ -122,7 +131,7 @@ def run_part(task: PartTask) -> tuple[int, int]:
     model.expect_clouds(sum(len(part) * count for _, part, count, _ in task.blocks))
     held = [generate_block(model, task.sensor, task.seed, b, part, count, offset)
             for b, part, count, offset in task.blocks]
-    _write_part(Path(task.path), held, task.photon_fields, f".{os.getpid()}.part")
+    _write_part(Path(task.path), held, task.photon_fields, f".{os.getpid()}.part", task.job)
     return task.index, sum(n for _, n in held)
 
 
@@ -161,6 +170,20 @@ def job_record(meta: dict, model_dir, conditions) -> dict:
             "conditions_sha256": sha256_file(conditions) if conditions else None}
 
 
+def job_digest(record: dict) -> str:
+    """The digest of a job's record (job.json's bytes): what each of its parts records."""
+    from .io.dataset import json_bytes
+    return hashlib.sha256(json_bytes(record)).hexdigest()
+
+
+def part_stamp(digest: str, i: int, per_part: int, n_subs: int) -> str:
+    """What part ``i`` of the job ``digest`` records of itself (member ``JOB_KEY``): the job,
+    the part's number and its range of sub-blocks (hence of the job's rows)."""
+    return json.dumps({"job": digest, "part": i,
+                       "blocks": [i * per_part, min((i + 1) * per_part, n_subs)]},
+                      sort_keys=True, separators=(",", ":"))
+
+
 def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int, compute,
             lanes: int, progress_from, engine=None, task_of=None) -> tuple[int, int]:
     """Generate the sub-blocks ``subs`` (``compute(item)`` -> (cloud, clouds), in order,
@@ -177,6 +200,10 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
     subs = list(subs)
     n_parts = -(-len(subs) // per_part)
     parts = parts_dir(output)
+    if parts.exists() and not parts.is_dir():  # the user's file: kept, and named
+        raise InputError(f"{parts} is a file, but this request keeps its finished parts in a "
+                         f"directory of that name ({output}'s parts, so that it can resume); "
+                         "move that file away, or choose another output name")
     suffix = f".{os.getpid()}.part"
     # The engine is checked (its name, its options, a cluster's address) and started before
     # the parts directory is made: a refused request leaves nothing behind.
@@ -197,10 +224,20 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
                                  "nothing says which request made them; delete that "
                                  "directory and run the command again")
             write_atomic(job, json_bytes(record), part_suffix=suffix)
+        digest = job_digest(record)
+        stamps = [part_stamp(digest, i, per_part, len(subs)) for i in range(n_parts)]
         done = {i for i in range(n_parts) if (parts / _part_name(i)).exists()}
         before = 0
         for i in sorted(done):
-            with _reading(parts / _part_name(i)), np.load(parts / _part_name(i)) as z:
+            path = parts / _part_name(i)
+            if (why := _part_problem(path, stamps[i])) is not None:
+                # a part job.json never made (copied in from another job or part): made again
+                print(f"apcg generate: {path} is not this job's ({why}): made again",
+                      file=sys.stderr, flush=True)
+                path.unlink()
+                done.discard(i)
+                continue
+            with _reading(path), np.load(path) as z:
                 before += int(z["clouds"])
         progress = progress_from(before)
         todo = ((k, item) for k, item in enumerate(subs) if k // per_part not in done)
@@ -209,8 +246,9 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
             return (k_item[0], *compute(k_item[1]))
         try:
             if engine is not None:
-                tasks = [task_of(i, subs[i * per_part:(i + 1) * per_part],
-                                 str((parts / _part_name(i)).resolve()))
+                tasks = [replace(task_of(i, subs[i * per_part:(i + 1) * per_part],
+                                         str((parts / _part_name(i)).resolve())),
+                                 job=stamps[i])
                          for i in range(n_parts) if i not in done]
                 for _, n in run_tasks(run_part, tasks):
                     progress.update(n)
@@ -222,10 +260,11 @@ def run_job(output, meta: dict, record: dict, photon_fields, subs, per_part: int
                     progress.update(n)
                     if k % per_part == per_part - 1 or k == len(subs) - 1:
                         _write_part(parts / _part_name(k // per_part), held, photon_fields,
-                                    suffix)
+                                    suffix, stamps[k // per_part])
                         held = []
                         wait_point("generate.part-written")
-            points, empty = _write_output(output, meta, photon_fields, parts, n_parts)
+            points, empty = _write_output(output, meta, photon_fields, parts, n_parts,
+                                          stamps)
         except KeyboardInterrupt:
             raise GenerateInterrupted(_how_far(parts, n_parts)) from None
         finally:
@@ -257,9 +296,11 @@ def in_order(fn, items, lanes: int = 1):
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _write_part(path: Path, held: list, photon_fields, suffix: str) -> None:
+def _write_part(path: Path, held: list, photon_fields, suffix: str,
+                stamp: str | None = None) -> None:
     """A part file of the clouds ``held`` ((cloud, clouds) per block), written field by
-    field: beside the blocks, memory holds one concatenated field at a time."""
+    field: beside the blocks, memory holds one concatenated field at a time; ``stamp``
+    (:func:`part_stamp`: its job and place in it) recorded last."""
     from .io.dataset import write_npz
     clouds = [c for c, _ in held]
 
@@ -268,12 +309,42 @@ def _write_part(path: Path, held: list, photon_fields, suffix: str) -> None:
     members = [(k, field(k)) for k in (*_FIELDS, *photon_fields)]
     members.append(("clouds", np.int64(sum(n for _, n in held))))
     members.append(("empty", np.int64(sum(n - clouds_with_points(c.sample) for c, n in held))))
+    if stamp is not None:
+        members.append((JOB_KEY, np.array(stamp)))
     write_npz(path, members, part_suffix=suffix)
 
 
-def _write_output(output, meta, photon_fields, parts: Path, n_parts: int) -> tuple[int, int]:
-    """The parts, in order, into the output. Each part is checked whole first (its zip, its
-    members' types and lengths, every member's CRC: :func:`_part_ranges`); a damaged one is
+def _part_problem(path: Path, stamp: str) -> str | None:
+    """Why the part file ``path`` is not the part whose :func:`part_stamp` is ``stamp``
+    (another job's, another part's of this job, or one that records no job), or None. A
+    damaged file is named by :func:`_reading` (InputError)."""
+    with _reading(path), np.load(path) as z:
+        rec = z[JOB_KEY] if JOB_KEY in z.files else None
+        if rec is not None and (rec.ndim != 0 or rec.dtype.kind != "U"):
+            return f"its {JOB_KEY} record is not a string"
+        rec = str(rec) if rec is not None else None
+    if rec is None:
+        return "it records no job: written by another job or an older apcg"
+    if rec == stamp:
+        return None
+    try:
+        got = json.loads(rec)
+    except json.JSONDecodeError:
+        got = None
+    want = json.loads(stamp)
+    if not isinstance(got, dict):
+        return f"its {JOB_KEY} record is damaged"
+    if got.get("job") != want["job"]:
+        return "it belongs to another job (another request's model, conditions or options)"
+    return (f"it is part {got.get('part')} of this job (sub-blocks {got.get('blocks')}), not "
+            f"part {want['part']} (sub-blocks {want['blocks']})")
+
+
+def _write_output(output, meta, photon_fields, parts: Path, n_parts: int,
+                  stamps: list | None = None) -> tuple[int, int]:
+    """The parts, in order, into the output. Each part is checked whole first (that it is
+    this job's part ``i``, ``stamps[i]``: :func:`_part_problem`; its zip, its members' types
+    and lengths, every member's CRC: :func:`_part_ranges`); a foreign or damaged one is
     named, with what to do. Into an NPZ the checked bytes are copied by the kernel
     (``CloudWriter.write_ranges``: the same file as writing the arrays, without loading
     them); into other formats the arrays are loaded and written."""
@@ -282,6 +353,9 @@ def _write_output(output, meta, photon_fields, parts: Path, n_parts: int) -> tup
     with CloudWriter(output, meta, photon_fields=photon_fields) as out:
         for i in range(n_parts):
             path = parts / _part_name(i)
+            if stamps is not None and (why := _part_problem(path, stamps[i])) is not None:
+                raise InputError(f"{path} is not this job's ({why}); delete it and run the "
+                                 "same command again: that part is computed again")
             if out.ext == ".npz":
                 with _reading(path), open(path, "rb") as src:
                     ranges, n, part_empty = _part_ranges(src, out.fields)

@@ -19,6 +19,7 @@ shards are done: the same command resumes.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import time
@@ -32,6 +33,8 @@ from apcg_core.io.dataset import (
     FORMAT_VERSION,
     Shard,
     check_complete,
+    dataset_stamp,
+    foreign_shard,
     json_bytes,
     load_shard,
     read_condition_index,
@@ -183,6 +186,7 @@ def build_dataset(config: str | dict, out_dir, backend: str | None = None, worke
 def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings, part_i: int,
                   part_n: int, progress: bool) -> dict:
     header = json_bytes(header_of(plan, catalog))
+    head = json.loads(header)  # as every reader reads it back
     table = conditions_csv(plan)  # once: about a second a 10^5 samples
     head_path = out / "dataset.json"
     # Concurrent builders of one plan write the same bytes here, each through its own
@@ -214,14 +218,15 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
     mine = [s for s in plan.shards if s.index % part_n == part_i]
     todo = []
     for s in mine:  # a shard is done only when it is this plan's shard, whole
-        if (out / s.file).exists() and (why := not_this_shard(out, s, plan)) is not None:
+        if (out / s.file).exists() and (why := not_this_shard(out, s, plan, head)) is not None:
             _say(f"{out / s.file} is not this build's ({why}): built again")
             (out / s.file).unlink()
         if not (out / s.file).exists():
             todo.append(s)
     done_samples = sum(len(s.rows) for s in mine) - sum(len(s.rows) for s in todo)
     # absolute: a cluster's workers do not share this process's working directory
-    tasks = [_task(plan, catalog, s, Path(settings.output)) for s in todo]
+    stamp = dataset_stamp(head)  # each shard records which dataset it is
+    tasks = [_task(plan, catalog, s, Path(settings.output), stamp) for s in todo]
     bar = Progress(sum(len(s.rows) for s in mine), "sample", progress, done=done_samples)
     t0 = time.perf_counter()
     try:
@@ -238,7 +243,7 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
     complete = all((out / s.file).exists() for s in plan.shards)
     if complete:  # the other parts' shards too, whole, before a manifest vouches for them
         bad = [(s, why) for s in plan.shards if s.index % part_n != part_i
-               and (why := not_this_shard(out, s, plan)) is not None]
+               and (why := not_this_shard(out, s, plan, head)) is not None]
         if bad:
             s, why = bad[0]
             raise InputError(f"{out / s.file} is not this build's ({why}); delete it and run "
@@ -254,10 +259,13 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
             "seconds": round(elapsed, 3), "complete": complete}
 
 
-def not_this_shard(out: Path, s: ShardPlan, plan: Plan) -> str | None:
+def not_this_shard(out: Path, s: ShardPlan, plan: Plan, head: dict) -> str | None:
     """Why ``out / s.file`` is not shard ``s`` of ``plan`` (read whole: every member's CRC),
-    or None when it is: its samples and their conditions must be the plan's, exactly (a shard
-    of another seed, config or dataset, copied in, is told apart)."""
+    whose header is ``head``, or None when it is: its samples and their conditions must be
+    the plan's, exactly (a shard of another seed, config or dataset, copied in, is told
+    apart), and it must be stamped as this dataset's (``foreign_shard``, the readers' check:
+    a shard of the same plan built with another lidar, backend, sensor, ... is another
+    dataset's; one written before shards were stamped is not what this build writes)."""
     try:
         shard = Shard.load(out / s.file)
     except InputError:
@@ -265,6 +273,10 @@ def not_this_shard(out: Path, s: ShardPlan, plan: Plan) -> str | None:
     if not np.array_equal(shard.sample_id, s.rows) or \
             not np.array_equal(shard.conditions, plan.table[s.rows]):
         return "its samples or their conditions are another build's"
+    if shard.dataset is None:
+        return "written before shards recorded their dataset"
+    if (why := foreign_shard(shard, head)) is not None:
+        return f"another dataset's: {why}"
     return None
 
 
@@ -288,7 +300,8 @@ def _interrupted(out: Path, mine: list[ShardPlan], part_i: int, part_n: int,
                             "run the same command again to resume (finished shards are kept)")
 
 
-def _task(plan: Plan, catalog, s: ShardPlan, out: Path) -> ShardTask:
+def _task(plan: Plan, catalog, s: ShardPlan, out: Path, dataset: str | None = None) \
+        -> ShardTask:
     t = plan.types[s.type_code]
     table = plan.table[s.rows]
     return ShardTask(index=s.index, path=str(out / s.file), type_catalog_index=t.index,
@@ -300,7 +313,7 @@ def _task(plan: Plan, catalog, s: ShardPlan, out: Path) -> ShardTask:
                      lidar=plan.lidar.to_dict(),
                      sensor=plan.sensor.to_dict() if plan.sensor else None,
                      incidence=bool(plan.config.get("incidence", False)),
-                     seed=int(plan.config.get("seed", 0)))
+                     seed=int(plan.config.get("seed", 0)), dataset=dataset)
 
 
 def dataset_info(directory, verify: bool = False, require_complete: bool = False) -> dict:
@@ -361,7 +374,7 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
                 bad.append(s["file"])
                 continue
             try:
-                sh = load_shard(out, s, index) if index is not None else Shard.load(p)
+                sh = load_shard(out, s, index, head) if index is not None else Shard.load(p)
             except InputError:
                 bad.append(s["file"])
                 continue

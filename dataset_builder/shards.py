@@ -37,6 +37,9 @@ class ShardTask:
     sensor: dict | None = None  # SensorParams.to_dict(); None: the ideal standard cloud
     seed: int = 0  # the dataset's seed: a sample's photons are seeded by (seed, sample id)
     incidence: bool = False  # also each return's cosine of incidence (cos_incidence)
+    # the dataset's stamp (apcg_core.io.dataset.dataset_stamp of its header), recorded in the
+    # shard; None: none recorded (benches' loose shards)
+    dataset: str | None = None
 
 
 _SIMULATORS: dict = {}
@@ -66,12 +69,15 @@ def compute_shard(task: ShardTask) -> Shard:
     sim = _simulator(task)
     lidar = sim.lidar
     if task.sensor is not None:
-        return _photon_shard(task, sim, default_catalog())
-    cl = sim.simulate_cells_type(default_catalog(), task.type_catalog_index, task.table)
-    shard = _shard(task, lidar, cl.sample, cl.cell_w, cl.cell_h, cl.range_m, cl.clipped,
-                   cl.n_rays)
-    if task.incidence:
-        shard.cos_incidence = _incidence(sim, default_catalog(), task, cl).astype(np.float16)
+        shard = _photon_shard(task, sim, default_catalog())
+    else:
+        cl = sim.simulate_cells_type(default_catalog(), task.type_catalog_index, task.table)
+        shard = _shard(task, lidar, cl.sample, cl.cell_w, cl.cell_h, cl.range_m, cl.clipped,
+                       cl.n_rays)
+        if task.incidence:
+            shard.cos_incidence = _incidence(sim, default_catalog(), task,
+                                             cl).astype(np.float16)
+    shard.dataset = task.dataset  # which dataset it is (checked by every reader and resume)
     return shard
 
 

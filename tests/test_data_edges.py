@@ -115,3 +115,12 @@ def test_evaluate_names_the_dataset_and_sample_a_model_does_not_cover(tmp_path, 
     line = one_error(rc, err, f"dataset {tmp_path / 'far'}, sample ",
                      "range_m = 30", "is not made for this dataset's conditions")
     assert "row 0" not in line
+
+
+def test_a_file_where_a_jobs_parts_go_is_named_and_kept(tmp_path, capsys):
+    (tmp_path / "c.csv").write_text(HEAD + "A320neo,4500,3.4,2,10,0\n")
+    (tmp_path / "g.npz.parts").write_text("mine")
+    rc, _, err = run(["generate", "--conditions", tmp_path / "c.csv", "--resumable", "-o",
+                      tmp_path / "g.npz"], capsys)
+    one_error(rc, err, "g.npz.parts is a file", "move that file away")
+    assert (tmp_path / "g.npz.parts").read_text() == "mine" and not (tmp_path / "g.npz").exists()

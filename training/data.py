@@ -36,7 +36,8 @@ class DepthDataset:
         # and conditions.csv describe: a shard copied from elsewhere is refused by name
         check_complete(self.directory, self.header)
         index = read_condition_index(self.directory, self.header)
-        shards = [load_shard(self.directory, s, index) for s in self.header["shards"]
+        shards = [load_shard(self.directory, s, index, self.header)
+                  for s in self.header["shards"]
                   if s["split"] == split]
         if not shards:
             raise InputError(f"dataset {directory} has no {split} samples")

@@ -31,6 +31,12 @@ PHOTON_KEYS = ("label", "count", "pulse", "target_offsets", "target_pixel", "tar
 # (what an incidence output is trained on, docs/DATASET.md); others do not.
 INCIDENCE_KEYS = ("cos_incidence",)
 OPTIONAL_KEYS = PHOTON_KEYS + INCIDENCE_KEYS
+# Every shard built since shards record their dataset also holds this member (last): a short
+# JSON string of digests of what in dataset.json determines the shard's bytes
+# (``dataset_stamp``), so that a shard of another dataset of the same plan (another lidar,
+# backend, sensor, ...) is told apart. Shards built before it have none (read, checked by
+# their content: ``foreign_shard``).
+STAMP_KEY = "dataset"
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
@@ -134,13 +140,19 @@ class Shard:
     # ideal datasets built with incidence = true: per point the cosine of the angle between
     # the cell's ray and the face it met
     cos_incidence: np.ndarray | None = None  # (P,) float16
+    # the dataset it was built for (``dataset_stamp`` of its header; None: a shard built
+    # before shards recorded it)
+    dataset: str | None = None
 
     def __len__(self) -> int:
         return len(self.sample_id)
 
     def to_bytes(self) -> bytes:
         keys = SHARD_KEYS + tuple(k for k in OPTIONAL_KEYS if getattr(self, k) is not None)
-        return npz_bytes({k: getattr(self, k) for k in keys})
+        arrays = {k: getattr(self, k) for k in keys}
+        if self.dataset is not None:  # last: every array before it keeps its bytes
+            arrays[STAMP_KEY] = np.array(self.dataset)
+        return npz_bytes(arrays)
 
     @classmethod
     def load(cls, path) -> Shard:
@@ -152,6 +164,11 @@ class Shard:
                     raise InputError(f"dataset shard {path} lacks arrays {missing}; it is not "
                                      "an APCG shard or is from another format version")
                 arrays = {k: z[k] for k in SHARD_KEYS + OPTIONAL_KEYS if k in z.files}
+                if STAMP_KEY in z.files:
+                    stamp = z[STAMP_KEY]
+                    if stamp.ndim != 0 or stamp.dtype.kind != "U":
+                        raise ValueError(f"its {STAMP_KEY} member is not a string")
+                    arrays[STAMP_KEY] = str(stamp)
         except FileNotFoundError:
             raise InputError(f"dataset shard {path} is missing; run the same `apcg dataset "
                              "build` again to remake it") from None
@@ -399,11 +416,104 @@ def read_condition_index(directory, head: dict) -> ConditionIndex:
     return ConditionIndex(cols["shard"].astype(np.int64), table)
 
 
-def load_shard(directory, entry: dict, index: ConditionIndex) -> Shard:
-    """The shard of header ``entry`` (dataset.json's ``shards``), checked to be that shard of
-    this dataset: its sample count and type code are the header's, and its samples are the
-    ones conditions.csv places in it, at their conditions. A shard copied over another, or
-    from another dataset, is refused by name instead of being read as this one."""
+# What a shard's stamp names, in the order a message lists what differs: each a part of the
+# header that changes a shard's bytes with the same samples (``dataset_stamp``).
+_STAMP_PARTS = ("lidar", "backend", "sensor", "supersample", "quantize", "incidence", "seed")
+
+
+def _digest(value) -> str:
+    return hashlib.sha256(json_bytes(value)).hexdigest()[:16]
+
+
+def dataset_stamp(head: dict) -> str:
+    """What a shard of the dataset whose header is ``head`` records of it (member
+    ``STAMP_KEY``): digests of the parts of the header that determine a shard's bytes (the
+    lidar, backend, sensor, supersample, quantize, incidence, seed, each named, and
+    ``dataset``: the config (but its name and its sensor's name), lidar, condition space,
+    sensor, supersample, reflectivity and the types' catalog entries together), as compact
+    JSON. The builder stamps each shard
+    with it; ``foreign_shard`` compares it against the header the shard is read under."""
+    cfg = head.get("config") if isinstance(head.get("config"), dict) else {}
+    sensor = head.get("sensor")  # the sensor as resolved (none: ideal), not as the config names it
+    # as the builder takes it (dataset_builder.build._task)
+    supersample = cfg.get("supersample", 4 if sensor is not None else 1)
+    # the config but its name (its file's) and its sensor's name: neither changes a byte
+    config = {k: v for k, v in cfg.items() if k not in ("name", "sensor")}
+    parts = {"lidar": head.get("lidar"), "backend": cfg.get("backend"), "sensor": sensor,
+             "supersample": supersample, "quantize": cfg.get("quantize", True),
+             "incidence": bool(cfg.get("incidence", False)), "seed": cfg.get("seed", 0),
+             "dataset": {"config": config, "lidar": head.get("lidar"), "sensor": sensor,
+                         "supersample": supersample,
+                         "condition_space": head.get("condition_space"),
+                         "reflectivity": head.get("reflectivity"),
+                         "types": [[t.get("catalog_index"), t.get("depth_length_m")]
+                                   if isinstance(t, dict) else t
+                                   for t in head.get("types") or []]}}
+    return json.dumps({k: _digest(v) for k, v in parts.items()}, sort_keys=True,
+                      separators=(",", ":"))
+
+
+def foreign_shard(shard: Shard, head: dict) -> str | None:
+    """Why ``shard`` is not of the dataset whose header is ``head`` although it may hold
+    that dataset's samples (built with another lidar, backend, sensor, ...), or None. The one
+    check of a shard against its header: every reader (``load_shard``) and a resumed build
+    (``dataset_builder.build.not_this_shard``) go through it. A stamped shard's stamp must be
+    the header's; every shard's content must fit the header (a shard built before shards
+    were stamped is told by this alone): each pixel inside the header's W x H image, the
+    photon arrays there exactly when the header has a sensor, ``cos_incidence`` exactly when
+    the header's config has ``incidence = true``."""
+    if shard.dataset is not None:
+        try:
+            got = json.loads(shard.dataset)
+        except json.JSONDecodeError:
+            got = None
+        if not isinstance(got, dict):
+            return f"its {STAMP_KEY} record is damaged"
+        want = json.loads(dataset_stamp(head))
+        if got != want:
+            named = [k for k in _STAMP_PARTS if got.get(k) != want[k]]
+            return ("built with another " + "/".join(named) if named
+                    else "built from another config")
+    lidar = head["lidar"]
+    cells = int(lidar["width"]) * int(lidar["height"])
+    for k in ("pixel", "target_pixel"):
+        pix = getattr(shard, k)
+        if pix is not None and len(pix) and int(pix.max()) >= cells:
+            return (f"{k} values up to {int(pix.max())} where this dataset's "
+                    f"{lidar['width']} x {lidar['height']} lidar has {cells} pixels: built "
+                    "with another lidar")
+    sensor = head.get("sensor")
+    held = [k for k in PHOTON_KEYS if getattr(shard, k) is not None]
+    if sensor is None and held:
+        return f"photon arrays ({', '.join(held)}) in an ideal dataset: built with a sensor"
+    if sensor is not None:
+        need = ["label", "count", "target_offsets", "target_pixel", "target_signal_pe"]
+        events = isinstance(sensor, dict) and sensor.get("output") == "events"
+        if events:
+            need.append("pulse")
+        if missing := [k for k in need if getattr(shard, k) is None]:
+            return (f"no {', '.join(missing)} where this dataset's sensor records them: "
+                    "built without this dataset's sensor")
+        if not events and shard.pulse is not None:
+            return "per-event pulses where this dataset's sensor records points: built with " \
+                   "another sensor"
+    cfg = head.get("config") if isinstance(head.get("config"), dict) else {}
+    if (shard.cos_incidence is not None) != bool(cfg.get("incidence", False)):
+        return ("cos_incidence where this dataset has no incidence: built with incidence"
+                if shard.cos_incidence is not None else
+                "no cos_incidence where this dataset has incidence = true: built without it")
+    return None
+
+
+def load_shard(directory, entry: dict, index: ConditionIndex, head: dict | None = None) \
+        -> Shard:
+    """The shard of header ``entry`` (dataset.json's ``shards``; ``head`` is dataset.json),
+    checked to be that shard of this dataset: its sample count and type code are the
+    header's, its samples are the ones conditions.csv places in it, at their conditions, and
+    it was built for this header (``foreign_shard``: another lidar, backend, sensor, ...). A
+    shard copied over another, or from another dataset, is refused by name instead of being
+    read as this one. ``head`` None: read from ``directory``."""
+    head = head if head is not None else read_header(directory)
     path = Path(directory) / entry["file"]
     shard = Shard.load(path)
     ids = shard.sample_id.astype(np.int64)
@@ -423,6 +533,10 @@ def load_shard(directory, entry: dict, index: ConditionIndex) -> Shard:
         raise InputError(f"dataset shard {path} is not this dataset's {entry['file']}: it holds "
                          f"{why}; it was copied from another shard or dataset. Delete it and "
                          "run the same `apcg dataset build` again to remake it")
+    if (why := foreign_shard(shard, head)) is not None:
+        raise InputError(f"dataset shard {path} is not this dataset's {entry['file']}: it "
+                         f"belongs to another dataset ({why}). Delete it and run the same "
+                         "`apcg dataset build` again to remake it")
     return shard
 
 
