@@ -21,6 +21,7 @@ import signal
 import socket
 import sys
 import threading
+import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import CancelledError
@@ -65,9 +66,9 @@ def worker_init(parent: int | None = None) -> None:
 
     A worker ends with the process that started it (``parent``, its pid): killed outright
     (SIGKILL, the OOM killer), that process cannot stop its pool, whose workers went on with
-    their tasks and then printed pages of BrokenPipe tracebacks. On Linux the kernel sends
-    the worker SIGTERM when its parent dies (prctl PR_SET_PDEATHSIG); a shard it was writing
-    stays a temporary file, which the next run removes.
+    their tasks and then printed pages of BrokenPipe tracebacks. Each worker now watches its
+    parent (:func:`_end_with_parent`); a shard it was writing stays a temporary file, which
+    the next run removes.
 
     A spawned child inherits its parent's sys.path; once the parent has imported the bpy
     module that includes Blender's own scripts/modules folder, whose ``bpy`` package would
@@ -80,19 +81,21 @@ def worker_init(parent: int | None = None) -> None:
         _end_with_parent(parent)
 
 
-PR_SET_PDEATHSIG = 1  # linux/prctl.h
+PARENT_CHECK_S = 1.0  # how often a worker looks for its parent
 
 
 def _end_with_parent(parent: int) -> None:
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM))
-    except (OSError, AttributeError):  # no prctl: the worker lives on as before
-        return
-    if os.getppid() != parent:  # the parent died before the call: nobody would signal
+    """A thread of the worker that ends it (quietly, exit 1) once its parent is gone: its
+    parent pid is then another process's (the init process, or a subreaper). Not the
+    kernel's PR_SET_PDEATHSIG: that follows the parent's *thread* that started the worker,
+    and with --tasks-per-process the pool's workers were killed while the build lived (one
+    build in three hung on a lost task)."""
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_CHECK_S)
         os._exit(1)
+
+    threading.Thread(target=watch, name="apcg-parent-watch", daemon=True).start()
 
 
 class LocalEngine:
