@@ -6,6 +6,7 @@ stand on it (dataset_builder, training): the arrows point down only.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -72,10 +73,42 @@ def join_signed_values(argv: list[str]) -> list[str]:
     return out
 
 
+class _PipeSafe:
+    """sys.stdout or sys.stderr of the `apcg` process, whose reader may go away (`apcg ... |
+    head -1`, `2>/dev/null | true`): a write after the pipe broke is dropped (the stream sent
+    to /dev/null), so the command runs to its end and its files are kept. A BrokenPipeError
+    that unwound the command lost them: its outputs are renamed into place when it ends."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+
+    def _broke(self) -> None:
+        with contextlib.suppress(OSError, ValueError):  # later flushes, at exit too, go nowhere
+            os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())
+
+    def write(self, text):
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._broke()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._broke()
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None, registrars=None) -> int:
     command = ["apcg"]  # grows to "apcg COMMAND" once parsed, for the messages
     resume_hint = [RUN_AGAIN]  # the command's own once parsed (its parser's resume_hint)
     restore = _terminate_as_interrupt()
+    if argv is None and not isinstance(sys.stdout, _PipeSafe):  # the `apcg` process itself
+        sys.stdout, sys.stderr = _PipeSafe(sys.stdout), _PipeSafe(sys.stderr)
     try:
         code = _run(argv, registrars, command, resume_hint)
         if argv is None:  # done: a stop from here on is held back (a stop before: 130)

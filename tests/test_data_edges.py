@@ -124,3 +124,21 @@ def test_a_file_where_a_jobs_parts_go_is_named_and_kept(tmp_path, capsys):
                       tmp_path / "g.npz"], capsys)
     one_error(rc, err, "g.npz.parts is a file", "move that file away")
     assert (tmp_path / "g.npz.parts").read_text() == "mine" and not (tmp_path / "g.npz").exists()
+
+
+@pytest.mark.parametrize("closed", ["stdout", "stderr"])
+def test_a_reader_that_goes_away_loses_no_output(tmp_path, closed):
+    """`apcg ... | head -1`, `2>/dev/null | true`: the pipe's reader is gone before the command
+    prints its summary; the command still ends whole, its file kept (it exited 0 without it)."""
+    import subprocess
+    import sys
+    out = tmp_path / "c.npz"
+    proc = subprocess.Popen([sys.executable, "-m", "apcg_core.cli", "simulate", "--type",
+                             "A320neo", "--range-m", "5000", "--elevation-deg", "3.5", "-o",
+                             str(out)],
+                            stdout=subprocess.PIPE if closed == "stdout" else subprocess.DEVNULL,
+                            stderr=subprocess.PIPE if closed == "stderr" else subprocess.DEVNULL)
+    getattr(proc, closed).close()  # the reader goes away at once
+    assert proc.wait(timeout=300) == 0
+    cloud, _ = read_cloud(out)
+    assert len(cloud) > 100
