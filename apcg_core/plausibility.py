@@ -55,17 +55,19 @@ def empty_clouds_warning(n_empty: int, n_total: int, sensor: bool = False) -> st
 
 
 def sparse_cloud_warning(n_points: int, what: str,
-                         covered_cells: int | None = None) -> str | None:
+                         covered_cells: int | None = None, clipped: bool = False) -> str | None:
     """An empty or near-empty cloud. ``covered_cells`` (a photon cloud: the cells the target
     covers, ``n_points`` its signal points): when the target covers enough cells, the sensor
-    is the cause, not the geometry."""
+    is the cause, not the geometry. ``clipped``: the target reaches past the window, so an
+    empty cloud's parts may all lie outside it (not too small to resolve)."""
     if covered_cells is not None and covered_cells >= SPARSE_POINTS \
             and n_points < SPARSE_POINTS:
         return (f"{what} holds {n_points} signal point{'s' * (n_points != 1)} though the "
                 f"target covers {covered_cells} lidar cells: {SENSOR_CAUSE}")
     if n_points == 0:
-        return (f"{what} is empty: no cell of the lidar's window sees the target (too small "
-                "or too far for the lidar's resolution)")
+        why = ("its parts lie outside the lidar's window, which it reaches past" if clipped
+               else "too small or too far for the lidar's resolution")
+        return f"{what} is empty: no cell of the lidar's window sees the target ({why})"
     if n_points < SPARSE_POINTS:
         return (f"{what} has only {n_points} point{'s' * (n_points > 1)}: the target covers "
                 f"fewer than {SPARSE_POINTS} lidar cells at this range")

@@ -103,7 +103,8 @@ def _run_simulate(args) -> int:
     warnings = [range_band_warning(t, args.range_m),
                 sparse_cloud_warning(int((cloud.label == 1).sum()) if sensor else len(cloud),
                                      f"the cloud of {t.name} at {args.range_m:g} m",
-                                     len(photons.target_w) if sensor else None),
+                                     len(photons.target_w) if sensor else None,
+                                     clipped=bool(res.clipped[0])),
                 window_warning(lidar, *window_fit(lidar, lambda n: cat.mesh(n).vertices,
                                                   [t.name], table),
                                f"{t.name} at {args.range_m:g} m")]

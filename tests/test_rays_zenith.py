@@ -47,3 +47,19 @@ def test_an_arcs_top_against_the_closed_form():
     for t in np.linspace(0, 1, 11):
         p = u * (1 - t) + v * t
         assert (np.arcsin(p[:, 1] / np.linalg.norm(p, axis=1)) <= top + 1e-12).all()
+
+
+def test_an_empty_cloud_whose_parts_lie_outside_the_window_says_so(tmp_path, capsys):
+    """Two 1 m cubes 90 m apart: at 3 km the window, centred between them, holds neither."""
+    twin = trimesh.util.concatenate([trimesh.creation.box(extents=(1, 1, 1)),
+                                     trimesh.creation.box(extents=(1, 1, 1)).apply_translation(
+                                         (0.0, 90.0, 0.0))])  # 90 m of span apart
+    twin.export(tmp_path / "twin.obj")
+    rc, _, err = run(["catalog", "add", tmp_path / "twin.obj", "--name", "twin cubes",
+                      "--force"], capsys)
+    assert rc == 0, err
+    rc, _, err = run(["simulate", "--type", "twin cubes", "--range-m", "3000",
+                      "--elevation-deg", "3.5", "-o", tmp_path / "t.npz"], capsys)
+    empty = [ln for ln in err.splitlines() if "is empty" in ln]
+    assert rc == 0 and len(empty) == 1, err
+    assert "parts lie outside the lidar's window" in empty[0] and "too small" not in empty[0]
