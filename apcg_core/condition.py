@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .errors import InputError, check_finite, check_range
+from .errors import InputError, check_finite, check_range, distinct
 from .frames import ATTITUDE
 from .lidar import DEG
 from .typetable import each_once
@@ -38,17 +38,6 @@ def scale_ratio(range_m):
     r = np.asarray(range_m, dtype=np.float64)
     out = r / reference_range_m(r)
     return float(out) if np.ndim(out) == 0 else out
-
-
-def distinct(value: float, bound: float) -> str:
-    """``value`` with the fewest significant digits (6 at least) that tell it from ``bound``
-    as that is shown (6 digits): 18000.000001 against 18000, not 18000 against 18000."""
-    shown = f"{bound:.6g}"
-    for digits in range(6, 18):
-        text = f"{value:.{digits}g}"
-        if text != shown and float(text) != float(shown):
-            return text
-    return repr(float(value))
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,17 @@ def check_int(name: str, value, lo: int, hi: int | None = None, hint: str = "") 
     return int(value)
 
 
+def distinct(value: float, bound: float) -> str:
+    """``value`` with the fewest significant digits (6 at least) that tell it from ``bound``
+    as that is shown (6 digits): 18000.000001 against 18000, not 18000 against 18000."""
+    shown = f"{bound:.6g}"
+    for digits in range(6, 18):
+        text = f"{value:.{digits}g}"
+        if text != shown and float(text) != float(shown):
+            return text
+    return repr(float(value))
+
+
 def check_range(name: str, value: float, lo: float, hi: float, unit: str = "",
                 scale: float = 1.0, open_ends: bool = False) -> float:
     """Return ``value`` if ``lo <= value <= hi`` (strict when ``open_ends``), else raise.
@@ -48,7 +59,8 @@ def check_range(name: str, value: float, lo: float, hi: float, unit: str = "",
     if not inside:
         br = ("(", ")") if open_ends else ("[", "]")
         raise InputError(
-            f"{name} = {v * scale:.6g}{unit} is out of range; accepted: "
+            f"{name} = {distinct(v * scale, (lo if v < lo else hi) * scale)}{unit} is out "
+            "of range; accepted: "
             f"{br[0]}{lo * scale:.6g}{unit}, {hi * scale:.6g}{unit}{br[1]}"
         )
     return v

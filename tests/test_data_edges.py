@@ -142,3 +142,9 @@ def test_a_reader_that_goes_away_loses_no_output(tmp_path, closed):
     assert proc.wait(timeout=300) == 0
     cloud, _ = read_cloud(out)
     assert len(cloud) > 100
+
+
+def test_a_value_just_past_a_bound_is_shown_apart_from_it(tmp_path, capsys):
+    rc, _, err = run(["simulate", "--type", "A320neo", "--range-m", "3000", "--elevation-deg",
+                      "3.5", "--roll-deg=180.00001", "-o", tmp_path / "x.npz"], capsys)
+    one_error(rc, err, "roll = 180.00001 deg is out of range", "[-180 deg, 180 deg]")
