@@ -115,7 +115,7 @@ def angular_boxes(vertices: np.ndarray, table: np.ndarray, lidar: LidarParams,
     # the pole (elevation beyond +-90 deg: rays over the top, azimuth turned half a turn) meet
     # it too, but no vertex has such an elevation; every column and every row on that side
     # is cast instead.
-    north, south = _reaches_pole(vertices, c)
+    north, south = _reaches_pole(reach, c)
     w_lo = np.where(north | south, np.minimum(w_lo, -W2), w_lo)
     w_hi = np.where(north | south, np.maximum(w_hi, W2 - 1), w_hi)
     h_hi = np.where(north, np.maximum(h_hi, H2 - 1), h_hi)
@@ -153,12 +153,10 @@ def _arc_top(top: np.ndarray, length: np.ndarray) -> np.ndarray:
     return np.where(over, np.pi / 2, np.maximum(top, np.where(top >= 0.0, rise, top)))
 
 
-def _reaches_pole(vertices, c) -> tuple[np.ndarray, np.ndarray]:
-    """Per sample: whether the target's bounding sphere (about its centre ``c``) reaches the
-    zenith, and the nadir (the centre's elevation +- the sphere's angular radius)."""
-    radius = bounding_radius(vertices) if len(vertices) else 0.0
-    dist = np.linalg.norm(c, axis=1)
-    reach = np.arcsin(np.minimum(1.0, radius / np.maximum(dist, 1e-300)))
+def _reaches_pole(reach, c) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample: whether the target's bounding sphere (about its centre ``c``, of angular
+    radius ``reach``: :func:`_angular_radius`) reaches the zenith, and the nadir (the centre's
+    elevation +- ``reach``)."""
     beta = np.arctan2(c[:, 1], np.hypot(c[:, 0], c[:, 2]))
     return beta + reach >= np.pi / 2, beta - reach <= -np.pi / 2
 
