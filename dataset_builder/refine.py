@@ -5,10 +5,13 @@ surface their own way, a few micrometres apart (more at grazing incidence). Quan
 section 4: the range goes to the centre of its 0.15 m time bin) turns those micrometres into a
 whole bin wherever the range lies within them of a bin edge: 30 cells in 2.9 million on the
 bench's shards (bench/blender_path.py) came out one bin apart between the backends. So for the
-hits within :data:`EDGE_TOL_M` of an edge, the caster is asked only which triangle it hit, and
-the distance to that triangle is computed here, in float64, from the float32 ray and vertices
-the caster was given: the same number whichever caster found the triangle, and the exact one
-to ~1e-12 m. Two casters that pick different triangles at a shared edge get distances ~1e-12 m
+hits within :data:`EDGE_TOL_M` of an edge, the caster is asked only which triangle it hit
+(along the float32 ray it was given), and the distance to that triangle is computed here, in
+float64, along the float64 cell-centre ray (:func:`rays.cell_rays`) to the float32 vertices the
+caster holds: the same number whichever caster found the triangle, and the exact one to
+~1e-12 m. (Until stop 54 the distance was taken along the float32 ray, whose 1-2 um of rounding,
+up to ~0.1 mm at grazing incidence, put about 3 in 100,000 ranges in the bin next to the exact
+one: tests/test_refine.py.) Two casters that pick different triangles at a shared edge get distances ~1e-12 m
 apart, which no longer straddle a bin edge in practice.
 
 One ray per cell (supersample 1) only: a supersampled cell's range is the nearest of k x k rays.
@@ -36,11 +39,11 @@ def near_bin_edges(range_m: np.ndarray, bin_m: float, tol_m: float = EDGE_TOL_M)
 
 
 def triangle_distances(vertices: np.ndarray, faces: np.ndarray, tri: np.ndarray,
-                       origin32: np.ndarray, direction32: np.ndarray) -> np.ndarray:
-    """Float64 distance (metres) along each float32 ray to the plane of its triangle ``tri``
-    (Moller-Trumbore in float64 on the float32 numbers: ``vertices`` are rounded to float32 as
-    the casters hold them), NaN where ``tri`` is -1, the ray is parallel to the plane, or the
-    crossing lies clearly outside the triangle."""
+                       origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Float64 distance (metres) along each ray (``origin``, ``direction``: float64, or float32
+    taken as they are) to the plane of its triangle ``tri`` (Moller-Trumbore in float64;
+    ``vertices`` are rounded to float32 as the casters hold them), NaN where ``tri`` is -1, the
+    ray is parallel to the plane, or the crossing lies clearly outside the triangle."""
     n = len(tri)
     out = np.full(n, np.nan)
     ok = tri >= 0
@@ -49,8 +52,8 @@ def triangle_distances(vertices: np.ndarray, faces: np.ndarray, tri: np.ndarray,
     v = np.asarray(vertices, dtype=np.float32).astype(np.float64)
     f = np.asarray(faces)[tri[ok]]
     v0, v1, v2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    o = np.asarray(origin32, dtype=np.float32)[ok].astype(np.float64)
-    d = np.asarray(direction32, dtype=np.float32)[ok].astype(np.float64)
+    o = np.asarray(origin, dtype=np.float64)[ok]
+    d = np.asarray(direction, dtype=np.float64)[ok]
     e1, e2 = v1 - v0, v2 - v0
     p = np.cross(d, e2)
     det = (e1 * p).sum(axis=1)
@@ -61,8 +64,9 @@ def triangle_distances(vertices: np.ndarray, faces: np.ndarray, tri: np.ndarray,
         q = np.cross(s, e1)
         w = (d * q).sum(axis=1) * inv
         t = (e2 * q).sum(axis=1) * inv  # in units of |d|
-    # The caster said this triangle; only a crossing far outside it (a different surface, a
-    # degenerate triangle) is refused. Edge hits sit at u, v ~ 0 and may round either side.
+    # The caster said this triangle (along its float32 ray); only a crossing far outside it (a
+    # different surface, a degenerate triangle) is refused. Edge hits sit at u, v ~ 0 and may
+    # fall either side, the float64 ray being ~1e-7 rad from the float32 one.
     slack = 1e-6
     inside = (np.isfinite(t) & (u >= -slack) & (w >= -slack) & (u + w <= 1.0 + slack))
     out[ok] = np.where(inside, t * np.sqrt((d * d).sum(axis=1)), np.nan)
@@ -87,7 +91,8 @@ def refine_ranges(caster, vertices: np.ndarray, faces: np.ndarray, table: np.nda
     o32 = origin.astype(np.float32)
     d32 = direction.astype(np.float32)
     tri = caster.triangles(o32, d32, np.float32(t_max))
-    exact = t_start + triangle_distances(vertices, faces, tri, o32, d32)
+    # the distance along the exact (float64) ray: the bin is decided in float64 (SPEC section 4)
+    exact = t_start + triangle_distances(vertices, faces, tri, origin, direction)
     ok = np.isfinite(exact) & (np.abs(exact - r[idx]) < EDGE_TOL_M)
     out = r.copy()
     out[idx[ok]] = exact[ok]
