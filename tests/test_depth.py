@@ -191,6 +191,38 @@ def test_denorm_inverts_norm_at_exact_ratios(q):
     np.testing.assert_array_equal(denorm(norm(d, q), q)[inside], d[inside])
 
 
+@pytest.mark.parametrize("base", [1.0, 1.5, 2.0, 3.0])
+def test_denorm_inverts_norm_at_knife_edges_of_the_rounding_tolerance(base):
+    """q a hair above an exact ratio, where (q - base) |w| is about the index tolerance: the
+    two resamplings used to round with opposite tolerances and disagree (317 pixels of column
+    w = 1 at q = 1 + 1e-9; probe finding, stop 53)."""
+    d = _random_image(int(base * 7), 0.95)
+    qs = base + np.concatenate([np.logspace(-12, -6, 61), [1e-9, 1e-9 / 64, 1e-9 / 3, 2e-9]])
+    for q in qs:
+        inside = denorm_source_inside((H, W), q)
+        assert inside.sum() > 0
+        np.testing.assert_array_equal(denorm(norm(d, q), q)[inside], d[inside],
+                                      err_msg=f"q = {q!r}")
+
+
+def test_norm_is_floor_of_w_over_q_away_from_rounding():
+    """Norm's source is floor(w / q) wherever w / q is not within rounding of an integer."""
+    rng = np.random.default_rng(3)
+    w = _centred_indices_for_test(W)
+    for q in np.concatenate([rng.uniform(0.2, 20.0, 200), [0.5, 1.0, 2.0, 7.0]]):
+        x = w / q
+        away = np.abs(x - np.round(x)) > 1e-6
+        img = np.tile(np.arange(W, dtype=np.float32) / W, (H, 1))  # each column its own value
+        out = norm(img, q)[H // 2 - 1]  # the row h = 0, its own source at every q
+        src = np.floor(x[away]).astype(int) + W // 2
+        ok = (src >= 0) & (src < W)
+        np.testing.assert_array_equal(out[away][ok], img[0, src[ok]])
+
+
+def _centred_indices_for_test(n):
+    return np.arange(n) - n // 2
+
+
 def test_norm_covers_the_whole_target_when_it_fits_at_the_reference_range():
     # a target of 60 x 10 cells at 9 km (q = 3) fills 180 x 30 cells after Norm and comes back
     d = np.full((H, W), -1.0, np.float32)
