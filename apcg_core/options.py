@@ -89,9 +89,13 @@ RULES: dict[str, Rule] = {
     "range_m": Rule("a finite range in metres > 0 and <= 1e6", lo=0, hi=1e6, lo_open=True),
     # +-90 itself passes here to the pose check, which says why overhead is refused
     "elevation_deg": Rule("a finite elevation in degrees from -90 to 90", lo=-90, hi=90),
-    # the pose check's own range (condition.Condition): nose up or down at most vertical
+    # the pose check's own ranges (condition.Condition: nose up or down at most vertical, yaw
+    # and roll a half turn either way), so that a refusal names the option the user typed;
+    # tests/test_options.py holds them equal to the Condition's
     "pitch_deg": Rule("a finite pitch in degrees from -90 to 90", lo=-90, hi=90),
-    "yaw_deg": ANGLE, "roll_deg": ANGLE, "azimuth_deg": ANGLE,
+    "yaw_deg": Rule("a finite yaw in degrees from -180 to 180", lo=-180, hi=180),
+    "roll_deg": Rule("a finite roll in degrees from -180 to 180", lo=-180, hi=180),
+    "azimuth_deg": ANGLE,
     "length_m": Rule("a finite length in metres > 0 and <= 1000", lo=0, hi=1000,
                      lo_open=True),
     "unit_scale": Rule("a finite factor > 0 and <= 1000", lo=0, hi=1000, lo_open=True),

@@ -147,4 +147,10 @@ def test_a_reader_that_goes_away_loses_no_output(tmp_path, closed):
 def test_a_value_just_past_a_bound_is_shown_apart_from_it(tmp_path, capsys):
     rc, _, err = run(["simulate", "--type", "A320neo", "--range-m", "3000", "--elevation-deg",
                       "3.5", "--roll-deg=180.00001", "-o", tmp_path / "x.npz"], capsys)
-    one_error(rc, err, "roll = 180.00001 deg is out of range", "[-180 deg, 180 deg]")
+    # the option is refused by its rule, the condition's own range (tests/test_options.py)
+    one_error(rc, err, "--roll-deg 180.00001 not accepted", "from -180 to 180")
+    # and the condition itself, as a Python caller or a file reaches it
+    from apcg_core.condition import Condition
+    with pytest.raises(InputError, match=r"roll = 180\.00001 deg is out of range.*"
+                                         r"\[-180 deg, 180 deg\]"):
+        Condition.from_degrees(0, 3000.0, 3.5, roll_deg=180.00001)

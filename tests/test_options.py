@@ -76,6 +76,14 @@ def test_every_seed_in_range_is_accepted(n):
     (["simulate", "--type", "A320neo", "--range-m", "-5", "--elevation-deg", "3", "-o",
       "x.ply"], "--range-m -5.0"),
     (["catalog", "add", "f.obj", "--name", "x", "--length-m", "1e308"], "--length-m 1e+308"),
+    # the condition's own range, so the option is named (it let 200 through to a message that
+    # said `roll`; probe finding, stop 53)
+    (["simulate", "--type", "A320neo", "--range-m", "3000", "--elevation-deg", "3",
+      "--roll-deg=180.00001", "-o", "x.ply"], "--roll-deg 180.00001"),
+    (["generate", "--type", "A320neo", "--range-m", "3000", "--elevation-deg", "3",
+      "--yaw-deg", "200", "-o", "x.ply"], "--yaw-deg 200.0"),
+    (["condition", "--type", "A320neo", "--range-m", "3000", "--elevation-deg", "3",
+      "--pitch-deg", "-90.5"], "--pitch-deg -90.5"),
 ])
 def test_cli_names_the_refused_value(tmp_path, args, needle):
     out = subprocess.run([APCG, *args], capture_output=True, text=True, timeout=120,
@@ -85,3 +93,29 @@ def test_cli_names_the_refused_value(tmp_path, args, needle):
     assert "Traceback" not in out.stderr
     assert list(tmp_path.iterdir()) == []  # nothing written
 
+
+
+@pytest.mark.parametrize("dest,field", [("pitch_deg", "pitch"), ("yaw_deg", "yaw"),
+                                        ("roll_deg", "roll")])
+def test_attitude_options_accept_what_the_condition_accepts(dest, field):
+    """An attitude option's rule is the Condition's own range, at both ends: what the option
+    lets through the condition takes, and the first value past either end both refuse (so a
+    refusal always names the option the user typed)."""
+    import math
+
+    from apcg_core.condition import Condition
+    from apcg_core.errors import InputError
+    rule = RULES[dest]
+
+    def pose(v):
+        return Condition.from_degrees(0, 3000.0, 3.0, **{dest: v})
+
+    for end, outward in ((rule.lo, -math.inf), (rule.hi, math.inf)):
+        assert rule.ok(end) and getattr(pose(end), field) == pytest.approx(math.radians(end))
+        past = math.nextafter(end, outward)
+        assert not rule.ok(past)
+        with pytest.raises(InputError):
+            pose(past)
+        inner = math.nextafter(end, -outward)
+        assert rule.ok(inner)
+        pose(inner)
