@@ -94,9 +94,9 @@ def main() -> int:
            "matmul_gflops_bf16": round(matmul_flops(torch.bfloat16) / 1e9, 1), "rows": []}
     import tempfile
 
-    import onnxruntime as ort
-
+    from apcg_core.families.base import onnxruntime
     from training.export import export_onnx
+    ort = onnxruntime()  # its usage telemetry off, as the package runs it
     for name, g in nets.items():
         with tempfile.TemporaryDirectory() as tmp:
             export_onnx(g, Path(tmp) / "g.onnx")

@@ -39,7 +39,7 @@ from ..errors import InputError, check_int
 from ..frames import spherical_to_cartesian
 from ..lidar import LidarParams
 from . import plus_kernels
-from .base import RUNTIMES, ModelTypes, onnx_session, onnx_weights
+from .base import RUNTIMES, ModelTypes, onnx_session, onnx_weights, onnxruntime
 from .plus_draw import draw_of
 
 FAMILY = "apcg-plus"
@@ -240,11 +240,8 @@ class PlusModel(ModelTypes):
         return _Runtime("torch", net=self.torch_net().eval())
 
     def _onnx_session(self, path):
-        try:
-            import onnxruntime as ort
-        except ImportError as exc:
-            raise InputError("generation needs onnxruntime: pip install onnxruntime "
-                             "(or --runtime torch)") from exc
+        ort = onnxruntime("generation needs onnxruntime: pip install onnxruntime "
+                          "(or --runtime torch)")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1 if self.workers > 1 else 0  # 0: onnxruntime's own
         return onnx_session(path, opts)

@@ -6,6 +6,7 @@ helpers, and conditions from a CSV file. Numpy alone; onnxruntime where a model 
 
 from __future__ import annotations
 
+import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -236,9 +237,28 @@ _BROKEN = ("a partial or corrupt file: export the model again (`apcg export`), o
            "again from where it came")
 
 
+def onnxruntime(needed_for: str = "generation needs onnxruntime: pip install onnxruntime"):
+    """The onnxruntime module, imported with its usage telemetry off (the one import of it in
+    the package; ``needed_for``: the message when it is not installed).
+
+    onnxruntime 1.29 and later record every process's use in a SQLite file under
+    ~/.cache/Microsoft/DeveloperTools/.onnxruntime (2.4 MB here) for upload to Microsoft
+    (microsoft/onnxruntime pull requests 27379 and 29843), and sync it to disk at exit: after
+    `apcg generate` wrote 667 MB that sync waited 0.9 s for the output's pages (ext4 commits
+    them with its journal), a tenth of the command (docs/SCALE.md, stop 54). A generator run
+    on a user's data reports nothing anywhere; ``ORT_DISABLE_TELEMETRY`` (onnxruntime's own
+    switch, read when its environment is created) is set to 1 unless the user set it."""
+    os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
+    try:
+        import onnxruntime as ort
+    except ImportError as exc:
+        raise InputError(needed_for) from exc
+    return ort
+
+
 def onnx_session(path, options):
     """An onnxruntime session over ``path``; a file it cannot load is named, not a traceback."""
-    import onnxruntime as ort
+    ort = onnxruntime()
 
     try:
         return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])

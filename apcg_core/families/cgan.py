@@ -16,7 +16,7 @@ from ..condition import NOISE_DIM, scale_ratio
 from ..depth import TAU_DEFAULT, denorm, im2pc
 from ..errors import InputError
 from ..typetable import Conditions
-from .base import RUNTIMES, GenerationResult, ModelTypes, onnx_session, onnx_weights
+from .base import RUNTIMES, GenerationResult, ModelTypes, onnx_session, onnx_weights, onnxruntime
 
 FAMILY = "cgan"
 
@@ -65,11 +65,8 @@ class APCGModel(ModelTypes):
 
     def _onnx_session(self):
         if self._session is None:
-            try:
-                import onnxruntime as ort
-            except ImportError as exc:
-                raise InputError("generation without torch needs onnxruntime: "
-                                 "pip install onnxruntime") from exc
+            ort = onnxruntime("generation without torch needs onnxruntime: "
+                              "pip install onnxruntime")
             self._session = onnx_session(self.onnx_path, ort.SessionOptions())
         return self._session
 
