@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..depth import BACKGROUND, norm
-from ..errors import InputError
+from ..errors import InputError, check_int
 from .atomic import atomic_path
 
 FORMAT_VERSION = 1
@@ -143,6 +143,9 @@ class Shard:
     # the dataset it was built for (``dataset_stamp`` of its header; None: a shard built
     # before shards recorded it)
     dataset: str | None = None
+    # (H, W) of the lidar whose header it was read under (``load_shard``), never stored: its
+    # pixels are row * W + col of that image, so ``depth_images`` takes no other size
+    image_size: tuple[int, int] | None = None
 
     def __len__(self) -> int:
         return len(self.sample_id)
@@ -196,11 +199,31 @@ class Shard:
 
     def depth_images(self, height: int, width: int, dtype=np.float16) -> np.ndarray:
         """Dense standard depth images (n, H, W), background -1 (PC2Im, eq. 15)."""
+        self._check_image_size(height, width)
         n = len(self)
         img = np.full(n * height * width, BACKGROUND, dtype=dtype)
         s = np.repeat(np.arange(n), np.diff(self.offsets))
         img[s * height * width + self.pixel.astype(np.int64)] = self.depth
         return img.reshape(n, height, width)
+
+    def _check_image_size(self, height, width) -> None:
+        """Refuse an H x W other than the shard's lidar's (where it is known) or too small
+        for its pixels: a pixel is row * W + col, so any other size moves pixels into other
+        rows or the next sample's image."""
+        height = check_int("depth image height", height, 1)
+        width = check_int("depth image width", width, 1)
+        top = int(self.pixel.max()) if len(self.pixel) else -1
+        if self.image_size is not None and (height, width) != tuple(self.image_size):
+            h, w = self.image_size
+            raise InputError(f"depth images of {height} x {width} (H x W) not accepted: the "
+                             f"shard's pixels are row * W + col of its lidar's {h} x {w} "
+                             f"window (dataset.json lidar height = {h}, width = {w}); "
+                             f"accepted: depth_images({h}, {w})")
+        if top >= height * width:
+            raise InputError(f"depth images of {height} x {width} (H x W) not accepted: the "
+                             f"shard holds pixel {top}, outside an image of "
+                             f"{height * width} pixels; accepted: the shard's lidar height "
+                             "and width (dataset.json lidar)")
 
     def training_images(self, height: int, width: int, q) -> np.ndarray:
         """The normalised training images Norm(d) (eq. 17), float16 (n, H, W)."""
@@ -537,6 +560,7 @@ def load_shard(directory, entry: dict, index: ConditionIndex, head: dict | None 
         raise InputError(f"dataset shard {path} is not this dataset's {entry['file']}: it "
                          f"belongs to another dataset ({why}). Delete it and run the same "
                          "`apcg dataset build` again to remake it")
+    shard.image_size = (int(head["lidar"]["height"]), int(head["lidar"]["width"]))
     return shard
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields
+from numbers import Integral, Real
 from pathlib import Path
 
 from ..errors import InputError
@@ -79,14 +80,20 @@ MAX_NAME_CHARS = 200
 
 
 def _check_value(key: str, value, source: str):
+    # numpy's scalars (np.int64, np.float32) are the numbers they hold: numbers.Integral /
+    # numbers.Real, as Python's int and float are; a bool is not a count
     kind, lo, hi, open_lo = _RULES[key]
     where = f"sensor value {key} in {source}" if source else f"sensor value {key}"
     if kind == "int":
-        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        if isinstance(value, bool) or not isinstance(value, Integral):
+            raise InputError(f"{where} must be an integer in {lo}..{hi}, got {value!r} of "
+                             f"type {type(value).__name__}")
+        if not lo <= value <= hi:
             raise InputError(f"{where} must be an integer in {lo}..{hi}, got {value!r}")
         return int(value)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(f"{where} must be a number, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, Real):
+        raise InputError(f"{where} must be a number, got {value!r} of type "
+                         f"{type(value).__name__}")
     v = float(value)
     if not math.isfinite(v):
         raise InputError(f"{where} must be finite, got {value!r}")

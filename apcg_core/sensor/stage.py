@@ -14,7 +14,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..cloud import PointCloud
-from ..errors import InputError
+from ..errors import InputError, check_int
 from ..frames import spherical_to_cartesian
 from ..lidar import LidarParams
 from . import kernels
@@ -121,7 +121,8 @@ def spread_table(sigma_bins: float) -> tuple[float, np.ndarray]:
 @dataclass
 class SubRayHits:
     """What the ray caster found for the K x K sub-rays of N samples' cells: one entry per
-    sub-ray that hit (sample, cell, unquantized float64 range, cosine of incidence)."""
+    sub-ray that hit (sample, cell, unquantized float64 range, cosine of incidence), grouped
+    by sample. ``photon_cloud`` checks them against its lidar (``check_hits``) before use."""
 
     sample: np.ndarray  # int64
     w: np.ndarray  # int32, centred cell indices
@@ -320,24 +321,136 @@ def _per_sample(hits, cell_all, pe, first, n_bins, sigma_bins, noise, dead_bins,
     return parts
 
 
+# The farthest range the stage takes, in range bins: a gate's bins are counted in int64 and a
+# bin's range computed in float64, exact below 2**53 (a gate of up to 2**52 bins beyond).
+MAX_RANGE_BINS = 2**52
+# A photon seed: what --seed and a dataset config's seed accept (apcg_core/options.py SEED).
+MAX_SEED = 2**32 - 1
+
+
+def _ranges(name: str, values: np.ndarray, lidar: LidarParams) -> None:
+    """Refuse ``values`` (metres) that are not all finite, > 0 and within MAX_RANGE_BINS
+    bins: a NaN or huge range would be cast to a garbage bin, a range <= 0 lies behind the
+    lidar. Two reductions: NaN propagates through both and fails the comparison."""
+    if not len(values):
+        return
+    lo, hi = values.min(), values.max()
+    limit = MAX_RANGE_BINS * lidar.r_r
+    if lo > 0 and hi <= limit:
+        return
+    bad = values[~(np.isfinite(values) & (values > 0) & (values <= limit))][0]
+    raise InputError(f"photon stage: {name} = {bad!r} m not accepted; accepted: finite, "
+                     f"> 0 and <= {limit:.6g} m (2**52 range bins of r_r_m = "
+                     f"{lidar.r_r!r})")
+
+
+def _hit_array(hits: SubRayHits, name: str, m: int, integer: bool) -> np.ndarray:
+    """One of ``hits``' per-hit columns as a 1-D array of ``m`` entries, integer where it
+    indexes (a float index would be truncated into another cell or sample)."""
+    a = np.asarray(getattr(hits, name))
+    kinds = "iu" if integer else "iuf"
+    if a.ndim != 1 or len(a) != m or a.dtype.kind not in kinds:
+        raise InputError(
+            f"photon stage: SubRayHits {name} must be a 1-D array of {m} "
+            f"{'integers' if integer else 'numbers'} (one per hit, as range_m), got "
+            f"{a.dtype} of shape {a.shape}")
+    return a
+
+
+def _in(name: str, a: np.ndarray, lo: int, hi: int, what: str) -> None:
+    """Refuse an index of ``a`` outside ``lo``..``hi``: never folded into another cell."""
+    if len(a) and not (lo <= a.min() and a.max() <= hi):
+        bad = a[(a < lo) | (a > hi)][0]
+        raise InputError(f"photon stage: a hit's {name} = {int(bad)} lies outside {what}; "
+                         f"accepted: {name} in {lo}..{hi}")
+
+
+def check_hits(hits: SubRayHits, lidar: LidarParams) -> SubRayHits:
+    """``hits`` checked against ``lidar``, the one entry of every caller (simulate, the
+    dataset builder, generated clouds, scenes, the add-on): whole counts, columns of one
+    length, samples in 0..n_samples-1 grouped in order (each sample's draws take its run),
+    cells inside the W x H window, finite ranges > 0, cosines in [0, 1]. Returns them as
+    arrays (no copy of an array)."""
+    n = check_int("photon stage: SubRayHits n_samples", hits.n_samples, 0)
+    k2 = check_int("photon stage: SubRayHits sub_rays", hits.sub_rays, 1,
+                   hint=" (K x K sub-rays a cell)")
+    range_m = np.asarray(hits.range_m)
+    if range_m.ndim != 1 or range_m.dtype.kind not in "iuf":
+        raise InputError(f"photon stage: SubRayHits range_m must be a 1-D array of numbers "
+                         f"(one per hit), got {range_m.dtype} of shape {range_m.shape}")
+    m = len(range_m)
+    sample = _hit_array(hits, "sample", m, True)
+    w = _hit_array(hits, "w", m, True)
+    h = _hit_array(hits, "h", m, True)
+    cos = _hit_array(hits, "cos", m, False)
+    _in("sample", sample, 0, n - 1, f"the {n} samples")
+    if m > 1 and (sample[1:] < sample[:-1]).any():
+        raise InputError("photon stage: SubRayHits sample must be in order (the hits grouped "
+                         "by sample, as the simulator gives them); sort the hits by sample")
+    window = f"the lidar's {lidar.width} x {lidar.height} window (centred cell indices)"
+    _in("w", w, lidar.w_min, lidar.w_min + lidar.width - 1, window)
+    _in("h", h, lidar.h_min, lidar.h_min + lidar.height - 1, window)
+    _ranges("a hit's range_m", range_m, lidar)
+    if m and not (cos.min() >= 0 and cos.max() <= 1):
+        bad = cos[~((cos >= 0) & (cos <= 1))][0]
+        raise InputError(f"photon stage: a hit's cos = {bad!r} not accepted; accepted: the "
+                         "cosine of its incidence, in [0, 1]")
+    return SubRayHits(sample, w, h, range_m, cos, n, k2)
+
+
+def _per_sample_values(name: str, values, n: int) -> np.ndarray:
+    """``values`` as n float64, one per sample, or a named error (not numpy's)."""
+    try:
+        a = np.asarray(values, np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.ndim != 1 or len(a) != n:
+        raise InputError(f"photon stage: {name} must hold one number per sample ({n}), got "
+                         f"{values!r}")
+    return a
+
+
+def _reflectivity(reflectivity, n: int, m: int) -> tuple[np.ndarray, bool]:
+    """``reflectivity`` per sample (one value broadcast), or per hit when it holds one value
+    per hit (m of them, m != n); and whether it is per hit."""
+    per_hit = np.ndim(reflectivity) == 1 and len(reflectivity) == m != n
+    try:
+        rho = np.asarray(reflectivity, np.float64)
+        return (rho if per_hit else np.broadcast_to(rho, (n,))), per_hit
+    except (TypeError, ValueError):
+        raise InputError(f"photon stage: reflectivity must be one number, one per sample ({n}) "
+                         f"or one per hit ({m}), got {reflectivity!r}") from None
+
+
+def _sample_ids(sample_ids, n: int) -> np.ndarray:
+    """One id >= 0 per sample, integers: they seed each sample's draws."""
+    ids = np.asarray(sample_ids)
+    if ids.ndim != 1 or len(ids) != n or ids.dtype.kind not in "iu" or (
+            n and ids.min() < 0):
+        raise InputError(f"photon stage: sample_ids must be {n} integers >= 0 (one per "
+                         f"sample), got {sample_ids!r}")
+    return ids.astype(np.int64)
+
+
 def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
                  sensor: SensorParams, lidar: LidarParams, seed: int,
                  sample_ids: np.ndarray | None = None) -> PhotonCells:
     """The photon stage for N samples: every cell of each sample's W x H window is gated around
     the sample's range r0, with noise everywhere and signal where sub-rays hit. ``reflectivity``
     per sample, or per hit (one value per sub-ray hit: a scene's window holds several targets);
-    ``sample_ids`` (default 0..N-1) seed each sample's draws."""
+    ``sample_ids`` (default 0..N-1) seed each sample's draws. Every argument is checked here,
+    the stage's one entry: the hits (``check_hits``), r0 finite and > 0, a seed in
+    0..2**32-1 (``--seed``'s rule), a named InputError before anything is drawn."""
+    hits = check_hits(hits, lidar)
     n = hits.n_samples
-    r0 = np.asarray(r0, np.float64)
-    per_hit = np.ndim(reflectivity) == 1 and len(reflectivity) == len(hits.range_m) != n
-    rho = np.asarray(reflectivity, np.float64) if per_hit else \
-        np.broadcast_to(np.asarray(reflectivity, np.float64), (n,))
-    if len(r0) != n:
-        raise InputError(f"photon stage: {len(r0)} ranges for {n} samples")
+    r0 = _per_sample_values("r0 (the gate's range)", r0, n)
+    _ranges("r0 (the gate's range)", r0, lidar)
+    rho, per_hit = _reflectivity(reflectivity, n, len(hits.range_m))
     if not (np.isfinite(rho) & (rho >= 0) & (rho <= 1)).all():
         bad = rho[~(np.isfinite(rho) & (rho >= 0) & (rho <= 1))][0]
         raise InputError(f"reflectivity must be in [0, 1], got {bad!r}")
-    ids = np.arange(n) if sample_ids is None else np.asarray(sample_ids, np.int64)
+    seed = check_int("photon stage: seed", seed, 0, MAX_SEED)
+    ids = np.arange(n) if sample_ids is None else _sample_ids(sample_ids, n)
     n_bins = check_sensor_at(sensor, lidar)
     n_cells = lidar.width * lidar.height
     noise = noise_per_bin(sensor, lidar.r_r)
@@ -397,5 +510,5 @@ def photon_cloud(hits: SubRayHits, r0: np.ndarray, reflectivity: np.ndarray,
                        sensor.output == "events")
 
 
-__all__ = ["LIGHT_M_S", "PhotonCells", "SubRayHits", "check_sensor_at", "gate_first_bin",
-           "photon_cloud", "sample_rng", "signal_bins", "to_cloud"]
+__all__ = ["LIGHT_M_S", "PhotonCells", "SubRayHits", "check_hits", "check_sensor_at",
+           "gate_first_bin", "photon_cloud", "sample_rng", "signal_bins", "to_cloud"]
