@@ -62,7 +62,8 @@ def header_of(plan: Plan, catalog) -> dict:
         "condition_space": plan.space.to_dict(),
         "types": [{"code": i, "name": t.name, "catalog_index": t.index, "kind": t.kind,
                    "range_band": t.range_band, "depth_length_m": catalog.depth_length_m(t),
-                   "bounding_radius_m": bounding_radius(catalog.mesh(t).vertices)}
+                   "bounding_radius_m": bounding_radius(catalog.mesh(t).vertices),
+                   "mesh_sha256": mesh_digest(catalog.mesh(t))}
                   for i, t in enumerate(plan.types)],
         "n_samples": plan.n_samples,
         "n_train": int((plan.split == "train").sum()), "n_test": int((plan.split == "test").sum()),
@@ -71,6 +72,39 @@ def header_of(plan: Plan, catalog) -> dict:
                     "n_samples": len(s.rows)} for s in plan.shards],
         "conditions_file": "conditions.csv",
     } | (_photon_header(plan) if plan.sensor else {})
+
+
+def mesh_digest(mesh) -> str:
+    """SHA-256 of a mesh's float64 vertices and int64 faces: the geometry a dataset's shards
+    were cast against. A user type replaced (`apcg catalog add --force`) by another mesh of
+    the same name and size changes nothing else of the header; without it a resumed build
+    mixed the two meshes' shards under one stamp (probe finding, stop 54)."""
+    import hashlib
+    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, "<f8").tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, "<i8").tobytes())
+    return h.hexdigest()
+
+
+def header_difference(old: bytes, new: bytes) -> str:
+    """What differs between two dataset.json headers, in words: the keys, and for the types
+    which type and which of its records (its mesh, its length, ...)."""
+    try:
+        a, b = json.loads(old), json.loads(new)
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return "it is not a dataset header"
+    if not isinstance(a, dict):
+        return "it is not a dataset header"
+    keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+    said = []
+    for k in keys:
+        if k == "types" and isinstance(a.get(k), list) and len(a[k]) == len(b[k]):
+            for x, y in zip(a[k], b[k], strict=True):
+                if isinstance(x, dict) and x != y:
+                    fields = sorted(f for f in set(x) | set(y) if x.get(f) != y.get(f))
+                    said.append(f"type {y.get('name')!r}: {', '.join(fields)}")
+        else:
+            said.append(k)
+    return "; ".join(said) or "its bytes"
 
 
 def _photon_header(plan: Plan) -> dict:
@@ -193,9 +227,11 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
     # temporary file and an atomic rename, so any interleaving leaves complete, equal files.
     fresh = not head_path.exists()
     if not fresh:
-        if head_path.read_bytes() != header:
+        if (old := head_path.read_bytes()) != header:
             raise InputError(f"{out} already holds a different dataset (its dataset.json differs "
-                             "from this config's); build into a new directory or delete it")
+                             f"from this config's: {header_difference(old, header)}; a "
+                             "type's mesh_sha256: its mesh changed in the catalog since); "
+                             "build into a new directory or delete it")
     elif stray := sorted((out / "shards").glob("*.npz")):
         # dataset.json is written before any shard: shards without it are of no known build
         # (copied in, or its dataset.json deleted), never to be taken in as this one's

@@ -453,9 +453,8 @@ def dataset_stamp(head: dict) -> str:
     ``STAMP_KEY``): digests of the parts of the header that determine a shard's bytes (the
     lidar, backend, sensor, supersample, quantize, incidence, seed, each named, and
     ``dataset``: the config (but its name and its sensor's name), lidar, condition space,
-    sensor, supersample, reflectivity and the types' catalog entries together), as compact
-    JSON. The builder stamps each shard
-    with it; ``foreign_shard`` compares it against the header the shard is read under."""
+    sensor, supersample, reflectivity and the types' catalog entries and mesh digests
+    together), as compact JSON. The builder stamps each shard with it; ``foreign_shard`` compares it against the header the shard is read under."""
     cfg = head.get("config") if isinstance(head.get("config"), dict) else {}
     sensor = head.get("sensor")  # the sensor as resolved (none: ideal), not as the config names it
     # as the builder takes it (dataset_builder.build._task)
@@ -469,11 +468,18 @@ def dataset_stamp(head: dict) -> str:
                          "supersample": supersample,
                          "condition_space": head.get("condition_space"),
                          "reflectivity": head.get("reflectivity"),
-                         "types": [[t.get("catalog_index"), t.get("depth_length_m")]
-                                   if isinstance(t, dict) else t
-                                   for t in head.get("types") or []]}}
+                         "types": [_type_stamp(t) for t in head.get("types") or []]}}
     return json.dumps({k: _digest(v) for k, v in parts.items()}, sort_keys=True,
                       separators=(",", ":"))
+
+
+def _type_stamp(t):
+    """A type's part of the stamp: its catalog entry and, where the header records it (since
+    stop 54), its mesh's digest; a header without it stamps as it always did."""
+    if not isinstance(t, dict):
+        return t
+    own = [t.get("catalog_index"), t.get("depth_length_m")]
+    return own + [t["mesh_sha256"]] if "mesh_sha256" in t else own
 
 
 def foreign_shard(shard: Shard, head: dict) -> str | None:
