@@ -139,7 +139,7 @@ def test_a_negative_infinity_reaches_the_options_rule(capsys):
     from apcg_core.cli import main
     assert main(["simulate", "--type", "A320neo", "--range-m", "5000", "--elevation-deg", "3",
                  "--yaw-deg", "-inf", "-o", "never.ply"]) == 2
-    assert "--yaw-deg -inf not accepted: a finite angle" in capsys.readouterr().err
+    assert "--yaw-deg -inf not accepted: a finite yaw in degrees" in capsys.readouterr().err
 
 
 def test_a_shard_spec_with_a_minus_is_judged_by_its_own_check(tmp_path, capsys):
