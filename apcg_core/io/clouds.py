@@ -17,6 +17,7 @@ import functools
 import io
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -184,21 +185,56 @@ def write_cloud(path, cloud: PointCloud, meta: dict | None = None) -> Path:
     the header."""
     path = Path(path)
     ext = _fmt(path)
-    meta = meta or {}
+    cloud, text = _cloud_to_write(path, cloud), _meta_text(path, meta)
+    records = _ply_records(path, cloud) if ext == ".ply" else None  # checked before any file
     with atomic_path(path) as tmp:
         if ext == ".npz":
             with open(tmp, "wb") as f:
                 np.savez(f, xyz=cloud.xyz, range_m=cloud.range_m, cell_w=cloud.cell_w,
                          cell_h=cloud.cell_h, sample=_sample_of(cloud),
-                         meta=np.array(json.dumps(meta)),
+                         meta=np.array(text),
                          **{k: getattr(cloud, k) for k in cloud.photon_fields})
         elif ext == ".ply":
             with open(tmp, "wb") as f:
-                f.write(_own_ply_header(meta, str(len(cloud)), cloud.photon_fields))
-                f.write(_ply_records(cloud))
+                f.write(_own_ply_header(text, str(len(cloud)), cloud.photon_fields))
+                f.write(records)
         else:
-            _write_las(tmp, cloud, meta, compress=ext == ".laz")
+            _write_las(path, tmp, cloud, text, compress=ext == ".laz")
     return path
+
+
+def _cloud_to_write(path, cloud) -> PointCloud:
+    """``cloud`` checked again before it is written (a field replaced since it was built would
+    be broadcast or refused on reading), or an InputError naming the file."""
+    if not isinstance(cloud, PointCloud):
+        raise InputError(f"cannot write {path}: expected a PointCloud, got "
+                         f"{type(cloud).__name__}")
+    try:
+        return cloud.checked()
+    except InputError as exc:
+        raise InputError(f"cannot write {path}: {exc}") from None
+
+
+def _meta_text(path, meta) -> str:
+    """``meta`` as the JSON text every format stores: a dict (None: empty) of JSON values,
+    numpy numbers as the numbers they hold; anything else would not read back as given (a
+    PLY file reads a non-dict meta as {}), so it is an InputError naming the file."""
+    meta = {} if meta is None else meta
+    if not isinstance(meta, dict):
+        raise InputError(f"cannot write {path}: its meta must be a dict (a JSON object), got "
+                         f"{type(meta).__name__}")
+    try:
+        return json.dumps(meta, default=_json_value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"cannot write {path}: its meta must hold JSON values (dicts, lists, "
+                         f"text, numbers, booleans, None): {exc}") from None
+
+
+def _json_value(v):
+    """A numpy number or array in a meta as the JSON value it holds (json's ``default``)."""
+    if isinstance(v, np.generic | np.ndarray):
+        return v.tolist()
+    raise TypeError(f"{type(v).__name__} {v!r} is not a JSON value")
 
 
 def _sample_of(cloud: PointCloud) -> np.ndarray:
@@ -210,8 +246,8 @@ def _props(photon_fields) -> list[tuple[str, str]]:
     return _PLY_PROPS + [(k, _PHOTON_PROPS[k]) for k in photon_fields]
 
 
-def _own_ply_header(meta: dict, count: str, photon_fields=()) -> bytes:
-    comment = json.dumps(meta).replace("\n", " ")
+def _own_ply_header(meta_text: str, count: str, photon_fields=()) -> bytes:
+    comment = meta_text.replace("\n", " ")
     head = ["ply", "format binary_little_endian 1.0",
             "comment APCG standard point cloud: observation frame, metres",
             f"comment meta {comment}", f"element vertex {count}"]
@@ -220,21 +256,55 @@ def _own_ply_header(meta: dict, count: str, photon_fields=()) -> bytes:
     return ("\n".join(head) + "\n").encode()
 
 
-def _ply_records(cloud: PointCloud) -> bytes:
+def _ply_records(path, cloud: PointCloud) -> bytes:
     rec = np.empty(len(cloud), dtype=[(n, "<" + t) for n, t in _props(cloud.photon_fields)])
     rec["x"], rec["y"], rec["z"] = cloud.xyz.T
     rec["range_m"], rec["cell_w"] = cloud.range_m, cloud.cell_w
-    rec["cell_h"], rec["sample"] = cloud.cell_h, _sample_of(cloud)
+    rec["cell_h"], rec["sample"] = cloud.cell_h, _sample_i4(path, cloud)
     for k in cloud.photon_fields:
         rec[k] = getattr(cloud, k)
     return rec.tobytes()
 
 
-def _fill_las(las, cloud: PointCloud):
+_I4 = np.iinfo(np.int32)
+
+
+def _sample_i4(path, cloud: PointCloud) -> np.ndarray:
+    """Each point's cloud index as PLY and LAS store it, in 32 bits: one that does not fit
+    is refused, not wrapped (NPZ keeps the cloud's 64 bits)."""
+    s = _sample_of(cloud)
+    if len(s) and (s.min() < _I4.min or s.max() > _I4.max):
+        i = int(np.argmax((s < _I4.min) | (s > _I4.max)))
+        raise InputError(f"cannot write {path}: its sample value {int(s[i])} (point {i}) does "
+                         f"not fit the format's 32-bit sample field; accepted: whole numbers "
+                         f"from {_I4.min} to {_I4.max} (NPZ stores any)")
+    return s
+
+
+def _check_las_extent(path, header, xyz: np.ndarray) -> None:
+    """LAS stores x, y, z as 32-bit integers of the header's scale around its offset: a point
+    beyond that is an InputError naming the file (laspy's own test, which would raise a bare
+    OverflowError), before anything of it is written."""
+    if not len(xyz):
+        return
+    lo = _I4.min * header.scales + header.offsets
+    hi = _I4.max * header.scales + header.offsets
+    if (xyz.min(axis=0) < lo).any() or (xyz.max(axis=0) > hi).any():
+        i = int(np.argmax(((xyz < lo) | (xyz > hi)).any(axis=1)))
+        lo, hi = np.round(lo, 4).tolist(), np.round(hi, 4).tolist()  # as shown
+        raise InputError(
+            f"cannot write {path}: point {i} at {xyz[i].tolist()} m is outside what LAS / LAZ "
+            f"can hold: x, y, z from {lo} to {hi} m (32-bit steps of {header.scales[0]:g} m "
+            f"around {header.offsets.tolist()}, the first cloud's centre); write .ply or "
+            ".npz, which hold any extent")
+
+
+def _fill_las(path, las, cloud: PointCloud):
+    _check_las_extent(path, las.header, cloud.xyz)
     las.x, las.y, las.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
     las.range_m = cloud.range_m
     las.cell_w, las.cell_h = cloud.cell_w, cloud.cell_h
-    las.sample = _sample_of(cloud).astype(np.int32)
+    las.sample = _sample_i4(path, cloud).astype(np.int32)
     if cloud.label is not None:
         las.classification = np.where(cloud.label == 1, LAS_CLASS[1], LAS_CLASS[0]).astype(
             np.uint8)
@@ -265,7 +335,8 @@ class CloudWriter:
     def __init__(self, path, meta: dict | None = None, photon_fields=()) -> None:
         self.path = Path(path)
         self.ext = _fmt(self.path)
-        self.meta = meta or {}
+        self.meta = {} if meta is None else meta
+        self._meta = _meta_text(self.path, self.meta)  # refused before any file is made
         # a photon cloud's attributes: fixed up front (a PLY header is written first)
         self.photon_fields = tuple(photon_fields)
         refuse_directory(self.path)
@@ -282,13 +353,14 @@ class CloudWriter:
             self._open_spill()
         if self.ext == ".ply":
             self._file = open(self.tmp, "wb")  # noqa: SIM115 - closed in close()
-            head = _own_ply_header(self.meta, "0" * self._COUNT_DIGITS, self.photon_fields)
+            head = _own_ply_header(self._meta, "0" * self._COUNT_DIGITS, self.photon_fields)
             self._count_at = head.index(b"element vertex ") + len(b"element vertex ")
             self._file.write(head)
 
     def write(self, cloud: PointCloud) -> None:
+        cloud = _cloud_to_write(self.path, cloud)
         if tuple(cloud.photon_fields) != self.photon_fields:
-            raise ValueError(f"this writer takes clouds with {self.photon_fields or 'no'} "
+            raise InputError(f"this writer takes clouds with {self.photon_fields or 'no'} "
                              f"photon attributes, got {cloud.photon_fields or 'none'}")
         if self.ext == ".npz":
             for k, (f, _, dtype, _) in self._spill.items():
@@ -302,16 +374,16 @@ class CloudWriter:
                 # then copies them in the kernel without reading them back
                 self._crc[k] = crc32(data, self._crc.get(k, 0))
         elif self.ext == ".ply":
-            self._file.write(_ply_records(cloud))
+            self._file.write(_ply_records(self.path, cloud))
         else:
             laspy = _laspy(self.ext == ".laz")
             if self._las is None:
-                header = _las_header(laspy, cloud, self.meta)
+                header = _las_header(laspy, cloud, self._meta)
                 # the writer counts its points in its header: each block starts from a copy
                 self._template = copy.deepcopy(header)
                 self._las = laspy.open(self.tmp, mode="w", header=header,
                                        do_compress=self.ext == ".laz")
-            las = _fill_las(laspy.LasData(copy.deepcopy(self._template)), cloud)
+            las = _fill_las(self.path, laspy.LasData(copy.deepcopy(self._template)), cloud)
             self._las.write_points(las.points)
         self.n += len(cloud)
 
@@ -419,7 +491,7 @@ class CloudWriter:
         for k in names:  # on a failure, abort() drops the zip (no central directory)
             if k == "meta":
                 with zf.open("meta.npy", "w", force_zip64=True) as member:
-                    fmt.write_array(member, np.array(json.dumps(self.meta)))
+                    fmt.write_array(member, np.array(self._meta))
                 continue
             f, spill, dtype, row = self._spill[k]
             header = _npy_header(dtype, (int(self.n), *row))
@@ -466,7 +538,7 @@ def las_creation_date() -> datetime.date:
         return LAS_CREATION_DATE
 
 
-def _las_header(laspy, cloud: PointCloud, meta: dict):
+def _las_header(laspy, cloud: PointCloud, meta_text: str):
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.creation_date = las_creation_date()
     # LAS stores scaled int32 coordinates: 0.1 mm steps around the (first) cloud's centre.
@@ -481,7 +553,7 @@ def _las_header(laspy, cloud: PointCloud, meta: dict):
                              if getattr(cloud, k) is not None])
     # A VLR holds at most 65,535 bytes; a request's meta (its conditions listed) can hold
     # more: records 1, 2, ... in order, joined on reading (_las_meta)
-    data = json.dumps(meta).encode()
+    data = meta_text.encode()
     parts = [data[i:i + LAS_VLR_BYTES] for i in range(0, len(data), LAS_VLR_BYTES)] or [b""]
     for k, part in enumerate(parts, start=1):
         header.vlrs.append(laspy.VLR(user_id="APCG", record_id=k, record_data=part,
@@ -499,9 +571,10 @@ def _las_meta(vlrs) -> dict:
     return json.loads(b"".join(p for _, p in parts).decode()) if parts else {}
 
 
-def _write_las(tmp: Path, cloud: PointCloud, meta: dict, compress: bool) -> None:
+def _write_las(path: Path, tmp: Path, cloud: PointCloud, meta_text: str,
+               compress: bool) -> None:
     laspy = _laspy(compress)
-    las = _fill_las(laspy.LasData(_las_header(laspy, cloud, meta)), cloud)
+    las = _fill_las(path, laspy.LasData(_las_header(laspy, cloud, meta_text)), cloud)
     with open(tmp, "wb") as f:
         las.write(f, do_compress=compress)
 
@@ -540,11 +613,16 @@ def read_cloud_attributes(path) -> tuple[PointCloud, dict, dict[str, np.ndarray]
                          f"have a coordinate that is not a finite number (the first: point "
                          f"{int(np.argmax(bad))}, {xyz[np.argmax(bad)].tolist()})")
     own = {k: _own_column(path, k, cols.pop(k, None), n) for k in _OWN}
-    r = own["range_m"] if own["range_m"] is not None else np.linalg.norm(xyz, axis=1)
+    with np.errstate(over="ignore"):  # an overflow is refused by PointCloud below
+        r = own["range_m"] if own["range_m"] is not None else np.linalg.norm(xyz, axis=1)
     zeros = np.zeros(n, np.int32)
-    cloud = PointCloud(xyz, r, own["cell_w"] if own["cell_w"] is not None else zeros,
-                       own["cell_h"] if own["cell_h"] is not None else zeros, own["sample"],
-                       **_photon_columns(path, ext, cols, meta, n))
+    photon = _photon_columns(path, ext, cols, meta, n)
+    try:  # e.g. a range taken as the norm of coordinates near 1e308: not finite
+        cloud = PointCloud(xyz, r, own["cell_w"] if own["cell_w"] is not None else zeros,
+                           own["cell_h"] if own["cell_h"] is not None else zeros,
+                           own["sample"], **photon)
+    except InputError as exc:
+        raise InputError(f"cannot read point cloud {path}: {exc}") from None
     return cloud, meta, cols
 
 
@@ -651,8 +729,9 @@ def _read_las(path: Path):
 def _ply_header(path: Path, data: bytes):
     """format, meta, elements [(name, count, [(property, dtype code, or None for a list)])] and
     where the body starts."""
-    end = data.find(b"end_header")
-    body = data.find(b"\n", end) + 1 if end >= 0 else 0
+    found = _END_HEADER.search(data)  # a line of its own: a comment may hold the words
+    end = found.start() if found else -1
+    body = data.find(b"\n", end) + 1 if found else 0
     if not data.startswith(b"ply") or body == 0:
         raise InputError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
     fmt, meta, elements = None, {}, []
@@ -681,6 +760,9 @@ def _ply_header(path: Path, data: bytes):
     return fmt, meta, elements, body
 
 
+_END_HEADER = re.compile(rb"^end_header[ \t]*\r?$", re.MULTILINE)
+
+
 def _json_dict(text: str) -> dict:
     """Our meta comment; another tool's comment that happens to start with "meta" is no meta."""
     try:
@@ -688,6 +770,29 @@ def _json_dict(text: str) -> dict:
     except ValueError:
         return {}
     return meta if isinstance(meta, dict) else {}
+
+
+def _ascii_values(path, name: str, v: np.ndarray, code: str) -> np.ndarray:
+    """An ASCII PLY property's numbers (read as float64) in its declared type: a value the
+    type cannot hold (not whole, or out of its range) is refused, not truncated or wrapped
+    by the cast."""
+    t = np.dtype(code)
+    if t.kind == "f":
+        with np.errstate(over="ignore"):
+            out = v.astype(t)
+        bad = np.isfinite(v) & ~np.isfinite(out)  # too large for a float property
+        accepted = f"numbers of magnitude up to {np.finfo(t).max:.6g}"
+    else:
+        info = np.iinfo(t)  # PLY's integers have 32 bits at most: exact as float64
+        bad = ~np.isfinite(v) | (v != np.round(v)) | (v < info.min) | (v > info.max)
+        out = None if bad.any() else v.astype(t)
+        accepted = f"whole numbers from {info.min} to {info.max}"
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"cannot read point cloud {path}: its {name!r} value "
+                         f"{repr(float(v[i])).removesuffix('.0')} (vertex {i}) does not "
+                         f"fit the declared type {_PLY_TYPES[code]}; accepted: {accepted}")
+    return out
 
 
 def _read_ply(path: Path):
@@ -709,7 +814,7 @@ def _read_ply(path: Path):
             raise InputError(f"{path} is truncated or malformed: {n} vertices of {len(props)} "
                              f"values announced, {len(tokens)} values found")
         rec = np.array(tokens, dtype=np.float64).reshape(n, len(props))
-        cols = {p: rec[:, i].astype(t) for i, (p, t) in enumerate(props)}
+        cols = {p: _ascii_values(path, p, rec[:, i], t) for i, (p, t) in enumerate(props)}
     else:
         endian = "<" if fmt == "binary_little_endian" else ">"
         for name, count, eprops in elements[:at]:
