@@ -75,9 +75,10 @@ def header_of(plan: Plan, catalog) -> dict:
 
 def mesh_digest(mesh) -> str:
     """SHA-256 of a mesh's float64 vertices and int64 faces: the geometry a dataset's shards
-    were cast against (a user type's: :func:`_mesh_record`). A user type replaced (`apcg catalog add --force`) by another mesh of
-    the same name and size changes nothing else of the header; without it a resumed build
-    mixed the two meshes' shards under one stamp (probe finding, stop 54)."""
+    were cast against (a user type's: :func:`_mesh_record`). A user type replaced (`apcg
+    catalog add --force`) by another mesh of the same name and size changes nothing else of
+    the header; without it a resumed build mixed the two meshes' shards under one stamp
+    (probe finding, stop 54)."""
     import hashlib
     h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, "<f8").tobytes())
     h.update(np.ascontiguousarray(mesh.faces, "<i8").tobytes())

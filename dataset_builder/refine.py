@@ -11,8 +11,8 @@ float64, along the float64 cell-centre ray (:func:`rays.cell_rays`) to the float
 caster holds: the same number whichever caster found the triangle, and the exact one to
 ~1e-12 m. (Until stop 54 the distance was taken along the float32 ray, whose 1-2 um of rounding,
 up to ~0.1 mm at grazing incidence, put about 3 in 100,000 ranges in the bin next to the exact
-one: tests/test_refine.py.) Two casters that pick different triangles at a shared edge get distances ~1e-12 m
-apart, which no longer straddle a bin edge in practice.
+one: tests/test_refine.py.) Two casters that pick different triangles at a shared edge get
+distances ~1e-12 m apart, which no longer straddle a bin edge in practice.
 
 One ray per cell (supersample 1) only: a supersampled cell's range is the nearest of k x k rays.
 """

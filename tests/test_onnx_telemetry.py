@@ -16,7 +16,8 @@ def _generate(tmp_path, home, **env):
                if k not in ("ORT_DISABLE_TELEMETRY", "XDG_CACHE_HOME")}
     run_env.update(HOME=str(home), **env)
     out = subprocess.run([APCG, "generate", "--type", "A320neo", "--range-m", "5000",
-                          "--elevation-deg", "3.5", "--pitch-deg", "2", "-o", str(tmp_path / f"{home.name}.npz")],
+                          "--elevation-deg", "3.5", "--pitch-deg", "2", "-o",
+                          str(tmp_path / f"{home.name}.npz")],
                          capture_output=True, text=True, timeout=300, env=run_env)
     assert out.returncode == 0, out.stderr
     assert (tmp_path / f"{home.name}.npz").stat().st_size > 1000

@@ -454,7 +454,8 @@ def dataset_stamp(head: dict) -> str:
     lidar, backend, sensor, supersample, quantize, incidence, seed, each named, and
     ``dataset``: the config (but its name and its sensor's name), lidar, condition space,
     sensor, supersample, reflectivity and the types' catalog entries and mesh digests
-    together), as compact JSON. The builder stamps each shard with it; ``foreign_shard`` compares it against the header the shard is read under."""
+    together), as compact JSON. The builder stamps each shard with it; ``foreign_shard``
+    compares it against the header the shard is read under."""
     cfg = head.get("config") if isinstance(head.get("config"), dict) else {}
     sensor = head.get("sensor")  # the sensor as resolved (none: ideal), not as the config names it
     # as the builder takes it (dataset_builder.build._task)
