@@ -7,11 +7,12 @@ Inside the code angles are radians and ranges metres; ``Condition.from_degrees``
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
+from numbers import Integral
 
 import numpy as np
 
-from .errors import InputError, check_finite, check_range, distinct
+from .errors import InputError, check_finite, check_int, check_range, distinct
 from .frames import ATTITUDE
 from .lidar import DEG
 from .typetable import each_once
@@ -40,6 +41,51 @@ def scale_ratio(range_m):
     return float(out) if np.ndim(out) == 0 else out
 
 
+# What any condition may be (the one home of these ranges): a range > 0 m, the target below
+# the zenith (|elevation| < 90 deg: the observation frame is undefined overhead), pitch within
+# [-90, 90] deg and yaw, roll within a turn. Condition checks them; a ConditionSpace's ranges
+# and PC2Im / Im2PC's per-sample values (apcg_core.depth) are held to them.
+ATTITUDE_LIMITS = {"pitch": math.pi / 2, "yaw": math.pi, "roll": math.pi}  # |angle| <= limit
+
+
+def _first_bad(values, ok) -> tuple[int, float, int] | None:
+    """(index, value, count) of the first of ``values`` (a scalar or an array) not ``ok``."""
+    a = np.asarray(values, dtype=np.float64).reshape(-1)
+    bad = np.flatnonzero(~ok(a))
+    return (int(bad[0]), float(a[bad[0]]), a.size) if len(bad) else None
+
+
+def _at(i: int, n: int) -> str:
+    return f" (sample {i})" if n > 1 else ""
+
+
+def check_range_m(values) -> None:
+    """Refuse a finite range_m (a scalar or one per sample) that no condition takes (<= 0)."""
+    bad = _first_bad(values, lambda a: a > 0)
+    if bad:
+        i, r, n = bad
+        raise InputError(f"range_m = {r!r}{_at(i, n)} is out of range; accepted: range_m > 0 "
+                         "(metres)")
+
+
+def check_elevation(values) -> None:
+    """Refuse a finite elevation (rad; a scalar or one per sample) that no condition takes:
+    the target overhead or beyond (an elevation given in degrees lands here too)."""
+    bad = _first_bad(values, lambda a: np.abs(a) < math.pi / 2)
+    if bad:
+        i, b, n = bad
+        raise InputError(
+            f"elevation = {b / DEG:.6g} deg{_at(i, n)} puts the target overhead (or beyond); "
+            "the observation frame's Z axis is the horizontal direction to the target and is "
+            "undefined there. Accepted: -90 deg < elevation < 90 deg")
+
+
+def check_attitude(name: str, value) -> float:
+    """``value`` (rad) if attitude angle ``name`` lies within :data:`ATTITUDE_LIMITS`."""
+    limit = ATTITUDE_LIMITS[name]
+    return check_range(name, value, -limit, limit, " deg", 1 / DEG)
+
+
 @dataclass(frozen=True)
 class Condition:
     """One sample's condition. Angles in radians, range in metres.
@@ -60,18 +106,10 @@ class Condition:
         if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 0:
             raise InputError(f"type_index must be an integer >= 0, got {t!r}")
         object.__setattr__(self, "type_index", int(t))
-        r = check_finite("range_m", self.range_m)
-        if r <= 0:
-            raise InputError(f"range_m = {r!r} is out of range; accepted: range_m > 0 (metres)")
-        b = check_finite("elevation", self.elevation)
-        if abs(b) >= math.pi / 2:
-            raise InputError(
-                f"elevation = {b / DEG:.6g} deg puts the target overhead (or beyond); the "
-                "observation frame's Z axis is the horizontal direction to the target and is "
-                "undefined there. Accepted: -90 deg < elevation < 90 deg")
-        check_range("pitch", self.pitch, -math.pi / 2, math.pi / 2, " deg", 1 / DEG)
-        check_range("yaw", self.yaw, -math.pi, math.pi, " deg", 1 / DEG)
-        check_range("roll", self.roll, -math.pi, math.pi, " deg", 1 / DEG)
+        check_range_m(check_finite("range_m", self.range_m))
+        check_elevation(check_finite("elevation", self.elevation))
+        for name in ATTITUDE:
+            check_attitude(name, getattr(self, name))
         for name in FIELDS[1:]:
             object.__setattr__(self, name, float(getattr(self, name)))
 
@@ -93,7 +131,7 @@ class Condition:
 
     @classmethod
     def from_array(cls, row) -> Condition:
-        row = np.asarray(row, dtype=np.float64)
+        row = numbers("a condition row", row)
         if row.shape != (6,):
             raise InputError(f"a condition row has 6 values {FIELDS}, got shape {row.shape}")
         t = row[0]
@@ -113,6 +151,15 @@ class Condition:
     def pose(self) -> tuple[float, float, float, float, float]:
         """(range_m, elevation, pitch, yaw, roll): the arguments of the frames functions."""
         return (self.range_m, self.elevation, self.pitch, self.yaw, self.roll)
+
+
+def numbers(what: str, values) -> np.ndarray:
+    """``values`` as a float64 array, or refused naming ``what`` (a text or an object that is
+    not a number would otherwise be a bare numpy error)."""
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{what} holds numbers only ({', '.join(FIELDS)}); {exc}") from None
 
 
 def _deg_pair(lo: float, hi: float) -> tuple[float, float]:
@@ -143,11 +190,12 @@ class ConditionSpace:
         "elevation": 5, "range_m": 10, "yaw": 10, "pitch": 5, "roll": 5})
 
     def __post_init__(self) -> None:
-        if self.n_types < 1:
-            raise InputError(f"n_types must be >= 1, got {self.n_types}")
-        bad = [t for t in self.drone_types if not 0 <= t < self.n_types]
+        object.__setattr__(self, "n_types", check_int("n_types", self.n_types, 1))
+        bad = [t for t in self.drone_types if isinstance(t, bool) or not isinstance(t, Integral)
+               or not 0 <= t < self.n_types]
         if bad:
-            raise InputError(f"drone_types {bad} are not type indices in [0, {self.n_types - 1}]")
+            raise InputError(f"drone_types {bad} are not type indices: integers in "
+                             f"[0, {self.n_types - 1}]")
         object.__setattr__(self, "drone_types", tuple(sorted(int(t) for t in self.drone_types)))
         for name in ("aircraft_range_m", "drone_range_m", "elevation", "pitch", "yaw", "roll"):
             lo, hi = getattr(self, name)
@@ -156,10 +204,23 @@ class ConditionSpace:
             object.__setattr__(self, name, (float(lo), float(hi)))
         if self.drone_range_m[0] <= 0 or self.aircraft_range_m[0] <= 0:
             raise InputError("ranges must be > 0 m")
+        self._check_physical()
         drone = np.zeros(self.n_types, bool)
         drone[list(self.drone_types)] = True
         drone.flags.writeable = False
         object.__setattr__(self, "_drone", drone)  # type index -> in the drone band
+
+    def _check_physical(self) -> None:
+        """Each angle range within what a Condition takes (``check`` alone guards the
+        tables a model generates from, so a range past it would pass unphysical rows)."""
+        for name in ("elevation", *ATTITUDE):
+            lo, hi = getattr(self, name)
+            try:
+                for v in (lo, hi):
+                    check_elevation(v) if name == "elevation" else check_attitude(name, v)
+            except InputError as exc:
+                raise InputError(f"the {name} range [{lo / DEG:.6g}, {hi / DEG:.6g}] deg reaches "
+                                 f"past what a condition takes: {exc}") from None
 
     def is_drone(self, type_index):
         """Whether each type index is one of ``drone_types`` (False for any other value)."""
@@ -193,7 +254,7 @@ class ConditionSpace:
         ``row i``.
         """
         where = where or (lambda i, j: f"row {i}")
-        table = np.atleast_2d(np.asarray(table, dtype=np.float64))
+        table = np.atleast_2d(numbers("a condition table", table))
         if table.ndim != 2 or table.shape[1] != 6:
             raise InputError(f"a condition table has shape (N, 6) {FIELDS}, got {table.shape}")
         # in blocks of rows: the checks' temporaries stay a few MB for 10^6 conditions
@@ -242,9 +303,9 @@ class ConditionSpace:
 
     def decode(self, nu) -> np.ndarray:
         """nu (N, 6) in [-1, 1] -> condition table (N, 6) in physical units (m, rad)."""
-        nu = np.atleast_2d(np.asarray(nu, dtype=np.float64))
-        if nu.shape[-1] != 6:
-            raise InputError(f"nu has 6 values per row, got shape {nu.shape}")
+        nu = np.atleast_2d(numbers("nu", nu))
+        if nu.ndim != 2 or nu.shape[-1] != 6:
+            raise InputError(f"nu has shape (N, 6), 6 values per row, got shape {nu.shape}")
         if not np.isfinite(nu).all() or (np.abs(nu) > 1.0 + 1e-9).any():
             raise InputError("nu values must be finite and within [-1, 1]")
         table = np.empty_like(nu)
@@ -269,6 +330,12 @@ class ConditionSpace:
     @classmethod
     def from_dict(cls, d: dict) -> ConditionSpace:
         d = dict(d)
+        keys = [f.name for f in fields(cls)]
+        keys += [f"{k}_deg" for k in ("elevation", *ATTITUDE)]
+        unknown = sorted(set(d) - set(keys), key=str)
+        if unknown:
+            raise InputError(f"unknown condition space key(s) {', '.join(map(repr, unknown))}; "
+                             f"accepted: {', '.join(keys)}")
         for name in ("elevation", "pitch", "yaw", "roll"):
             if f"{name}_deg" in d:
                 lo, hi = d.pop(f"{name}_deg")

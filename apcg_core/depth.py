@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .cloud import PointCloud
-from .errors import InputError
+from .condition import check_elevation, check_range_m
+from .errors import InputError, check_finite, check_int
 from .frames import cartesian_to_spherical, spherical_to_cartesian
 from .lidar import LidarParams
 
@@ -53,6 +54,34 @@ def _per_sample(name: str, value, n: int) -> np.ndarray:
     return a
 
 
+def _sample_scalars(who: str, range_m, elevation, length_m, n: int):
+    """(r0, beta0, l), one per sample, each what a Condition takes (apcg_core.condition, the
+    one home of those ranges): any other is no target's, and its image silently wrong (an
+    elevation in degrees puts every point outside the window; r0 <= 0 clamps every depth)."""
+    r0 = _per_sample("range_m", range_m, n)
+    b0 = _per_sample("elevation", elevation, n)
+    length = _per_sample("length_m", length_m, n)
+    try:
+        check_range_m(r0)
+    except InputError as exc:
+        raise InputError(f"{who}: {exc}") from None
+    try:
+        check_elevation(b0)
+    except InputError as exc:  # the usual cause: degrees given where radians are taken
+        raise InputError(f"{who}: {exc} (elevation is taken in radians)") from None
+    if (length <= 0).any():  # every depth would collapse onto r0 (or divide by 0)
+        raise InputError(f"{who}: length_m must be > 0, got {float(length[length <= 0][0])!r}")
+    return r0, b0, length
+
+
+def _points(points) -> np.ndarray:
+    """(N, 3) float64 points from any array whose last axis is (x, y, z), or from nothing."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[-1:] != (3,) and pts.shape != (0,):  # reshape would regroup the values
+        raise InputError(f"pc2im: points have shape (N, 3) (x, y, z), got shape {pts.shape}")
+    return pts.reshape(-1, 3)
+
+
 def pc2im(points, range_m, elevation, length_m, lidar: LidarParams = DEFAULT_LIDAR,
           sample=None, n_samples: int | None = None, dtype=np.float32, image: bool = True):
     """PC2Im, paper eq. 15: d(w, h) = 1.8 (r(w, h) - r0) / l, background -1.
@@ -66,12 +95,13 @@ def pc2im(points, range_m, elevation, length_m, lidar: LidarParams = DEFAULT_LID
     Returns ``(image, Pc2imStats)``; ``image`` False: ``(None, Pc2imStats)``, without the
     dense (N, H, W) image (a 65536 x 65536 window's is 16 GiB).
     """
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = _points(points)
     batch = sample is not None
     if batch:
         sample = np.asarray(sample, dtype=np.int64).reshape(-1)
         if n_samples is None:
             raise InputError("pc2im: a batch needs n_samples")
+        n_samples = check_int("n_samples", n_samples, 0)
         if len(sample) != len(pts):
             raise InputError(f"pc2im: {len(sample)} sample indices for {len(pts)} points")
         if len(sample) and (sample.min() < 0 or sample.max() >= n_samples):
@@ -81,11 +111,7 @@ def pc2im(points, range_m, elevation, length_m, lidar: LidarParams = DEFAULT_LID
         sample = np.zeros(len(pts), dtype=np.int64)
     if not np.isfinite(pts).all():
         raise InputError("pc2im: points must be finite (found NaN or inf)")
-    r0 = _per_sample("range_m", range_m, n_samples)
-    b0 = _per_sample("elevation", elevation, n_samples)
-    length = _per_sample("length_m", length_m, n_samples)
-    if (length <= 0).any():
-        raise InputError("pc2im: length_m must be > 0")
+    r0, b0, length = _sample_scalars("pc2im", range_m, elevation, length_m, n_samples)
 
     H, W = lidar.height, lidar.width
     alpha, beta, r = cartesian_to_spherical(pts)
@@ -117,12 +143,17 @@ def _centred_indices(n: int) -> np.ndarray:
 def _resample(d, q, src_w, src_h) -> np.ndarray:
     """out[..., i, j] = d[..., row(src_h), col(src_w)], -1 where the source is outside."""
     d = np.asarray(d)
-    if d.ndim < 2:
-        raise InputError(f"a depth image has shape (..., H, W), got {d.shape}")
+    if d.ndim < 2 or 0 in d.shape[-2:]:
+        raise InputError(f"a depth image has shape (..., H, W) with H, W >= 1, got {d.shape}")
     H, W = d.shape[-2:]
     lead = d.shape[:-2]
     flat = d.reshape((-1, H, W))
-    q = np.broadcast_to(np.asarray(q, dtype=np.float64), lead).reshape(-1)
+    q = np.asarray(q, dtype=np.float64)
+    try:
+        q = np.broadcast_to(q, lead).reshape(-1)
+    except ValueError:
+        raise InputError(f"q must be a scalar or have the images' batch shape {lead}, got "
+                         f"shape {q.shape}") from None
     if not np.isfinite(q).all() or (q <= 0).any():
         raise InputError(f"q must be finite and > 0, got {q[~(np.isfinite(q) & (q > 0))][:3]}")
     w = _centred_indices(W)[None, :].astype(np.float64)
@@ -180,6 +211,16 @@ def denorm_source_inside(shape: tuple[int, int], q: float) -> np.ndarray:
     return ok_h[:, None] & ok_w[None, :]
 
 
+def check_tau(tau) -> float:
+    """``tau`` if it is an Im2PC threshold: -1 <= tau < 1 (depths lie in [-1, 1], background
+    -1; below -1 every background pixel would become a point, at 1 or above none could)."""
+    t = check_finite("tau", tau)
+    if not -1.0 <= t < 1.0:
+        raise InputError(f"tau = {tau!r} is out of range; accepted: -1 <= tau < 1 (depths lie "
+                         "in [-1, 1], background -1)")
+    return t
+
+
 def im2pc(d, range_m, elevation, length_m, lidar: LidarParams = DEFAULT_LIDAR,
           tau: float = TAU_DEFAULT) -> PointCloud:
     """Im2PC, paper eqs. 3-5: every pixel with d > tau becomes one point.
@@ -197,9 +238,10 @@ def im2pc(d, range_m, elevation, length_m, lidar: LidarParams = DEFAULT_LIDAR,
         raise InputError(f"im2pc: expected (H, W) or (B, H, W), got {d.shape}")
     dd = d if batch else d[None]
     n = dd.shape[0]
-    r0 = _per_sample("range_m", range_m, n)
-    b0 = _per_sample("elevation", elevation, n)
-    length = _per_sample("length_m", length_m, n)
+    r0, b0, length = _sample_scalars("im2pc", range_m, elevation, length_m, n)
+    check_tau(tau)  # checked, not converted: the comparison keeps the caller's type
+    if not np.isfinite(dd).all():  # an inf pixel would be an inf point; NaN a silent gap
+        raise InputError("im2pc: depth images must be finite (found NaN or inf)")
     s, row, col = np.nonzero(dd > tau)
     w = lidar.w_of_col(col)
     h = lidar.h_of_row(row)

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
+
 # The one angle order (SPEC section 3): every attitude triple, positional or in a file, comes
 # as (pitch, yaw, roll), the order of nu. A target's pose adds its range and elevation in front
 # and, in Blender only, the azimuth about the lidar's vertical behind.
@@ -35,6 +37,8 @@ def spherical_to_cartesian(alpha, beta, r) -> np.ndarray:
 def cartesian_to_spherical(xyz):
     """Observation (x, y, z) -> (azimuth, elevation, slant range), each shaped like xyz[..., 0]."""
     xyz = _f64(xyz)
+    if xyz.shape[-1:] != (3,):  # a 2-vector would fail on its missing z; 4 would drop one
+        raise InputError(f"points have (x, y, z) on the last axis, got shape {xyz.shape}")
     x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
     horizontal = np.hypot(x, z)
     return np.arctan2(x, z), np.arctan2(y, horizontal), np.sqrt(horizontal**2 + y**2)
@@ -172,12 +176,19 @@ def pose_from_lidar_local(matrix) -> dict:
     """Inverse of :func:`target_matrix_lidar_local`: a dict of POSE_NAMES (metres, radians)
     of a body-to-lidar-local matrix (scale is removed)."""
     m = _f64(matrix)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise InputError(f"a pose matrix is 4 x 4 and finite, got shape {m.shape}"
+                         f"{'' if m.shape != (4, 4) else ' with NaN or inf'}")
     obs = _SWAP @ m[:3, 3]
     azimuth, elevation, range_m = (float(v) for v in cartesian_to_spherical(obs))
     if range_m <= 0.0 or not np.isfinite(range_m):
-        raise ValueError("the target sits on the lidar: no range or direction")
+        raise InputError("the target sits on the lidar: no range or direction")
     lin = _SWAP @ m[:3, :3]
-    lin = lin / np.linalg.norm(lin, axis=0, keepdims=True)
+    scale = np.linalg.norm(lin, axis=0, keepdims=True)
+    if not (scale > 0).all():  # scale 0 on an axis: no attitude to read (NaN angles)
+        raise InputError(f"the pose matrix has scale {scale.ravel().tolist()} on its body "
+                         "axes: a zero scale leaves no attitude to read")
+    lin = lin / scale
     att = np.linalg.inv(M0) @ _azimuth_matrix(azimuth).T @ lin
     pitch, yaw, roll = attitude_angles(att)
     return {"range_m": range_m, "elevation": elevation, "pitch": pitch, "yaw": yaw,

@@ -39,6 +39,13 @@ _BOUNDS = {  # name: (lowest, highest, unit shown, factor to the unit shown, wha
 }
 
 
+def _number(name: str, value) -> float:
+    """``value`` as a finite float; a text is refused, not read (float("64") would take it)."""
+    if isinstance(value, (str, bytes)):
+        raise InputError(f"{name} must be a number, got {value!r}")
+    return check_finite(name, value)
+
+
 @dataclass(frozen=True)
 class LidarParams:
     """Angular and range resolution of the lidar and the size of the depth-image window.
@@ -54,16 +61,20 @@ class LidarParams:
     height: int = 64  # elevation cells H
 
     def __post_init__(self) -> None:
+        # the values checked are the values kept: a text "0.0001" is checked as a number and
+        # then kept as the number, never as the text (which the window check would multiply)
         for name, (lo, hi, unit, scale, what) in _BOUNDS.items():
-            v = check_finite(name, getattr(self, name))
+            v = _number(name, getattr(self, name))
             if not lo <= v <= hi:
                 raise InputError(
                     f"{name}{unit} = {v / scale!r} is outside [{lo / scale!r}, {hi / scale!r}]"
                     f"{'' if v > 0 else ' (it must be > 0)'}: {what}")
+            object.__setattr__(self, name, v)
         for name in ("width", "height"):
             v = getattr(self, name)
-            if not isinstance(v, (int, np.integer)) or v < 2 or v % 2:
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2 or v % 2:
                 raise InputError(f"{name} must be an even integer >= 2, got {v!r}")
+            object.__setattr__(self, name, int(v))
         if self.width * self.r_alpha >= math.pi or self.height * self.r_beta >= math.pi / 2:
             raise InputError(
                 f"the window must span less than 180 deg azimuth and 90 deg elevation, got "
@@ -75,7 +86,9 @@ class LidarParams:
     @classmethod
     def from_degrees(cls, r_alpha_deg: float = 0.0040, r_beta_deg: float = 0.0076,
                      r_r_m: float = 0.15, width: int = 256, height: int = 64) -> LidarParams:
-        return cls(r_alpha_deg * DEG, r_beta_deg * DEG, r_r_m, int(width), int(height))
+        # width and height as given: int() would truncate 256.9 to 256 (and name 3.7 as 3)
+        return cls(_number("r_alpha_deg", r_alpha_deg) * DEG,
+                   _number("r_beta_deg", r_beta_deg) * DEG, r_r_m, width, height)
 
     def to_dict(self) -> dict:
         """Edge representation (degrees, metres), as stored in configs and dataset headers."""

@@ -17,6 +17,9 @@ from .errors import InputError, check_int
 
 CHUNK_ELEMENTS = 1 << 22  # distances computed at once (32 MB of float64)
 JSD_BINS_DEFAULT = 28  # the point-cloud literature's habit; the evaluation chooses c by measurement
+# Most bins a side: JSD's flat cell index (x c + y) c + z reaches c^3 - 1, which int64 holds up
+# to c = 2^21 (c^3 = 2^63); past it the index wraps and cells of different points collide.
+JSD_BINS_MAX = 2**21
 
 
 def as_cloud(points, name: str = "cloud") -> np.ndarray:
@@ -41,6 +44,7 @@ MAX_COORDINATE_M = 1e12  # far past any lidar's range, and its squares far from 
 def subsample(points, max_points: int | None, seed: int = 0) -> np.ndarray:
     """At most ``max_points`` points, drawn without replacement (seeded); small clouds as is."""
     p = as_cloud(points)
+    check_int("seed", seed, 0)  # numpy refuses a negative seed, and None draws unseeded
     if max_points is not None:
         check_int("max_points", max_points, 1)
     if max_points is None or len(p) <= max_points:
@@ -163,6 +167,9 @@ def jsd(a, b, bins: int = JSD_BINS_DEFAULT, max_points: int | None = None,
     saturates (SPEC section 9): always report it with its ``bins`` and the point counts.
     """
     check_int("bins", bins, 1)
+    if bins > JSD_BINS_MAX:
+        raise InputError(f"bins = {bins} is too many; accepted: 1 .. {JSD_BINS_MAX} (2^21: the "
+                         "flat index of the c^3 cells must fit int64, c^3 <= 2^63)")
     a, b = _centred_pair(a, b, max_points, seed)
     if len(a) == 0 or len(b) == 0:
         return None

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..condition import NOISE_DIM, scale_ratio
 from ..depth import TAU_DEFAULT, denorm, im2pc
-from ..errors import InputError
+from ..errors import InputError, check_int
 from ..typetable import Conditions
 from .base import RUNTIMES, GenerationResult, ModelTypes, onnx_session, onnx_weights, onnxruntime
 
@@ -109,6 +109,8 @@ class APCGModel(ModelTypes):
                  seed: int = 0) -> GenerationResult:
         """Point clouds for ``conditions`` (mapped by type name into this model's types),
         ``count`` samples each (rows repeated), noise from ``seed``."""
+        # a whole number >= 0: numpy refuses a negative one, and draws unseeded noise from None
+        check_int("seed", seed, 0)
         table = self.repeated_conditions(conditions, count)
         nu = self.space.encode(table)
         noise = np.random.default_rng(seed).standard_normal((len(table), NOISE_DIM))
