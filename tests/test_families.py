@@ -248,3 +248,18 @@ def test_a_model_json_setting_of_the_wrong_kind_is_refused_naming_the_file(tmp_p
     with pytest.raises(InputError, match=re.escape(needle)) as refused:
         load_model(mdir)
     assert str(mdir / "model.json") in str(refused.value)
+
+
+@pytest.mark.parametrize("seed", [None, -1, 1.5, True])
+def test_a_comparison_family_seed_is_a_whole_number_at_least_0(data, tmp_path, seed):
+    """None drew unseeded noise (a different cloud each call) and -1 a numpy traceback: the
+    seed is checked as the cGAN's is, and 2**32 - 1 (the largest block seed) still works."""
+    from apcg_core.errors import InputError
+    cfg = config_from("tiny", steps=1, seed=1, family="point-gan", checkpoint_every=10**6,
+                      log_every=100, n_points=32)
+    Trainer(data, tmp_path / "run", cfg, progress=False).fit()
+    model = load_any(export_model(tmp_path / "run", tmp_path / "m"))
+    table = DepthDataset(data, "test").condition_rows(np.arange(1))
+    with pytest.raises(InputError, match="seed must be an integer >= 0"):
+        model.generate(table, 1, seed)
+    assert len(model.generate(table, 1, np.uint32(2**32 - 1)).table) == 1

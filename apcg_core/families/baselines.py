@@ -121,6 +121,9 @@ class BaselineModel(ModelTypes):
         return self.family_impl.canonical(self, nu, seed, counts)
 
     def generate(self, conditions, count: int = 1, seed: int = 0) -> GenerationResult:
+        # a whole number >= 0, as the cGAN's: numpy refuses a negative one, and draws
+        # unseeded noise from None
+        seed = check_int("seed", seed, 0)
         table = self.repeated_conditions(conditions, count)
         nu = self.space.encode(table)
         counts = [self.counts(int(table[i, 0]), nu[i]) for i in range(len(table))]
