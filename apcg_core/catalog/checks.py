@@ -42,6 +42,10 @@ def size_problem(extents_m, kind: str, unit_scale_applied: float = 1.0) -> str |
     if fits:
         _, name, f = min(fits)
         msg += f"; it looks like {name}: --unit-scale {f:g}"
+    other = next((k for k, (a, b) in SIZE_LIMITS_M.items() if k != kind and a <= size <= b),
+                 None)
+    if other is not None:  # a 0.5 m quadcopter added with the default kind
+        msg += f"; if it is {'an' if other[0] in 'aeiou' else 'a'} {other}: --kind {other}"
     return msg + ("; or give its length in metres with --length-m; to add it at this size "
                   "anyway, give --force (which also replaces your type of the same name)")
 
@@ -88,6 +92,13 @@ def _mirror_error(points: np.ndarray, axis: int, other: np.ndarray | None = None
     return err
 
 
+# A mirror error this small (a fraction of the model's size) is what two samples of one
+# surface differ by (boxes: up to 3e-4 either way): a box, or a model symmetric both ways,
+# gives it across either axis. The least real asymmetry seen: a quadcopter's 0.004.
+MIRROR_NOISE = 0.002
+EXTENT_TIE = 0.01  # two extents this close (relative) do not tell which one is up
+
+
 class AxesGuess(NamedTuple):
     forward: str
     up: str
@@ -120,7 +131,10 @@ def guess_axes(mesh: Mesh, n: int = 4000) -> AxesGuess:
     upname = names[up]
     why = (f"smallest extent along {names[up]}, mirror-symmetric across {names[span]} "
            f"(asymmetry {errs[span]:.3f} against {errs[fwd]:.3f}), highest parts aft")
-    return AxesGuess(forward, upname, why, errs[span] < 0.5 * errs[fwd] - 1e-4)
+    small = np.sort(ext)[:2]
+    decided = small[1] - small[0] > EXTENT_TIE * small[1]  # else argmin picks X on a tie
+    confident = decided and errs[fwd] > MIRROR_NOISE and errs[span] < 0.5 * errs[fwd] - 1e-4
+    return AxesGuess(forward, upname, why, bool(confident))
 
 
 def axes_fix(guess: AxesGuess | None, forward: str, up: str, forward_given: bool = False,

@@ -137,7 +137,8 @@ def _add(args) -> int:
     mesh, rep = import_model(args.file, forward=args.forward, up=args.up,
                              unit_scale=args.unit_scale, length_m=args.length_m,
                              objects=args.objects, guess=args.forward is None or args.up is None)
-    problem = check_size(mesh.extents, args.kind, args.force, rep.scale, name=repr(name))
+    problem = check_size(mesh.extents, args.kind, args.force, rep.scale,
+                         name=f"{args.file} (type {name!r})")
     say = print
     say(f"read {args.file}: {rep.n_faces} triangles, {rep.n_bodies} bodies, "
         f"{'closed' if rep.watertight else 'open'} (origin: {rep.centre})")
@@ -147,6 +148,12 @@ def _add(args) -> int:
     say(f"  axes: {rep.axes}")
     say(f"  extents: length {rep.extents_m[0]:.4g} m, span {rep.extents_m[1]:.4g} m, "
         f"height {rep.extents_m[2]:.4g} m")
+    if rep.n_duplicates:
+        _warn(f"{args.file}: {rep.n_duplicates} duplicate triangle"
+              f"{'s' if rep.n_duplicates != 1 else ''} (on the same three vertices as "
+              "another) dropped; a copy would make a closed model read as open")
+    if rep.precision:
+        _warn(f"{args.file}: {rep.precision}")
     if rep.n_dropped:
         _warn(f"{args.file}: {rep.n_dropped} degenerate (zero-area) triangle"
               f"{'s' if rep.n_dropped != 1 else ''} dropped; the rest is the model")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import fnmatch
 import importlib.util
+import io
 import json
 import os
 import re
@@ -27,6 +28,7 @@ import numpy as np
 
 from ..errors import InputError
 from .mesh import Mesh
+from .polygons import triangulate_polygons, wrong_fans
 
 
 @dataclass
@@ -40,6 +42,10 @@ class RawModel:
     forward: str | None = None
     objects: list[str] = field(default_factory=list)  # the objects taken
     skipped: list[str] = field(default_factory=list)  # left out, with why
+    # the largest coordinate the file stores as a 32-bit float (binary STL, glTF, PLY float),
+    # None where it stores more digits: far from the file's origin float32 loses the shape
+    float32_max: float | None = None
+    stored_max: float = 0.0  # the largest coordinate as stored (before node transforms)
 
 
 @dataclass(frozen=True)
@@ -67,7 +73,8 @@ def _match(name: str, patterns: list[str]) -> bool:
 
 
 def read_off(path: Path, patterns=()) -> RawModel:
-    """ModelNet-tolerant OFF reader (polygons are fan-triangulated)."""
+    """ModelNet-tolerant OFF reader (polygons are triangulated in their plane:
+    :func:`triangulate_polygons`)."""
     text = path.read_bytes().decode("utf-8", errors="replace").replace("\r", "")
     tokens_lines = [ln.split("#")[0].strip() for ln in text.split("\n")]
     lines = [ln for ln in tokens_lines if ln]
@@ -90,20 +97,21 @@ def read_off(path: Path, patterns=()) -> RawModel:
         verts = np.array([ln.split()[:3] for ln in body[:nv]], dtype=np.float64)
         if verts.shape != (nv, 3):
             raise ValueError("a vertex line holds fewer than 3 coordinates")
-        faces = []
+        polys = []
         for ln in body[nv:nv + nf]:
             idx = [int(v) for v in ln.split()]
             k = idx[0]
             poly = idx[1:1 + k]
             if len(poly) < k:
                 raise ValueError(f"the face line {ln!r} holds fewer than its {k} indices")
-            faces += [[poly[0], poly[i], poly[i + 1]] for i in range(1, k - 1)]
+            if k >= 3:
+                polys.append(poly)
     except (ValueError, IndexError) as exc:
         raise InputError(f"{path}: corrupt OFF file ({exc})") from exc
-    if not faces:
+    if not polys:
         raise InputError(f"{path}: corrupt OFF file (its {nf} faces hold no triangle)")
-    faces = np.array(faces, np.int64)
-    check_indices(faces, nv, path, base=0)
+    check_indices(np.array([i for p in polys for i in p], np.int64), nv, path, base=0)
+    faces = triangulate_polygons(verts, polys)
     return RawModel(Mesh(verts, faces), objects=[path.stem])
 
 
@@ -166,6 +174,11 @@ def check_obj(path: Path) -> None:
                           "this line; numbers start at 1, negative ones count back)")
             if k > n_v:
                 late.append((no, k))
+    if not any(t[:1] == ["f"] for t in (ln.split("#", 1)[0].split()[:1] for ln in lines)):
+        raise InputError(f"{path}: " + (f"{n_v} vertices ('v' lines) but no faces ('f' lines): "
+                                        "no surface to import" if n_v else
+                                        "not an OBJ file: no 'v' (vertex) or 'f' (face) lines")
+                         )
     for no, k in late:
         if k > n_v:
             raise InputError(f"{path}, line {no}: a face refers to vertex {k}, but the file "
@@ -179,7 +192,8 @@ _PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort"
 
 def _ply_header(path: Path, data: bytes):
     """(format, [(element, count, [property: (name, is_list)])], header bytes) of a PLY."""
-    end = data.find(b"end_header")
+    from ..io.clouds import ply_header_end
+    end = ply_header_end(data)  # a line of its own: a comment may hold the words
     if not data.startswith(b"ply") or end < 0:
         raise InputError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header)")
     eol = data.find(b"\n", end)
@@ -279,6 +293,10 @@ def check_stl(path: Path) -> None:
             return
         raise InputError(f"{path}: an ASCII STL without its closing 'endsolid' line "
                          f"({_TRUNCATED})")
+    if _is_text(head):  # neither 'solid ...' nor a binary header with its count
+        raise InputError(f"{path}: not an STL file: text that does not start with 'solid' "
+                         "(an ASCII STL), and not a binary STL (an 80-byte header, a triangle "
+                         "count and 50 bytes a triangle)")
     if n is None:
         raise InputError(f"{path}: {size} bytes: shorter than a binary STL's 84-byte header "
                          f"({_TRUNCATED})")
@@ -290,6 +308,34 @@ def check_stl(path: Path) -> None:
                      f"file has {size} bytes: not a whole binary STL")
 
 
+def _is_text(data: bytes) -> bool:
+    """Printable ASCII and white space only (a binary STL's triangle count is not)."""
+    return bool(data) and all(32 <= b < 127 or b in (9, 10, 13) for b in data)
+
+
+def check_gltf(path: Path) -> None:
+    """A .gltf is JSON; a .glb starts with 'glTF' and is as long as its header says (trimesh
+    otherwise names a JSON parser's or a missing 'model.gltf's error)."""
+    data = path.read_bytes()
+    if path.suffix.lower() == ".gltf":
+        try:
+            doc = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise InputError(f"{path}: not a glTF file: a .gltf is JSON text, and this is not "
+                             f"({str(exc)[:80]})") from None
+        if not isinstance(doc, dict) or "asset" not in doc:
+            raise InputError(f"{path}: not a glTF file: JSON without the glTF 'asset' object")
+        return
+    if data[:4] != b"glTF":
+        raise InputError(f"{path}: not a binary glTF (GLB) file: it does not start with "
+                         "'glTF'")
+    declared = int.from_bytes(data[8:12], "little") if len(data) >= 12 else None
+    if declared is None or len(data) < declared:
+        raise InputError(f"{path}: a GLB file cut short ({len(data)} of "
+                         f"{declared if declared is not None else 'its header 12'} bytes; "
+                         f"{_TRUNCATED})")
+
+
 def _plural(name: str) -> str:
     return {"vertex": "vertices", "face": "faces"}.get(name, f"'{name}' elements")
 
@@ -297,7 +343,7 @@ def _plural(name: str) -> str:
 def _scene_meshes(scene, patterns, path: Path) -> RawModel:
     """Join a trimesh scene's geometry, each instance moved by its node's world transform."""
     trimesh = _trimesh()
-    verts, faces, taken, skipped, offset = [], [], [], [], 0
+    verts, faces, taken, skipped, offset, stored = [], [], [], [], 0, 0.0
     for node in scene.graph.nodes_geometry:
         matrix, geom_name = scene.graph[node]
         geom = scene.geometry[geom_name]
@@ -309,6 +355,7 @@ def _scene_meshes(scene, patterns, path: Path) -> RawModel:
             skipped.append(f"{name} (not matched)")
             continue
         v = np.asarray(geom.vertices, np.float64)
+        stored = max(stored, _max_abs(v))
         m = np.asarray(matrix, np.float64)
         with np.errstate(invalid="ignore", over="ignore"):  # non-finite: named by read_model
             verts.append(v @ m[:3, :3].T + m[:3, 3])
@@ -321,17 +368,148 @@ def _scene_meshes(scene, patterns, path: Path) -> RawModel:
         raise InputError(f"{path}: no surface to take; objects: {', '.join(skipped) or 'none'}"
                          + (f" (--objects {','.join(patterns)})" if patterns else ""))
     return RawModel(Mesh(np.concatenate(verts), np.concatenate(faces)), objects=taken,
-                    skipped=skipped)
+                    skipped=skipped, stored_max=stored)
 
 
-def _trimesh_scene(path: Path, **kwargs):
+def _max_abs(v: np.ndarray) -> float:
+    with np.errstate(invalid="ignore"):
+        a = np.abs(v[np.isfinite(v).all(axis=1)]) if len(v) else v
+        return float(a.max()) if len(a) else 0.0
+
+
+def _trimesh_scene(path: Path, text: str | None = None, **kwargs):
+    """The file as a trimesh scene; ``text``: the OBJ's text to read in place of the file's
+    (with its indices made absolute, its concave polygons cut: :func:`_obj_text`)."""
     trimesh = _trimesh()
     try:
+        if text is not None:  # the resolver still finds the .mtl beside the file
+            return trimesh.load(io.BytesIO(text.encode("utf-8")), file_type="obj",
+                                resolver=trimesh.resolvers.FilePathResolver(str(path)),
+                                process=False, force="scene", **kwargs)
         return trimesh.load(str(path), process=False, force="scene", **kwargs)
     except InputError:
         raise
     except Exception as exc:  # trimesh and its parsers raise many types on bad files
         raise InputError(f"{path}: cannot read the file ({type(exc).__name__}: {exc})") from exc
+
+
+def _obj_ref(token: str, counts: tuple[int, int, int]) -> str:
+    """An OBJ face corner ``v/vt/vn`` with negative numbers made absolute: counted back from
+    the last vertex (texture, normal) read before the face, as OBJ defines them (trimesh
+    counts them back from the file's last vertex, so a file of several objects each written
+    with -8..-1 would get the last object's vertices for all of them)."""
+    parts = token.split("/")
+    return "/".join(str(n + int(t) + 1) if t.startswith("-") else t
+                    for t, n in zip(parts, counts, strict=False))
+
+
+def _obj_text(path: Path) -> str | None:
+    """The OBJ's text as trimesh must read it, or None where the file reads right as it is:
+    negative indices made absolute (:func:`_obj_ref`), and each concave polygon replaced by
+    its ear-clipped triangles (trimesh fans it, laying triangles over its notch)."""
+    lines = path.read_bytes().decode("utf-8", errors="replace").split("\n")
+    counts = {"v": 0, "vt": 0, "vn": 0}
+    coords, polys, changed = [], [], False
+    for no, line in enumerate(lines):
+        tokens = line.split("#", 1)[0].split()
+        if not tokens:
+            continue
+        if tokens[0] in counts:
+            counts[tokens[0]] += 1
+            if tokens[0] == "v":
+                coords.append(tokens[1:4])
+        elif tokens[0] == "f":
+            refs = tokens[1:]
+            if any("-" in t for t in refs):
+                refs = [_obj_ref(t, tuple(counts.values())) for t in refs]
+                lines[no] = "f " + " ".join(refs)
+                changed = True
+            if len(refs) > 3:
+                polys.append((no, refs))
+    if polys:
+        verts = np.array(coords, np.float64)
+        corners = [[int(t.split("/", 1)[0]) - 1 for t in refs] for _, refs in polys]
+        if wrong_fans(verts, corners):
+            for (no, refs), poly in zip(polys, corners, strict=True):
+                if wrong_fans(verts, [poly]):  # its triangles, by corner number
+                    tris = triangulate_polygons(verts[poly], [list(range(len(poly)))])
+                    lines[no] = "\n".join("f " + " ".join(refs[i] for i in t) for t in tris)
+            changed = True
+    return "\n".join(lines) if changed else None
+
+
+def read_obj(path: Path, patterns=()) -> RawModel:
+    """OBJ through trimesh, its negative indices and concave polygons made right first; with
+    ``patterns`` each ``o`` object and ``g`` group is an object of its own to pick."""
+    split = {"split_objects": True, "split_groups": True} if patterns else {}
+    scene = _trimesh_scene(path, _obj_text(path), **split)
+    return _scene_meshes(scene, list(patterns), path)
+
+
+def _ply_faces(path: Path):
+    """A PLY's faces as stored (lists of vertex numbers), read by trimesh's own parser."""
+    from trimesh.exchange import ply
+    with open(path, "rb") as f:
+        elements, is_ascii, _ = ply._parse_header(f)
+        (ply._ply_ascii if is_ascii else ply._ply_binary)(elements, f)
+    face = elements.get("face", {}).get("data")
+    if face is None:
+        return []
+    data = face[next(iter(face.dtype.names))] if hasattr(face, "dtype") and face.dtype.names \
+        else next(iter(face.values()))
+    if getattr(data, "dtype", None) is not None and data.dtype.names:  # (count, indices)
+        data = data[data.dtype.names[1]]
+    if getattr(data, "dtype", None) is not None and data.dtype != object and data.ndim == 2:
+        return [] if data.shape[1] <= 3 else data.tolist()  # triangles: trimesh's are right
+    return [np.asarray(p).ravel().tolist() for p in data]
+
+
+def read_ply(path: Path, patterns=()) -> RawModel:
+    """PLY through trimesh; its polygons that trimesh fans outside themselves (concave ones)
+    triangulated again from the faces as stored; float32 vertices noted."""
+    try:
+        raw = read_trimesh(path, patterns)
+    except InputError as exc:  # a binary PLY shorter than its header's counts
+        if "unexpected length" not in str(exc):
+            raise
+        _, elements, _ = _ply_header(path, path.read_bytes())
+        counts = " and ".join(f"{n} {_plural(e)}" for e, n, _ in elements)
+        raise InputError(f"{path}: a binary PLY cut short: its {path.stat().st_size} bytes "
+                         f"hold less than the header's {counts} ({_TRUNCATED})") from None
+    data = path.read_bytes()[:4096]
+    from ..io.clouds import ply_header_end
+    head = data[:max(ply_header_end(data), 0)].decode("ascii", errors="replace")
+    polygons = re.search(r"property\s+list\s+\S+\s+\S+\s+vertex_ind", head) and not \
+        re.search(r"\n\s*element\s+face\s+0\s*\n", head)
+    if polygons and len(raw.objects) == 1:
+        try:
+            polys = _ply_faces(path)
+            if max(map(len, polys), default=3) > 3 and max(map(max, polys)) >= len(
+                    raw.mesh.vertices):
+                polys = []  # not the vertices trimesh read: keep its faces
+        except Exception:  # a PLY trimesh read but its parser, called alone, does not
+            polys = []
+        if any(len(p) > 3 for p in polys) and wrong_fans(raw.mesh.vertices, polys):
+            raw.mesh = Mesh(raw.mesh.vertices, triangulate_polygons(raw.mesh.vertices, polys))
+    if re.search(r"property\s+(float|float32)\s+x\b", head):
+        raw.float32_max = raw.stored_max
+    return raw
+
+
+def read_stl(path: Path, patterns=()) -> RawModel:
+    """STL through trimesh; a binary STL's coordinates are float32."""
+    raw = read_trimesh(path, patterns)
+    if _stl_binary(path):
+        raw.float32_max = raw.stored_max
+    return raw
+
+
+def _stl_binary(path: Path) -> bool:
+    """A whole binary STL: 84 bytes and 50 a triangle (check_stl refused any other non-ASCII)."""
+    with open(path, "rb") as f:
+        head = f.read(84)
+    return len(head) == 84 and path.stat().st_size == 84 + 50 * int.from_bytes(head[80:],
+                                                                                "little")
 
 
 def read_trimesh(path: Path, patterns=()) -> RawModel:
@@ -340,10 +518,12 @@ def read_trimesh(path: Path, patterns=()) -> RawModel:
 
 
 def read_gltf(path: Path, patterns=()) -> RawModel:
-    """glTF 2.0 declares metres, +Y up and the asset's front facing +Z (its section 3.4)."""
+    """glTF 2.0 declares metres, +Y up and the asset's front facing +Z (its section 3.4);
+    its vertex positions are float32 (the node transforms, applied here, are not)."""
     raw = _scene_meshes(_trimesh_scene(path), list(patterns), path)
     raw.unit_m, raw.unit_note = 1.0, "glTF: metres by its specification"
     raw.up, raw.forward = "Y", "Z"
+    raw.float32_max = raw.stored_max
     return raw
 
 
@@ -459,10 +639,10 @@ def read_blender(path: Path, patterns=()) -> RawModel:
 
 FORMATS = (
     Format("OFF", (".off",), "own reader", read_off),
-    Format("Wavefront OBJ", (".obj",), "trimesh", read_trimesh, check_obj),
-    Format("STL", (".stl",), "trimesh", read_trimesh, check_stl),
-    Format("PLY", (".ply",), "trimesh", read_trimesh, check_ply),
-    Format("glTF 2.0", (".glb", ".gltf"), "trimesh", read_gltf),
+    Format("Wavefront OBJ", (".obj",), "trimesh", read_obj, check_obj),
+    Format("STL", (".stl",), "trimesh", read_stl, check_stl),
+    Format("PLY", (".ply",), "trimesh", read_ply, check_ply),
+    Format("glTF 2.0", (".glb", ".gltf"), "trimesh", read_gltf, check_gltf),
     Format("COLLADA", (".dae",), "trimesh + pycollada", read_collada),
     Format("FBX", (".fbx",), "Blender", read_blender),
     Format("Blender", (".blend",), "Blender", read_blender),

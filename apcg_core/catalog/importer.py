@@ -43,6 +43,8 @@ class ImportReport:
     axes_declared: bool = False  # the file declares its axes (glTF, COLLADA, Blender-read)
     forward_declared: bool = False
     n_dropped: int = 0  # degenerate (zero-area) triangles dropped
+    n_duplicates: int = 0  # triangles on the same three vertices as another, dropped
+    precision: str | None = None  # what float32 coordinates far from the origin lost
 
 
 def read_mesh(path) -> Mesh:
@@ -81,6 +83,41 @@ def _merge_close(mesh: Mesh) -> Mesh:
     f0, f1, f2 = faces.T
     keep = (f0 != f1) & (f1 != f2) & (f0 != f2)
     return Mesh(mesh.vertices[first], faces[keep])
+
+
+def drop_duplicates(mesh: Mesh) -> tuple[Mesh, int, bool]:
+    """``(mesh, n, closed)``: where the mesh is closed once triangles on the same three
+    vertices as an earlier one (in any order or winding) are gone, the mesh without them and
+    how many went; else the mesh as it was (a sheet modelled double-sided keeps both sides).
+    Exporters leave copies; a kept copy puts its edges in three or four faces, so a closed
+    mesh would read as open and be centred on its bounding box, not its volume centroid."""
+    if not len(mesh.faces):
+        return mesh, 0, False
+    _, first = np.unique(np.sort(mesh.faces, axis=1), axis=0, return_index=True)
+    if len(first) == len(mesh.faces):
+        return mesh, 0, mesh.is_watertight()
+    unique = Mesh(mesh.vertices, mesh.faces[np.sort(first)])
+    if not unique.is_watertight():
+        return mesh, 0, False
+    return unique, len(mesh.faces) - len(first), True
+
+
+FLOAT32_SPACING_M = 1e-3  # float32 coordinates further apart than this lose the shape
+
+
+def float32_precision(raw, scale: float) -> str | None:
+    """What a file of float32 coordinates (binary STL, glTF, PLY float) lost where its model
+    lies so far from the file's origin that neighbouring float32 values are more than 1 mm
+    apart (UTM coordinates: 0.5 m): the import is exact, the file is not; None where fine."""
+    if raw.float32_max is None or not np.isfinite(raw.float32_max):
+        return None
+    step = float(np.spacing(np.float32(raw.float32_max))) * scale
+    if step <= FLOAT32_SPACING_M:
+        return None
+    return (f"its coordinates are 32-bit floats up to {raw.float32_max:.4g} from the file's "
+            f"origin, where they are {step * 1000:.3g} mm apart: the shape has lost that "
+            "precision in the file itself; move the model to the origin before exporting "
+            "(or export OBJ, whose coordinates keep every digit)")
 
 
 DEGENERATE_AREA = 1e-12  # a triangle's area, relative to the model's size squared
@@ -160,9 +197,12 @@ def import_model(path, forward: str | None = None, up: str | None = None,
     raw = read_model(path, objects)
     n_read = len(raw.mesh.faces)
     mesh = _merge_close(used_only(raw.mesh))
+    # closed is decided before zero-area triangles go: one that seals a T-junction (an edge
+    # split on one side only, as CAD exporters leave) is part of a closed surface
+    mesh, n_duplicates, sealed = drop_duplicates(mesh)
     mesh, _ = drop_degenerate(mesh, path, n_read)
     check_not_flat(mesh, path)
-    n_dropped = n_read - len(mesh.faces)
+    n_dropped = n_read - n_duplicates - len(mesh.faces)
     guessed = None
     if guess:
         from .checks import guess_axes
@@ -177,6 +217,11 @@ def import_model(path, forward: str | None = None, up: str | None = None,
         else:
             axes_from.append(f"{label} {default or _default_forward(up or raw.up or 'Z')} "
                              "(default)")
+    if up is not None and forward is None and raw.forward is not None \
+            and up.upper().lstrip("-") == raw.forward.upper().lstrip("-"):
+        raise InputError(f"{path}: the file declares forward {raw.forward} (up {raw.up}), "
+                         f"the axis of your --up {up}: give --forward too (X, -X, Y, -Y, Z, "
+                         "-Z)")
     up = up or raw.up or "Z"
     forward = forward or raw.forward or _default_forward(up)
     mesh = mesh.transformed(axis_matrix(forward, up))
@@ -199,9 +244,10 @@ def import_model(path, forward: str | None = None, up: str | None = None,
         scale, unit = 1.0, "not declared by the file: metres assumed"
     mesh = mesh.transformed(np.eye(3) * scale)
     rep = mesh.report()
+    closed = rep.watertight or sealed
     how = "none"
     if centre:
-        if rep.watertight and abs(rep.volume) > 0:
+        if closed and abs(rep.volume) > 0:
             mesh, turned = mesh.bodies_outward()
             origin, how = mesh.centroid, "volume centroid"
             if turned:
@@ -211,10 +257,11 @@ def import_model(path, forward: str | None = None, up: str | None = None,
             origin, how = mesh.bounds.mean(axis=0), "bounding-box centre"
         mesh = mesh.transformed(offset=-origin)
     report = ImportReport(str(path), len(mesh.vertices), len(mesh.faces), rep.n_bodies,
-                          rep.watertight, how, scale, tuple(float(e) for e in mesh.extents),
+                          closed, how, scale, tuple(float(e) for e in mesh.extents),
                           unit, ", ".join(reversed(axes_from)), raw.objects, raw.skipped,
                           guessed, forward, up, raw.up is not None or raw.forward is not None,
-                          raw.forward is not None, n_dropped)
+                          raw.forward is not None, n_dropped, n_duplicates,
+                          float32_precision(raw, scale))
     return mesh, report
 
 

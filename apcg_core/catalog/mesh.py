@@ -122,6 +122,15 @@ class Mesh:
         return Mesh(np.concatenate(verts), np.concatenate(faces))
 
     # --- checks ----------------------------------------------------------------------------
+    def is_watertight(self) -> bool:
+        """Every edge (either direction) in exactly two faces."""
+        f = self.faces
+        if not len(f):
+            return False
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        _, counts = np.unique(e[:, 0] * len(self.vertices) + e[:, 1], return_counts=True)
+        return bool((counts == 2).all())
+
     def report(self, area_eps: float = 1e-12) -> MeshReport:
         f = self.faces
         nv = len(self.vertices)

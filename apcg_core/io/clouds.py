@@ -726,11 +726,19 @@ def _read_las(path: Path):
     return xyz, cols, _las_meta(las.header.vlrs)
 
 
+def ply_header_end(data: bytes) -> int:
+    """Where a PLY's ``end_header`` line starts in ``data``, -1 if it has none: a line of its
+    own, since a comment (our meta, a tool's note) may hold the words. Every PLY reader of the
+    package finds the header's end here (clouds, and the catalog's mesh files)."""
+    found = _END_HEADER.search(data)
+    return found.start() if found else -1
+
+
 def _ply_header(path: Path, data: bytes):
     """format, meta, elements [(name, count, [(property, dtype code, or None for a list)])] and
     where the body starts."""
-    found = _END_HEADER.search(data)  # a line of its own: a comment may hold the words
-    end = found.start() if found else -1
+    end = ply_header_end(data)
+    found = end >= 0
     body = data.find(b"\n", end) + 1 if found else 0
     if not data.startswith(b"ply") or body == 0:
         raise InputError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
