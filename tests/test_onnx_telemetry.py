@@ -1,6 +1,6 @@
 """onnxruntime runs with its usage telemetry off: `apcg generate` leaves no usage record in the
-user's home (onnxruntime 1.29+ keeps one under ~/.cache/Microsoft/DeveloperTools and syncs it
-to disk at exit, which cost `generate` a tenth of its time; apcg_core/families/base.py)."""
+user's home (onnxruntime 1.29+ keeps one under ~/.cache/Microsoft/DeveloperTools for upload and
+syncs it to disk at exit; apcg_core/families/base.py)."""
 
 import os
 import subprocess

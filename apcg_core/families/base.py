@@ -253,11 +253,12 @@ def onnxruntime(needed_for: str = "generation needs onnxruntime: pip install onn
 
     onnxruntime 1.29 and later record every process's use in a SQLite file under
     ~/.cache/Microsoft/DeveloperTools/.onnxruntime (2.4 MB here) for upload to Microsoft
-    (microsoft/onnxruntime pull requests 27379 and 29843), and sync it to disk at exit: after
-    `apcg generate` wrote 667 MB that sync waited 0.9 s for the output's pages (ext4 commits
-    them with its journal), a tenth of the command (docs/SCALE.md, stop 54). A generator run
-    on a user's data reports nothing anywhere; ``ORT_DISABLE_TELEMETRY`` (onnxruntime's own
-    switch, read when its environment is created) is set to 1 unless the user set it."""
+    (microsoft/onnxruntime pull requests 27379 and 29843), and sync it to disk at exit: with
+    other processes writing, that sync waited 0.9 s for `apcg generate`'s 667 MB output
+    (ext4 commits the pages with its journal; on a quiet machine it cost nothing measurable,
+    docs/SCALE.md, stop 54). A generator run on a user's data writes nothing to their home
+    and reports nothing anywhere; ``ORT_DISABLE_TELEMETRY`` (onnxruntime's own switch, read
+    when its environment is created) is set to 1 unless the user set it."""
     os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
     try:
         import onnxruntime as ort
