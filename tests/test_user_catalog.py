@@ -373,3 +373,21 @@ def test_a_closed_body_wound_inward_does_not_move_the_origin(tmp_path):
     assert "inward" not in r0.centre
     assert np.abs(m1.vertices - m0.vertices).max() < 1e-9
     assert m1.volume == pytest.approx(m0.volume, rel=1e-12) and m1.volume > 0
+
+
+def test_generating_a_user_type_the_model_lacks_points_to_teach(tmp_path, box_obj):
+    """A user type in the catalog that the model was not trained on: the refusal says how to
+    make a model that knows it, not only the names this one knows (probe finding, stop 54)."""
+    env = _env(tmp_path)
+    assert _apcg("catalog", "add", box_obj, "--name", "Teach Me", "--length-m", "10",
+                 env=env).returncode == 0
+    out = _apcg("generate", "--type", "teach me", "--range-m", "5000", "--elevation-deg", "3.5",
+                "--pitch-deg", "2", "-o", tmp_path / "x.npz", env=env)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "'Teach Me' is in the catalog but not in this model" in out.stderr
+    assert "apcg teach --model" in out.stderr and "--type 'Teach Me'" in out.stderr
+    assert not (tmp_path / "x.npz").exists()
+    # a name in no catalog gets no such advice
+    other = _apcg("generate", "--type", "No Such Jet", "--range-m", "5000", "--elevation-deg",
+                  "3.5", "--pitch-deg", "2", "-o", tmp_path / "y.npz", env=env)
+    assert other.returncode == 2 and "apcg teach" not in other.stderr

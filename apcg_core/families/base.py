@@ -160,7 +160,22 @@ class ModelTypes:
         if _catalog_index(key):
             from ..catalog.catalog import default_catalog
             return default_catalog().get(key).name  # the catalog reads its own indices
-        return self.types.names[self.types.code(key)]  # refuses, naming what it knows
+        try:
+            return self.types.names[self.types.code(key)]  # refuses, naming what it knows
+        except InputError as exc:
+            raise InputError(f"{exc}{self._teach_hint(key)}") from None
+
+    def _teach_hint(self, key) -> str:
+        """For a catalog type this model was not trained on (a user's, mostly): how to make a
+        model that knows it, instead of a list of the names it does."""
+        from ..catalog.catalog import default_catalog
+        try:
+            name = default_catalog().get(key).name
+        except InputError:
+            return ""
+        return (f". {name!r} is in the catalog but not in this model ({self.directory}): "
+                f"`apcg teach --model {self.directory} --type {name!r} -o NEW_MODEL` makes a "
+                "model that knows it (README, Bring your own aircraft)")
 
     def conditions(self, names, pose) -> Conditions:
         """Conditions for type ``names`` (one per row; names or catalog indices) at ``pose``
