@@ -7,8 +7,8 @@ command words the same case the same way.
 
 from __future__ import annotations
 
-from .condition import ConditionSpace
-from .errors import InputError
+from .condition import ConditionSpace, in_range
+from .errors import InputError, distinct
 from .lidar import MAX_WINDOW_SIDE
 
 # Fewer points than this is a cloud few detectors or metrics can use.
@@ -20,10 +20,11 @@ def range_band_warning(t, range_m: float) -> str | None:
     SPEC section 3): the trained models and the committed datasets never saw it."""
     space = ConditionSpace()
     lo, hi = space.drone_range_m if t.range_band == "near" else space.aircraft_range_m
-    if lo <= range_m <= hi:
+    if in_range(range_m, lo, hi):  # as a model's condition space takes it
         return None
     return (f"{t.name} is a {t.range_band}-band type ({t.kind}): its Table 1 range is "
-            f"{lo:g}-{hi:g} m, and {range_m:g} m lies outside it")
+            f"{lo:g}-{hi:g} m, and {distinct(range_m, lo if range_m < lo else hi)} m lies "
+            "outside it")
 
 
 def band_share_warning(n_outside: int, n_total: int) -> str | None:

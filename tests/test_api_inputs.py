@@ -249,3 +249,33 @@ def test_cgan_seed_is_a_whole_number_at_least_0(cgan, seed):
     with pytest.raises(InputError, match="seed must be an integer >= 0"):
         cgan.generate(cond, 1, seed)  # None drew unseeded noise: a different cloud each call
     assert len(cgan.generate(cond, 1, np.uint32(2**32 - 1)).table) == 1  # a block's seed
+
+
+def test_a_range_within_rounding_below_3_km_is_3_kms():
+    """The condition space takes 2999.9999999999995 m as within [3000, 18000] (its slack
+    absorbs rounding); its reference range must then be 3 km's, not 0.1 km's: the cGAN drew
+    1 point for 751 there (q = 30; probe, stop 54). Well below 3 km the paper's rule holds."""
+    from apcg_core.condition import ConditionSpace, in_range, scale_ratio
+    from apcg_core.families import load_model
+    from apcg_core.families.base import DEFAULT_MODEL_DIR
+    hair = 2999.9999999999995
+    assert in_range(hair, 3000.0, 18000.0) and not in_range(2999.99, 3000.0, 18000.0)
+    assert scale_ratio(hair) == pytest.approx(1.0, abs=1e-12)
+    assert scale_ratio(2999.0) == pytest.approx(29.99)
+    ConditionSpace().check(np.array([[0, hair, 3.5 * DEG, 2 * DEG, 0.0, 0.0]]))
+    cgan = load_model(DEFAULT_MODEL_DIR.parent / "cgan")
+    n = [len(cgan.generate(cgan.condition("A320neo", r, 3.5 * DEG, 2 * DEG), 1, 0).cloud)
+         for r in (3000.0, hair)]
+    assert n[0] > 300 and abs(n[0] - n[1]) <= max(3, n[0] // 100), n
+
+
+def test_the_band_warning_takes_what_the_model_takes():
+    """simulate's range-band warning agrees with a model's condition space at the bounds and
+    shows a value past them apart from the bound (it said '3000 m lies outside it')."""
+    from apcg_core.catalog import default_catalog
+    from apcg_core.plausibility import range_band_warning
+    t = default_catalog().get("A320neo")
+    assert range_band_warning(t, 2999.9999999999995) is None
+    assert range_band_warning(t, 18000.000000000004) is None
+    said = range_band_warning(t, 2999.99)
+    assert said and "2999.99 m lies outside it" in said
