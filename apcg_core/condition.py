@@ -91,8 +91,9 @@ def check_elevation(values) -> None:
     bad = _first_bad(values, lambda a: np.abs(a) < math.pi / 2)
     if bad:
         i, b, n = bad
+        where = "overhead" if b > 0 else "straight below"
         raise InputError(
-            f"elevation = {b / DEG:.6g} deg{_at(i, n)} puts the target overhead (or beyond); "
+            f"elevation = {b / DEG:.6g} deg{_at(i, n)} puts the target {where} (or beyond); "
             "the observation frame's Z axis is the horizontal direction to the target and is "
             "undefined there. Accepted: -90 deg < elevation < 90 deg")
 

@@ -184,12 +184,17 @@ def model_condition(model, args):
 
 
 def pose_defaults_hint(exc, args):
-    """A refusal of the pose that names a default (pitch, yaw, roll: 0 deg when not given),
-    with that said: the user did not write the value."""
+    """A refusal of the pose that names the option its value came from (the condition names
+    its field: range_m, elevation, ...), and, for a default (pitch, yaw, roll: 0 deg when
+    not given), that the user did not write the value."""
     from .errors import InputError
-    for k in ("pitch_deg", "yaw_deg", "roll_deg"):
-        field = k[:-len("_deg")]
-        if getattr(args, k) is None and f"{field} = " in str(exc):
-            return InputError(f"{exc}; {field} 0 deg is the default of --{field}-deg, which "
-                              f"was not given: give --{field}-deg within that range")
+    for k in ("range_m", "elevation_deg", "pitch_deg", "yaw_deg", "roll_deg"):
+        field = k if k == "range_m" else k[:-len("_deg")]
+        if f"{field} = " not in str(exc):
+            continue
+        option = option_name(k)
+        if getattr(args, k, 0.0) is None:
+            return InputError(f"{exc}; {field} 0 deg is the default of {option}, which "
+                              f"was not given: give {option} within that range")
+        return InputError(f"{exc}; the value of {option}")
     return exc

@@ -50,7 +50,9 @@ def _run_simulate(args) -> int:
     from apcg_core.catalog.catalog import default_catalog
     from apcg_core.condition import Condition
     from apcg_core.depth import norm
+    from apcg_core.errors import InputError
     from apcg_core.io import write_cloud, write_depth_image
+    from apcg_core.options import pose_defaults_hint
     from apcg_core.plausibility import range_band_warning, sparse_cloud_warning
 
     from .simulate import Simulator
@@ -60,20 +62,24 @@ def _run_simulate(args) -> int:
     supersample = args.supersample or (4 if sensor else 1)
     cat = default_catalog()
     t = cat.get(args.type)
-    cond = Condition.from_degrees(t.index, args.range_m, args.elevation_deg, args.pitch_deg,
-                                  args.yaw_deg, args.roll_deg)
-    table = cond.as_array()[None]
-    with Simulator(args.backend, lidar, quantize=not args.no_quantize,
-                   supersample=supersample) as sim:
-        if sensor:
-            from apcg_core.sensor import to_cloud
+    try:  # a refusal of the pose (here or by the geometry) names the option it came from
+        cond = Condition.from_degrees(t.index, args.range_m, args.elevation_deg,
+                                      args.pitch_deg, args.yaw_deg, args.roll_deg)
+        table = cond.as_array()[None]
+        with Simulator(args.backend, lidar, quantize=not args.no_quantize,
+                       supersample=supersample) as sim:
+            if sensor:
+                from apcg_core.sensor import to_cloud
 
-            from .simulate import SimResult
-            photons, clipped, n_rays = sim.photon_cells_type(cat, t, table, sensor, args.seed)
-            res = SimResult(to_cloud(photons, table[:, 2], sim.lidar), 1, clipped, n_rays,
-                            args.backend)
-        else:
-            res = sim.simulate_type(cat, t, table)
+                from .simulate import SimResult
+                photons, clipped, n_rays = sim.photon_cells_type(cat, t, table, sensor,
+                                                                 args.seed)
+                res = SimResult(to_cloud(photons, table[:, 2], sim.lidar), 1, clipped,
+                                n_rays, args.backend)
+            else:
+                res = sim.simulate_type(cat, t, table)
+    except InputError as exc:
+        raise pose_defaults_hint(exc, args) from None
     length = cat.depth_length_m(t)
     meta = {"type": t.name, "catalog_index": t.index, "condition": cond.to_degrees(),
             "backend": args.backend, "quantized": not args.no_quantize,

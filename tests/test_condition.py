@@ -81,9 +81,10 @@ def test_nan_is_refused_naming_the_field(field, kwargs):
         Condition(**base)
 
 
-@pytest.mark.parametrize("b0", [90.0, -90.0, 95.0])
-def test_overhead_is_refused_clearly(b0):
-    with pytest.raises(InputError, match="overhead"):
+@pytest.mark.parametrize("b0,said", [(90.0, "overhead"), (-90.0, "straight below"),
+                                     (95.0, "overhead"), (-95.0, "straight below")])
+def test_overhead_is_refused_clearly(b0, said):
+    with pytest.raises(InputError, match=said):
         Condition.from_degrees(0, 5000.0, b0)
 
 

@@ -119,3 +119,26 @@ def test_attitude_options_accept_what_the_condition_accepts(dest, field):
         inner = math.nextafter(end, -outward)
         assert rule.ok(inner)
         pose(inner)
+
+
+@pytest.mark.parametrize("args,needles", [
+    # the geometry refuses the range: the option it came from is named
+    (["simulate", "--type", "A320neo", "--range-m", "10", "--elevation-deg", "3", "-o", "x.ply"],
+     ["inside the target's bounding sphere", "the value of --range-m"]),
+    # the model's condition space refuses it
+    (["generate", "--type", "A320neo", "--range-m", "2999", "--elevation-deg", "3.5",
+      "--pitch-deg", "2", "-o", "x.ply"], ["outside the configured range", "--range-m"]),
+    (["generate", "--type", "A320neo", "--range-m", "5000", "--elevation-deg", "7",
+      "--pitch-deg", "2", "-o", "x.ply"], ["elevation = 7 deg", "the value of --elevation-deg"]),
+    # below the lidar is not overhead
+    (["simulate", "--type", "A320neo", "--range-m", "5000", "--elevation-deg", "-90", "-o",
+      "x.ply"], ["straight below", "--elevation-deg"]),
+])
+def test_a_refused_pose_names_the_option_it_came_from(tmp_path, args, needles):
+    """The condition names its field (range_m, elevation); the command adds the option the
+    user typed (probe finding, stop 54: only a defaulted pitch was named as its option)."""
+    out = subprocess.run([APCG, *args], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert all(n in out.stderr for n in needles), out.stderr
+    assert list(tmp_path.iterdir()) == []
