@@ -136,16 +136,23 @@ def _check_finite(name: str, a: np.ndarray) -> None:
                          f"{len(a)} points do not (the first: point {i}, {a[i].tolist()})")
 
 
+def not_held(a: np.ndarray, dtype) -> np.ndarray:
+    """Mask of the values of ``a`` that the integer ``dtype`` does not hold as they are (not
+    finite, not whole, or out of its range): what a cast would wrap or truncate. The one test
+    of every reader and writer of clouds (PointCloud's fields, a file's columns)."""
+    info = np.iinfo(dtype)
+    if a.dtype.kind == "f":
+        # compared as floats: iinfo.max + 1 is exact there, iinfo.max may not be
+        return ~np.isfinite(a) | (a != np.round(a)) | (a < info.min) | (
+            a >= float(info.max) + 1)
+    return (a < info.min) | (a > info.max)
+
+
 def _integers(name: str, a: np.ndarray, dtype) -> np.ndarray:
     """``a`` converted to the integer ``dtype`` where every value is a whole number that fits."""
     info = np.iinfo(dtype)
     if a.size and not np.can_cast(a.dtype, dtype):
-        if a.dtype.kind == "f":
-            # compared as floats: iinfo.max + 1 is exact there, iinfo.max may not be
-            bad = ~np.isfinite(a) | (a != np.round(a)) | (a < info.min) | (
-                a >= float(info.max) + 1)
-        else:
-            bad = (a < info.min) | (a > info.max)
+        bad = not_held(a, dtype)
         if bad.any():
             i = int(np.argmax(bad))
             raise InputError(f"PointCloud.{name} value {a[i].item()!r} (point {i}) does not "

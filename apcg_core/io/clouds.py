@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cloud import PHOTON_FIELDS, PointCloud
+from ..cloud import PHOTON_FIELDS, PointCloud, not_held
 from ..errors import InputError
 from .atomic import atomic_path, claim, name_the_file, publish, refuse_directory, scratch
 from .crc import crc32
@@ -642,9 +642,7 @@ def _own_column(path, k: str, v, n: int):
                          f"type {v.dtype})")
     if k in _STORED and n:
         info = np.iinfo(_STORED[k])
-        # compared as floats where the file holds floats: iinfo.max + 1 is exact there
-        above = v >= float(info.max) + 1 if v.dtype.kind == "f" else v > info.max
-        out = (v < info.min) | above
+        out = not_held(v, _STORED[k])
         if out.any():
             i = int(np.argmax(out))
             raise InputError(f"cannot read point cloud {path}: its {k!r} value {v[i]!r} "
@@ -738,8 +736,7 @@ def _ply_header(path: Path, data: bytes):
     """format, meta, elements [(name, count, [(property, dtype code, or None for a list)])] and
     where the body starts."""
     end = ply_header_end(data)
-    found = end >= 0
-    body = data.find(b"\n", end) + 1 if found else 0
+    body = data.find(b"\n", end) + 1 if end >= 0 else 0
     if not data.startswith(b"ply") or body == 0:
         raise InputError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
     fmt, meta, elements = None, {}, []
@@ -791,8 +788,8 @@ def _ascii_values(path, name: str, v: np.ndarray, code: str) -> np.ndarray:
         bad = np.isfinite(v) & ~np.isfinite(out)  # too large for a float property
         accepted = f"numbers of magnitude up to {np.finfo(t).max:.6g}"
     else:
-        info = np.iinfo(t)  # PLY's integers have 32 bits at most: exact as float64
-        bad = ~np.isfinite(v) | (v != np.round(v)) | (v < info.min) | (v > info.max)
+        info = np.iinfo(t)
+        bad = not_held(v, t)
         out = None if bad.any() else v.astype(t)
         accepted = f"whole numbers from {info.min} to {info.max}"
     if bad.any():
