@@ -140,8 +140,9 @@ def _centred_indices(n: int) -> np.ndarray:
     return np.arange(n) - n // 2
 
 
-def _resample(d, q, src_w, src_h) -> np.ndarray:
-    """out[..., i, j] = d[..., row(src_h), col(src_w)], -1 where the source is outside."""
+def _resample(d, q, src) -> np.ndarray:
+    """out[..., i, j] = d[..., row(src(h)), col(src(w))] (one index map for both axes), -1
+    where the source is outside."""
     d = np.asarray(d)
     if d.ndim < 2 or 0 in d.shape[-2:]:
         raise InputError(f"a depth image has shape (..., H, W) with H, W >= 1, got {d.shape}")
@@ -158,8 +159,8 @@ def _resample(d, q, src_w, src_h) -> np.ndarray:
         raise InputError(f"q must be finite and > 0, got {q[~(np.isfinite(q) & (q > 0))][:3]}")
     w = _centred_indices(W)[None, :].astype(np.float64)
     h = (H // 2 - 1 - np.arange(H))[None, :].astype(np.float64)
-    sw = src_w(w, q[:, None]).astype(np.int64)  # (B, W) centred source w
-    sh = src_h(h, q[:, None]).astype(np.int64)  # (B, H) centred source h
+    sw = src(w, q[:, None]).astype(np.int64)  # (B, W) centred source w
+    sh = src(h, q[:, None]).astype(np.int64)  # (B, H) centred source h
     cols = sw + W // 2
     rows = H // 2 - 1 - sh
     ok_c = (cols >= 0) & (cols < W)
@@ -193,12 +194,12 @@ def norm(d, q) -> np.ndarray:
     Magnifies a far target (q > 1) to its size at the reference range. ``q`` is a scalar or
     has the batch shape of ``d``. Sources outside the image (possible when q < 1) give -1.
     """
-    return _resample(d, q, _norm_source, _norm_source)
+    return _resample(d, q, _norm_source)
 
 
 def denorm(d_n, q) -> np.ndarray:
     """DeNorm, paper eq. 1: d(w, h) = d_n(ceil(w q), ceil(h q)); sources outside give -1."""
-    return _resample(d_n, q, _denorm_source, _denorm_source)
+    return _resample(d_n, q, _denorm_source)
 
 
 def denorm_source_inside(shape: tuple[int, int], q: float) -> np.ndarray:
