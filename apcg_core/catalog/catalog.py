@@ -142,6 +142,18 @@ _REQUIRED = ("index", "name", "kind", "range_band", "category", "length_m", "spa
              "height_m")
 
 
+def index_key(key) -> int | None:
+    """``key`` as a catalog index, or None where it is a name: an integer (not a bool), or a
+    text of ASCII digits with an optional sign (a signed whole number is an index; names hold
+    a letter; '²' and a fullwidth '５' pass str.isdigit but are no index). The one reading of
+    it: :meth:`Catalog.get` and the models' type lookups."""
+    if isinstance(key, str):
+        return int(key.strip()) if re.fullmatch(r"[+-]?[0-9]+", key.strip()) else None
+    if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+        return int(key)
+    return None
+
+
 class Catalog:
     """All types known to this process: built-in, then the user's.
 
@@ -181,9 +193,8 @@ class Catalog:
         named by a number); unknown keys name close matches."""
         if isinstance(key, AircraftType):
             return key
-        if isinstance(key, str) and re.fullmatch(r"[+-]?[0-9]+", key.strip()):
-            key = int(key.strip())  # a signed whole number is an index (names hold a letter)
-        if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+        if (index := index_key(key)) is not None:
+            key = index
             if int(key) in self._by_index:
                 return self._by_index[int(key)]
             raise InputError(f"unknown type index {key}; accepted: 0 .. "

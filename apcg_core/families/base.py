@@ -7,7 +7,6 @@ helpers, and conditions from a CSV file. Numpy alone; onnxruntime where a model 
 from __future__ import annotations
 
 import os
-import re
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,15 +37,6 @@ class GenerationResult:
     @property
     def table(self) -> np.ndarray:
         return self.conditions.table
-
-
-def _catalog_index(key) -> bool:
-    """Whether ``key`` is a catalog index as ``Catalog.get`` reads one: an integer (not a
-    bool), or a text of ASCII digits with an optional sign ('²' and the fullwidth '５' pass
-    str.isdigit, but are no index: int() refuses one and reads the other)."""
-    if isinstance(key, str):
-        return re.fullmatch(r"[+-]?[0-9]+", key.strip()) is not None
-    return isinstance(key, (int, np.integer)) and not isinstance(key, bool)
 
 
 class ModelTypes:
@@ -157,8 +147,8 @@ class ModelTypes:
         """The catalog name of ``key``: a name this model knows, or a catalog index."""
         if isinstance(key, str) and key in self.types:  # any spelling: its one name
             return self.types.names[self.types.code(key)]
-        if _catalog_index(key):
-            from ..catalog.catalog import default_catalog
+        from ..catalog.catalog import default_catalog, index_key
+        if index_key(key) is not None:
             return default_catalog().get(key).name  # the catalog reads its own indices
         try:
             return self.types.names[self.types.code(key)]  # refuses, naming what it knows
