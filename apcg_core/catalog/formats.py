@@ -479,8 +479,11 @@ def read_ply(path: Path, patterns=()) -> RawModel:
     data = path.read_bytes()[:4096]
     from ..io.clouds import ply_header_end
     head = data[:max(ply_header_end(data), 0)].decode("ascii", errors="replace")
-    polygons = re.search(r"property\s+list\s+\S+\s+\S+\s+vertex_ind", head) and not \
-        re.search(r"\n\s*element\s+face\s+0\s*\n", head)
+    # polygons, if trimesh made more triangles than the file has faces (each of a file of
+    # triangles is one: no second parse of it)
+    declared = re.search(r"\n\s*element\s+face\s+(\d+)\s*\n", head)
+    polygons = re.search(r"property\s+list\s+\S+\s+\S+\s+vertex_ind", head) and \
+        declared is not None and int(declared.group(1)) != len(raw.mesh.faces)
     if polygons and len(raw.objects) == 1:
         try:
             polys = _ply_faces(path)
