@@ -34,3 +34,18 @@ def test_a_users_own_choice_is_kept(tmp_path):
     (here set to 1 explicitly, the command still runs and records nothing)."""
     made = _generate(tmp_path, tmp_path / "home1", ORT_DISABLE_TELEMETRY="1")
     assert not any("Microsoft" in p for p in made), made
+
+
+def test_the_switch_is_set_only_where_the_user_left_it_unset():
+    """The package sets ORT_DISABLE_TELEMETRY=1 when it imports onnxruntime, and keeps a
+    value the user gave (0 too: their choice), in a process of its own."""
+    code = ("import os; from apcg_core.families.base import onnxruntime; onnxruntime(); "
+            "print(os.environ['ORT_DISABLE_TELEMETRY'])")
+    for given, seen in ((None, "1"), ("0", "0"), ("1", "1")):
+        env = {k: v for k, v in os.environ.items() if k != "ORT_DISABLE_TELEMETRY"}
+        if given is not None:
+            env["ORT_DISABLE_TELEMETRY"] = given
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=120, env=env)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.split()[-1] == seen, (given, out.stdout)
