@@ -12,6 +12,7 @@ import os
 import re
 import shlex
 import sys
+import threading
 from importlib.metadata import entry_points
 
 from . import __version__
@@ -77,27 +78,50 @@ class _PipeSafe:
     """sys.stdout or sys.stderr of the `apcg` process, whose reader may go away (`apcg ... |
     head -1`, `2>/dev/null | true`): a write after the pipe broke is dropped (the stream sent
     to /dev/null), so the command runs to its end and its files are kept. A BrokenPipeError
-    that unwound the command lost them: its outputs are renamed into place when it ends."""
+    that unwound the command lost them: its outputs are renamed into place when it ends.
+
+    Lines are written whole: each thread's text is held until its line ends (or it
+    flushes: a progress bar redrawn in place), so a warning from a worker thread and the main
+    thread's error never share a line (print writes a line and its end in two calls)."""
 
     def __init__(self, stream) -> None:
         self._stream = stream
+        self._lock = threading.Lock()
+        self._held: dict[int, str] = {}  # thread id -> its text after its last line end
 
     def _broke(self) -> None:
         with contextlib.suppress(OSError, ValueError):  # later flushes, at exit too, go nowhere
             os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())
 
-    def write(self, text):
+    def _emit(self, text: str, flush: bool = False) -> None:
         try:
-            return self._stream.write(text)
+            self._stream.write(text)
+            if flush:
+                self._stream.flush()
         except BrokenPipeError:
             self._broke()
-            return len(text)
+
+    def write(self, text):
+        key = threading.get_ident()
+        with self._lock:
+            text_all = self._held.pop(key, "") + text
+            cut = text_all.rfind("\n") + 1
+            if cut < len(text_all):
+                self._held[key] = text_all[cut:]
+            if cut:
+                self._emit(text_all[:cut], flush=True)
+        return len(text)
 
     def flush(self) -> None:
-        try:
-            self._stream.flush()
-        except BrokenPipeError:
-            self._broke()
+        """This thread's held text, then the stream's buffer."""
+        with self._lock:
+            self._emit(self._held.pop(threading.get_ident(), ""), flush=True)
+
+    def drain(self) -> None:
+        """Every thread's held text (the command has ended)."""
+        with self._lock:
+            held, self._held = self._held, {}
+            self._emit("".join(held.values()), flush=True)
 
     def __getattr__(self, name):
         return getattr(self._stream, name)
@@ -140,6 +164,9 @@ def main(argv: list[str] | None = None, registrars=None) -> int:
     finally:
         if argv is None:  # the `apcg` process itself: its command has ended, whatever its end
             _ignore_late_stops()
+            for stream in (sys.stdout, sys.stderr):
+                if isinstance(stream, _PipeSafe):
+                    stream.drain()
         else:
             restore()
 
