@@ -63,7 +63,7 @@ class LidarParams:
     def __post_init__(self) -> None:
         # the values checked are the values kept: a text "0.0001" is checked as a number and
         # then kept as the number, never as the text (which the window check would multiply)
-        for name, (lo, hi, unit, scale, what) in _BOUNDS.items():
+        for name, (lo, hi, unit, scale, what) in self._bounds().items():
             v = _number(name, getattr(self, name))
             if not lo <= v <= hi:
                 raise InputError(
@@ -82,6 +82,10 @@ class LidarParams:
                 f"{self.width * self.r_alpha / DEG:g} deg, height x r_beta_deg = "
                 f"{self.height} x {self.r_beta / DEG:g} = {self.height * self.r_beta / DEG:g} "
                 "deg")
+
+    @classmethod
+    def _bounds(cls) -> dict:
+        return _BOUNDS
 
     @classmethod
     def from_degrees(cls, r_alpha_deg: float = 0.0040, r_beta_deg: float = 0.0076,
@@ -167,6 +171,26 @@ class LidarParams:
     def quantize_range(self, r):
         """Range quantized to the centre of its time bin: (floor(r / R_r) + 0.5) R_r."""
         return (np.floor(np.asarray(r, dtype=np.float64) / self.r_r) + 0.5) * self.r_r
+
+
+# A derived lidar's cells may be this many times finer than a lidar's finest (a 1e-7 deg
+# lidar's 3 x 3 sub-rays, sensor/generated.py): its arithmetic is float64 cell indices times
+# cell sizes, finite and exact enough at 6e-9 deg (2 um at 18 km).
+MAX_FINER = 16
+_FINER_BOUNDS = {name: ((lo / MAX_FINER, *rest) if name in ("r_alpha", "r_beta") else
+                        (lo, *rest)) for name, (lo, *rest) in _BOUNDS.items()}
+
+
+@dataclass(frozen=True)
+class FinerLidar(LidarParams):
+    """A lidar the package derives from a user's (the K-times finer lidar whose cells are a
+    generated cloud's sub-rays): its cells may be up to :data:`MAX_FINER` times finer than
+    the finest a lidar may have; every other limit (bins, an even window under 180 x 90 deg)
+    is any lidar's. Never read from a user's file or option."""
+
+    @classmethod
+    def _bounds(cls) -> dict:
+        return _FINER_BOUNDS
 
 
 # --- the lidar description: presets, files and tables ----------------------------------------

@@ -201,9 +201,9 @@ def test_a_value_just_out_of_range_is_shown_with_all_its_digits(key, value, show
     assert f"= {shown} is out of range" in str(e.value)
 
 
-def test_a_gate_just_under_a_bin_is_shown_with_all_its_digits():
-    s = check_sensor({**DAY, "gate_m": 0.1499999})
-    with pytest.raises(InputError, match=r"gate_m = 0\.1499999 m is shorter.*r_r_m = 0\.15 m"):
+def test_a_gate_just_under_two_bins_is_shown_with_all_its_digits():
+    s = check_sensor({**DAY, "gate_m": 0.2999999})
+    with pytest.raises(InputError, match=r"gate_m = 0\.2999999 m is shorter.*r_r_m = 0\.15 m"):
         check_sensor_at(s, LidarParams())
 
 
@@ -249,6 +249,29 @@ def test_generate_names_the_users_lidar_when_its_sub_rays_do_not_fit(tmp_path, c
     line = [ln for ln in err.splitlines() if "error:" in ln]
     assert rc == 2 and len(line) == 1 and "Traceback" not in err, err
     assert "3 x 3 sub-rays" in line[0] and "8.99 x 0.0076 deg cells" in line[0]
+
+
+def test_generate_takes_a_sensor_at_the_finest_cells_a_lidar_may_have(tmp_path, capsys):
+    """1e-7 deg cells are a lidar's finest; a model's 3 x 3 sub-rays of them are finer still,
+    which the package's own derived lidar holds (simulate --sensor took this lidar, generate
+    refused it naming r_alpha_deg = 3.3e-08)."""
+    from apcg_core.lidar import FinerLidar
+    from apcg_core.sensor.generated import sub_ray_lidar
+    finest = LidarParams.from_degrees(1e-7, 1e-7, 0.15, 64, 16)
+    fine = sub_ray_lidar(finest)
+    assert isinstance(fine, FinerLidar) and (fine.width, fine.height) == (194, 50)
+    assert math.isclose(fine.to_dict()["r_alpha_deg"], 1e-7 / 3, rel_tol=1e-12)
+    with pytest.raises(InputError, match="r_alpha_deg"):  # a user's lidar may not be that fine
+        LidarParams(fine.r_alpha, fine.r_beta, 0.15, 194, 50)
+    path = tmp_path / "l.toml"
+    path.write_text("[lidar]\nr_alpha_deg = 1e-7\nr_beta_deg = 1e-7\nwidth = 64\n"
+                    "height = 16\n")
+    rc, out, err = run(["generate", "--type", "A320neo", "--range-m", "4500",
+                        "--elevation-deg", "3.4", "--pitch-deg", "2", "-o",
+                        tmp_path / "g.npz", "--lidar", path, "--sensor", "1550nm-night"],
+                       capsys)
+    assert rc == 0 and "error" not in err, err
+    assert json.loads(out.splitlines()[-1])["points"] > 0
 
 
 def test_a_sensor_file_named_beside_its_dataset_config_is_found_from_anywhere(tmp_path):

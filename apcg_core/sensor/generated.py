@@ -27,7 +27,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import InputError
-from ..lidar import LidarParams
+from ..lidar import FinerLidar, LidarParams
 from .stage import SubRayHits
 
 
@@ -102,8 +102,8 @@ def sub_ray_lidar(lidar: LidarParams, k: int = SUB_READS) -> LidarParams:
     """The K-times finer lidar whose cell centres are ``lidar``'s K x K sub-ray centres (K
     odd), its window one finer cell wider on each side so every sub-ray of the window fits."""
     try:
-        return LidarParams(lidar.r_alpha / k, lidar.r_beta / k, lidar.r_r, lidar.width * k + 2,
-                           lidar.height * k + 2)
+        return FinerLidar(lidar.r_alpha / k, lidar.r_beta / k, lidar.r_r, lidar.width * k + 2,
+                          lidar.height * k + 2)
     except InputError as exc:  # the user gave `lidar`, not this one: say why it is refused
         raise InputError(
             f"with a sensor, a model draws {k} x {k} sub-rays a cell in a window one finer "
