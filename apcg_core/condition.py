@@ -104,6 +104,23 @@ def check_attitude(name: str, value) -> float:
     return check_range(name, value, -limit, limit, " deg", 1 / DEG)
 
 
+def degrees_of(rad: float) -> float:
+    """``rad`` in degrees, as the shortest decimal whose radians (times DEG) are ``rad``: 60
+    deg given as 60 shows as 60, not as 59.99999999999999 (rad / DEG). The degrees a user
+    gave lie within a few ulps of rad / DEG, so the shortest of those few that gives ``rad``
+    (and of rad / DEG's roundings to fewer digits) is never longer than what was given."""
+    d = float(rad) / DEG
+    near = [d]
+    for direction in (math.inf, -math.inf):
+        x = d
+        for _ in range(4):
+            x = math.nextafter(x, direction)
+            near.append(x)
+    near += [float(f"{d:.{digits}g}") for digits in range(1, 17)]
+    fits = [x for x in near if x * DEG == rad]
+    return min(fits, key=lambda x: (len(repr(x)), abs(x - d))) if fits else d
+
+
 @dataclass(frozen=True)
 class Condition:
     """One sample's condition. Angles in radians, range in metres.
@@ -140,8 +157,8 @@ class Condition:
 
     def to_degrees(self) -> dict:
         return {"type_index": self.type_index, "range_m": self.range_m,
-                "elevation_deg": self.elevation / DEG, "pitch_deg": self.pitch / DEG,
-                "yaw_deg": self.yaw / DEG, "roll_deg": self.roll / DEG}
+                **{f"{name}_deg": degrees_of(getattr(self, name))
+                   for name in ("elevation", *ATTITUDE)}}
 
     def as_array(self) -> np.ndarray:
         """[type, r0, beta0, pitch, yaw, roll] as float64 (one row of a condition table)."""

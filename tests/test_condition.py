@@ -166,3 +166,14 @@ def test_a_range_refusal_says_which_band_the_type_is_in():
     # a table without drones has one band: nothing to tell
     with pytest.raises(InputError, match=r"18000 m\]$"):
         ConditionSpace(n_types=3).check([[1, 300.0, np.radians(3.5), np.radians(2), 0, 0]])
+
+
+@given(st.floats(-180, 180, allow_nan=False))
+def test_degrees_shown_are_the_shortest_that_give_the_radians(deg):
+    from apcg_core.condition import degrees_of
+    from apcg_core.lidar import DEG
+    rad = deg * DEG
+    shown = degrees_of(rad)
+    assert shown * DEG == rad
+    assert len(repr(shown)) <= len(repr(deg))  # never longer than the value given
+    assert degrees_of(60 * DEG) == 60.0 and 60 * DEG / DEG != 60.0
