@@ -14,7 +14,12 @@ class InputError(APCGError, ValueError):
 
 
 def check_finite(name: str, value: float) -> float:
-    """Return ``value`` as a float, or raise naming ``name`` when it is NaN or infinite."""
+    """Return ``value`` as a float, or raise naming ``name`` when it is NaN or infinite, or
+    not a number: a text ("5000", which float() would read) or a bool (True as 1) is refused,
+    as every option and file value is checked as the number it is."""
+    if isinstance(value, (str, bytes, bool)) or getattr(
+            getattr(value, "dtype", None), "kind", "") == "b":  # numpy's bools too
+        raise InputError(f"{name} must be a number, got {value!r}")
     try:
         v = float(value)
     except (TypeError, ValueError) as exc:

@@ -24,7 +24,7 @@ JSD_BINS_MAX = 2**21
 
 def as_cloud(points, name: str = "cloud") -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
-    if p.size == 0:
+    if p.shape in ((0,), (0, 3)):  # no points ([] or an empty (N, 3) array)
         return p.reshape(0, 3)
     if p.ndim != 2 or p.shape[1] != 3:
         raise InputError(f"{name} must have shape (N, 3), got {p.shape}")

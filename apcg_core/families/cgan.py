@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..condition import NOISE_DIM, scale_ratio
-from ..depth import TAU_DEFAULT, denorm, im2pc
+from ..depth import TAU_DEFAULT, check_tau, denorm, im2pc
 from ..errors import InputError, check_int
 from ..typetable import Conditions
 from .base import RUNTIMES, GenerationResult, ModelTypes, onnx_session, onnx_weights, onnxruntime
@@ -28,13 +28,7 @@ class APCGModel(ModelTypes):
     TAUS = (-0.99, -0.98, -0.95, -0.9, -0.8, -0.6, -0.3, 0.0)
     DEFAULT_TAU = TAU_DEFAULT
 
-    @staticmethod
-    def check_tau(tau) -> float:
-        if not (isinstance(tau, (int, float, np.floating)) and np.isfinite(tau)
-                and -1.0 <= tau < 1.0):
-            raise InputError(f"tau = {tau!r} is out of range; accepted: -1 <= tau < 1 (the "
-                             "generator's tanh output, background -1)")
-        return float(tau)
+    check_tau = staticmethod(check_tau)  # Im2PC's threshold: the generator's tanh output
 
     def __init__(self, directory=None, runtime: str = "auto") -> None:
         self._read_model_json(directory)
