@@ -289,10 +289,24 @@ def test_unknown_missing_and_bad_output_keys_are_named():
         check_sensor({**BASE, "output": "cloud"})
 
 
-def test_a_gate_shorter_than_a_bin_is_refused():
-    s = sensor(gate_m=0.1)
-    with pytest.raises(InputError, match="gate_m = 0.1 m is shorter than one range bin"):
-        photon_cloud(one_cell(5000.0), [5000.0], [1.0], s, LIDAR, seed=0)
+def test_a_gate_shorter_than_two_bins_is_refused():
+    for gate in (0.1, 0.15, 0.2999):
+        s = sensor(gate_m=gate)
+        with pytest.raises(InputError, match=f"gate_m = {gate} m is shorter than two range bins"):
+            photon_cloud(one_cell(5000.0), [5000.0], [1.0], s, LIDAR, seed=0)
+
+
+@pytest.mark.parametrize("offset", np.linspace(0.0, 0.149, 12))
+def test_the_shortest_gate_holds_the_target_at_its_own_range(offset):
+    """Two bins, no spread, no noise, a strong return exactly at r0: one point at r0's bin,
+    wherever r0 lies within its bin (a one-bin gate, accepted until stop 55, opened at the
+    bin of r0 - gate / 2 and held r0 for half of these)."""
+    r0 = 3000.0 + offset
+    s = sensor(gate_m=2 * LIDAR.r_r, pulse_fwhm_ps=0.0, jitter_ps=0.0, background_hz=0.0,
+               dark_count_hz=0.0, pulse_energy_j=1e-3)
+    cloud = photon_cloud(one_cell(r0), [r0], [1.0], s, LIDAR, seed=0)
+    assert len(cloud.range_m) == 1 and cloud.label[0] == 1
+    assert cloud.range_m[0] == LIDAR.quantize_range(r0)
 
 
 @pytest.mark.parametrize("output, dead_time_ns", [("points", 2000.0), ("points", 20.0),

@@ -162,12 +162,19 @@ def check_own_name(sensor: SensorParams, source: str) -> SensorParams:
     return sensor
 
 
+MIN_GATE_BINS = 2  # the shortest gate that always holds r0 (check_gate)
+
+
 def check_gate(sensor: SensorParams, r_r_m: float) -> int:
-    """Bins of the range gate at this lidar's range resolution; a gate shorter than one bin is
-    refused (it could hold no event)."""
-    if sensor.gate_m < r_r_m:
-        raise InputError(f"sensor value gate_m = {sensor.gate_m!r} m is shorter than one range "
-                         f"bin of the lidar (r_r_m = {r_r_m!r} m); accepted: gate_m >= {r_r_m!r}")
+    """Bins of the range gate at this lidar's range resolution; a gate shorter than two bins
+    is refused: its first bin is the one holding r0 - gate_m / 2 (SPEC section 8), so a
+    shorter one can end before the target's own range r0 and miss it (a one-bin gate did for
+    half of all r0: probe, stop 55); from two bins on it always holds r0."""
+    if sensor.gate_m < MIN_GATE_BINS * r_r_m:
+        raise InputError(f"sensor value gate_m = {sensor.gate_m!r} m is shorter than two range "
+                         f"bins of the lidar (r_r_m = {r_r_m!r} m); accepted: gate_m >= "
+                         f"{MIN_GATE_BINS * r_r_m!r} (a shorter gate, opening at the bin of "
+                         "r0 - gate_m / 2, can close before the target's range r0)")
     return int(math.ceil(sensor.gate_m / r_r_m - 1e-9))
 
 
