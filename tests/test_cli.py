@@ -172,3 +172,47 @@ def test_a_stop_after_the_command_ended_does_not_change_its_status(hold, sig):
     hold.release("cli.command-ended")
     err = p.communicate(timeout=120)[1]
     assert p.returncode == 0 and "Traceback" not in err, (p.returncode, err)
+
+
+def test_stderr_lines_of_two_threads_are_never_mixed():
+    """A worker thread's warning and the main thread's error, each written as print writes
+    it (the line, then its end), come out as two whole lines: the window check's warning
+    once ran into generate's error ('...a longer rangeapcg generate: error: ...')."""
+    import io
+    import threading
+
+    from apcg_core.cli import _PipeSafe
+    sink = io.StringIO()
+    stream = _PipeSafe(sink)
+    started, go_on = threading.Event(), threading.Event()
+
+    def warn():
+        stream.write("apcg generate: warning: window too small")
+        started.set()
+        go_on.wait(10)
+        stream.write("\n")
+    worker = threading.Thread(target=warn)
+    worker.start()
+    started.wait(10)
+    stream.write("apcg generate: error: refused")
+    stream.write("\n")
+    go_on.set()
+    worker.join(10)
+    assert sink.getvalue() == ("apcg generate: error: refused\n"
+                               "apcg generate: warning: window too small\n")
+    stream.write("50%|#####     |\r")  # a bar redrawn in place: out on flush, no line end
+    assert sink.getvalue().endswith("small\n")
+    stream.flush()
+    assert sink.getvalue().endswith("small\n50%|#####     |\r")
+    stream.write("held")  # whatever a thread left unended goes out when the command ends
+    stream.drain()
+    assert sink.getvalue().endswith("|\rheld")
+
+
+def test_the_apcg_process_ends_every_line_it_starts(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "apcg_core.cli", "condition", "--type",
+                          "A320neo", "--range-m", "5000", "--elevation-deg", "3.5",
+                          "--pitch-deg", "2", "--yaw-deg", "60"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "'yaw_deg': 60.0" in out.stdout  # the degrees given, not 59.99999999999999
