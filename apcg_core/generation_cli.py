@@ -129,6 +129,11 @@ def _run_generate(args) -> int:
                          f"clouds: at most {job.MAX_CLOUDS:,} in one request; split it into "
                          "several (other rows, other seeds)")
     model.expect_clouds(total)
+    import numpy as np
+
+    from .progress import say
+    for line in model.stale_meshes(table.types.names[c] for c in np.unique(table.codes)):
+        say(f"apcg generate: warning: {line}")
     window = _warn_window(model, table)
     meta = {"model": str(model.directory), "family": model.family,
             "runtime": getattr(model, "runtime", None), "seed": args.seed,

@@ -20,7 +20,7 @@ from .errors import InputError
 
 # What a table records of each type (dataset.json and model.json "types" entries).
 RECORD_KEYS = ("name", "catalog_index", "kind", "category", "range_band", "depth_length_m",
-               "bounding_radius_m")
+               "bounding_radius_m", "mesh_sha256")  # mesh_sha256: a user type's (Catalog.mesh_record)
 
 
 # What each recorded value may be (the catalog's own rules: apcg_core/catalog/catalog.py).
@@ -45,6 +45,10 @@ def _record_problem(r: dict) -> str | None:
         return f"kind must be one of {', '.join(KINDS)}, got {r['kind']!r}"
     if "range_band" in r and r["range_band"] not in RANGE_BANDS:
         return f"range_band must be one of {', '.join(RANGE_BANDS)}, got {r['range_band']!r}"
+    digest = r.get("mesh_sha256")
+    if digest is not None and not (isinstance(digest, str) and len(digest) == 64
+                                   and all(c in "0123456789abcdef" for c in digest)):
+        return f"mesh_sha256 must be 64 lowercase hexadecimal digits, got {digest!r}"
     index = r.get("catalog_index")
     if index is not None and (isinstance(index, bool) or not isinstance(index, int)):
         return f"catalog_index must be an integer, got {index!r}"

@@ -63,7 +63,7 @@ def header_of(plan: Plan, catalog) -> dict:
         "types": [{"code": i, "name": t.name, "catalog_index": t.index, "kind": t.kind,
                    "range_band": t.range_band, "depth_length_m": catalog.depth_length_m(t),
                    "bounding_radius_m": bounding_radius(catalog.mesh(t).vertices)}
-                  | _mesh_record(catalog, t) for i, t in enumerate(plan.types)],
+                  | catalog.mesh_record(t) for i, t in enumerate(plan.types)],
         "n_samples": plan.n_samples,
         "n_train": int((plan.split == "train").sum()), "n_test": int((plan.split == "test").sum()),
         "grid_values": plan.values,
@@ -71,27 +71,6 @@ def header_of(plan: Plan, catalog) -> dict:
                     "n_samples": len(s.rows)} for s in plan.shards],
         "conditions_file": "conditions.csv",
     } | (_photon_header(plan) if plan.sensor else {})
-
-
-def mesh_digest(mesh) -> str:
-    """SHA-256 of a mesh's float64 vertices and int64 faces: the geometry a dataset's shards
-    were cast against (a user type's: :func:`_mesh_record`). A user type replaced (`apcg
-    catalog add --force`) by another mesh of the same name and size changes nothing else of
-    the header; without it a resumed build mixed the two meshes' shards under one stamp
-    (probe finding, stop 54)."""
-    import hashlib
-    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, "<f8").tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, "<i8").tobytes())
-    return h.hexdigest()
-
-
-def _mesh_record(catalog, t) -> dict:
-    """A user type's mesh digest for the header (``mesh_sha256``). A built-in type has none:
-    its mesh is its catalog entry and this version's builders, which the header records
-    already, and its float64 vertices, computed with numpy's sines and cosines, may differ in
-    the last bit between CPUs (numpy's float64 sin and cos take other code on AVX-512), which
-    would make the same plan's header differ between the machines of one job array."""
-    return {} if t.source == "builtin" else {"mesh_sha256": mesh_digest(catalog.mesh(t))}
 
 
 def header_difference(old: bytes, new: bytes) -> str:

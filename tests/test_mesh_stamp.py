@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from apcg_core.io.dataset import Shard, dataset_stamp, foreign_shard
-from dataset_builder.build import mesh_digest
+from apcg_core.catalog.catalog import mesh_digest
 from tests.cli_run import one_error, run
 
 CONFIG = """description = "mesh stamp"
@@ -93,3 +93,45 @@ def test_the_digest_is_the_geometry_bytes(closed_box, open_box):
     assert mesh_digest(a) != mesh_digest(Mesh(open_box.vertices, open_box.faces))
     moved = Mesh(closed_box.vertices + 1e-12, closed_box.faces)
     assert mesh_digest(moved) != mesh_digest(a)
+
+
+def test_a_model_says_it_learned_a_user_type_from_a_mesh_replaced_since(tmp_path, capsys,
+                                                                       closed_box, open_box):
+    """A model's type table keeps a user type's mesh_sha256 (as the dataset it learned from
+    recorded it); `generate` of that type warns once the catalog holds another mesh under
+    the name (a taught model went on drawing the old shape without a word: stop 54)."""
+    import json
+    import shutil
+
+    from apcg_core.catalog.catalog import default_catalog
+    from apcg_core.families import default_model_dir, load_model
+    _add(tmp_path, capsys, closed_box, "a.obj")
+    cat = default_catalog()
+    record = cat.mesh_record("stamp box")
+    assert len(record["mesh_sha256"]) == 64 and cat.mesh_record("A320neo") == {}
+    model = tmp_path / "m"  # the default, its A320neo row renamed the user's type, as teach does
+    shutil.copytree(default_model_dir(), model)
+    meta = json.loads((model / "model.json").read_text())
+    row = next(r for r in meta["types"] if r["name"] == "A320neo")
+    row.update(name="stamp box", catalog_index=cat.get("stamp box").index, **record)
+    (model / "model.json").write_text(json.dumps(meta))
+    assert load_model(model).types.records[row["code"]]["mesh_sha256"] == record["mesh_sha256"]
+    gen = ["generate", "--model", model, "--type", "stamp box", "--range-m", "5000",
+           "--elevation-deg", "3.5", "--pitch-deg", "2", "--force"]
+    rc, _, err = run([*gen, "-o", tmp_path / "a.npz"], capsys)
+    assert rc == 0 and "learned" not in err, err
+    _add(tmp_path, capsys, open_box, "b.obj")
+    rc, _, err = run([*gen, "-o", tmp_path / "b.npz"], capsys)
+    assert rc == 0, err
+    warned = [ln for ln in err.splitlines() if "learned 'stamp box' from another mesh" in ln]
+    assert len(warned) == 1 and "apcg teach" in warned[0], err
+
+
+def test_a_type_records_mesh_digest_is_checked():
+    from apcg_core.errors import InputError
+    from apcg_core.typetable import TypeTable
+    good = {"name": "x", "depth_length_m": 3.0, "mesh_sha256": "0" * 64}
+    assert TypeTable.from_records([good]).records[0]["mesh_sha256"] == "0" * 64
+    for bad in ("0" * 63, "G" * 64, 5, ["0" * 64]):
+        with pytest.raises(InputError, match="mesh_sha256"):
+            TypeTable.from_records([{**good, "mesh_sha256": bad}])

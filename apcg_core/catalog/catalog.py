@@ -154,6 +154,17 @@ def index_key(key) -> int | None:
     return None
 
 
+
+def mesh_digest(mesh) -> str:
+    """SHA-256 of a mesh's float64 vertices and int64 faces: the geometry a result was cast
+    against. A user type replaced (`apcg catalog add --force`) by another mesh of the same
+    name and size changes nothing else a result records; without it a resumed build mixed
+    the two meshes' shards under one stamp (probe finding, stop 54), and a resumed sequence
+    its frames (stop 55)."""
+    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, "<f8").tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, "<i8").tobytes())
+    return h.hexdigest()
+
 class Catalog:
     """All types known to this process: built-in, then the user's.
 
@@ -221,6 +232,18 @@ class Catalog:
             else:
                 self._meshes[t.index] = self._read_user_mesh(t)
         return self._meshes[t.index]
+
+    def mesh_record(self, key) -> dict:
+        """What stamps the type's geometry into a stored result made from it (a dataset's
+        header, a sequence's record, a model's type table): ``{"mesh_sha256": ...}``
+        (:func:`mesh_digest`) for a user type, whose mesh ``catalog add --force`` may replace
+        under the same name and size; ``{}`` for a built-in type, whose mesh is its catalog
+        entry and this version's builders, and whose float64 vertices, computed with numpy's
+        sines and cosines, may differ in the last bit between CPUs (numpy's float64 sin and
+        cos take other code on AVX-512), which would make one plan's header differ between
+        the machines of one job array."""
+        t = self.get(key)
+        return {} if t.source == "builtin" else {"mesh_sha256": mesh_digest(self.mesh(t))}
 
     def depth_length_m(self, key) -> float:
         """l of PC2Im (SPEC section 5): the fuselage length; for drones the largest horizontal

@@ -155,6 +155,29 @@ class ModelTypes:
         except InputError as exc:
             raise InputError(f"{exc}{self._teach_hint(key)}") from None
 
+    def stale_meshes(self, names) -> list[str]:
+        """One line for each of type ``names`` that this model learned from a mesh the catalog
+        no longer holds under its name (its type record's ``mesh_sha256``, a user type's,
+        against :meth:`Catalog.mesh_record` now: `catalog add --force` replaced it since the
+        model was trained or taught). The model still draws the mesh it learned."""
+        from ..catalog.catalog import default_catalog
+        out = []
+        for name in dict.fromkeys(names):
+            learned = self.types.records[self.types.code(name)].get("mesh_sha256")
+            if learned is None:
+                continue
+            try:
+                now = default_catalog().mesh_record(name).get("mesh_sha256")
+            except InputError:  # no longer in the catalog: nothing to compare
+                continue
+            if now != learned:
+                out.append(f"{self.directory} learned {name!r} from another mesh than the "
+                           f"catalog holds now (replaced since: its mesh_sha256 {learned[:12]}... "
+                           f"against {str(now)[:12]}...); its clouds are of the mesh it "
+                           f"learned: `apcg teach --model MODEL --type {name!r}` from a model "
+                           "without it teaches the new one")
+        return out
+
     def _teach_hint(self, key) -> str:
         """For a catalog type this model was not trained on (a user's, mostly): how to make a
         model that knows it, instead of a list of the names it does."""
