@@ -71,7 +71,9 @@ class FrameScan:
     rotation: np.ndarray  # (T, 3, 3) body -> scene
     in_window: np.ndarray  # (T,) bool: some of its cells lie in the window
     clipped: np.ndarray  # (T,) bool: its box reaches beyond the window
-    # (T,) bool: drawn by its generator in this frame; None: the scene generates no target
+    # (T,) bool: its points in this frame came from its generator (it met the window and
+    # its model drew it: False where simulated, by the fallback rule too, and where it is
+    # not in the window); None: the scene generates no target
     generated: np.ndarray | None = None
     fallback: dict = field(default_factory=dict)  # instance -> why its model could not draw it
 
@@ -210,7 +212,7 @@ class SceneScanner:
         t0 = float(scene.frame_times([frame])[0])
         n = len(scene.targets)
         in_window, clipped = np.zeros(n, bool), np.zeros(n, bool)
-        generated = np.array([mo is not None for mo in self.models])
+        generated = np.zeros(n, bool)  # True only where its model draws it in this frame
         fallback = {}
         parts = []
         for i in range(len(scene.targets)):
@@ -223,8 +225,8 @@ class SceneScanner:
                 drawn, why = self._generated(i, frame, t0, groups)
                 if drawn is not None:
                     parts.append(drawn)
+                    generated[i] = True
                     continue
-                generated[i] = False
                 fallback[i + 1] = why
             if self.sensor is None:
                 s, w, h, r = self.sim.posed_cells(self.meshes[i], table, (m, c, boxes), key)
@@ -399,6 +401,9 @@ def scan_meta(scene: Scene, scanner: SceneScanner, frame: int, scan=None) -> dic
             "types": [t.type_name for t in scene.targets]}
     if scanner.sensor is not None:
         meta.update(sensor=scanner.sensor.to_dict(), seed=scanner.seed)
+    meshes = mesh_stamps(scene)
+    if meshes:  # only with a user type: a built-in scene's frames as before
+        meta["mesh_sha256"] = meshes
     if any(m is not None for m in scanner.models):
         meta["generator"] = {str(t.instance): scene.record["targets"][k]["generator"]
                              for k, t in enumerate(scene.targets) if t.generator is not None}
@@ -670,8 +675,9 @@ def _scanner(task: SequenceTask) -> SceneScanner:
         lidar = LidarParams.from_dict(task.lidar) if task.lidar else None
         scene = load_scene(task.scene_path, lidar=lidar, generator=task.generator)
         if scene.digest() != task.scene_sha256:
-            raise InputError(f"{task.scene_path} (or a trajectory file it names) changed while "
-                             "its sequence was being built; run the command again")
+            raise InputError(f"{task.scene_path} (or a trajectory file it names, or the mesh "
+                             "of a user catalog type it names) changed while its sequence was "
+                             "being built; run the command again")
         sensor = None
         if task.sensor is not None:
             from apcg_core.sensor import sensor_from_table
@@ -708,7 +714,8 @@ def sequence_header(scene: Scene, scanner: SceneScanner) -> dict:
             "frame_files": "frames/{frame:06d}.npz", "backend": scanner.sim.backend,
             "supersample": scanner.sim.supersample, "quantized": scanner.sim.quantize,
             "tracks": [{"track_id": t.instance, "type": t.type_name,
-                        "catalog_index": t.type_index} for t in scene.targets],
+                        "catalog_index": t.type_index} | _mesh_of(scene, k)
+                       for k, t in enumerate(scene.targets)],
             "sensor": None, "seed": scanner.seed}
     if scanner.sensor is not None:
         head["sensor"] = scanner.sensor.to_dict()
@@ -844,11 +851,58 @@ def check_sequence_directory(out: Path, header: bytes) -> bool:
     if not head.exists():
         _refuse_foreign_files(out)
         return False
-    if not head.is_file() or head.read_bytes() != header:
-        raise InputError(f"{out} already holds a different sequence (its {HEADER} differs "
-                         "from this scene and these options); write into a new directory or "
-                         "delete it")
+    if not head.is_file() or (old := head.read_bytes()) != header:
+        why = mesh_difference(old, header) if head.is_file() else None
+        raise InputError(f"{out} already holds a different sequence ("
+                         + (why or f"its {HEADER} differs from this scene and these options")
+                         + "); write into a new directory or delete it")
     return True
+
+
+def _mesh_of(scene: Scene, k: int) -> dict:
+    """Target k's geometry stamp as the scene's record holds it (the catalog's mesh_record:
+    a user type's ``{"mesh_sha256": ...}``, ``{}`` for a built-in type or a target of no
+    scene file)."""
+    entries = scene.record.get("targets") or []
+    entry = entries[k] if k < len(entries) else {}
+    return {"mesh_sha256": entry["mesh_sha256"]} if "mesh_sha256" in entry else {}
+
+
+def mesh_stamps(scene: Scene) -> dict:
+    """Track id -> mesh sha256 of the targets whose record has one (user catalog types)."""
+    return {str(t.instance): m["mesh_sha256"] for k, t in enumerate(scene.targets)
+            if (m := _mesh_of(scene, k))}
+
+
+def mesh_difference(old: bytes, new: bytes) -> str | None:
+    """Which targets of two sequence headers are the same catalog type cast from another
+    mesh (a user type replaced by `apcg catalog add --force`), in words; None when no target
+    differs so."""
+    import json
+    try:
+        a = json.loads(old)["scene"]["targets"]
+        b = json.loads(new)["scene"]["targets"]
+    except (ValueError, KeyError, TypeError):
+        return None
+    if not isinstance(a, list) or not isinstance(b, list):
+        return None
+    out = []
+    for k, (x, y) in enumerate(zip(a, b, strict=False), start=1):
+        if not isinstance(x, dict) or not isinstance(y, dict) or x.get("type") != y.get("type"):
+            continue
+        was, now = x.get("mesh_sha256"), y.get("mesh_sha256")
+        if was == now:
+            continue
+        if was is None:
+            said = ("its sequence records no mesh for it: made before sequences recorded a "
+                    "user type's mesh")
+        elif now is None:
+            said = f"mesh_sha256 {str(was)[:12]}... there, none now"
+        else:
+            said = f"mesh_sha256 {str(was)[:12]}... there, {str(now)[:12]}... now"
+        out.append(f"target {k} ({y.get('type')}): its mesh changed since the directory was "
+                   f"made, {said}; `apcg catalog add --force` replaces a user type's mesh")
+    return "; ".join(out) or None
 
 
 # A sequence writer's lock: with its drafts, all a writer leaves before its header (and an

@@ -19,7 +19,8 @@ per target (T rows, track id i at row i - 1) ``track_id``, ``track_type``, ``pos
 det -1, the scene frame being left-handed as numbers), ``pose`` (T, 6: range_m, azimuth_deg,
 elevation_deg, pitch_deg, yaw_deg, roll_deg, SPEC section 2's angles), ``points`` (its points
 in this frame), ``in_window`` and ``clipped`` (and, in a scene with a generated target,
-``generated``: drawn by its model in this frame, False where it is simulated); and ``frame``,
+``generated``: its points in this frame came from its model, False where it is simulated
+(its model's fallback too) and where it is not in the window); and ``frame``,
 ``t_s`` (the frame's start) and ``meta`` (JSON).
 """
 
@@ -100,7 +101,9 @@ class Frame:
     label: np.ndarray | None = None
     count: np.ndarray | None = None
     pulse: np.ndarray | None = None
-    generated: np.ndarray | None = None  # (T,): drawn by its model (a scene that generates)
+    # (T,): its points came from its model (in the window, drawn by it; a scene that
+    # generates)
+    generated: np.ndarray | None = None
     meta: dict | None = None
 
     def points_of(self, track_id: int) -> np.ndarray:

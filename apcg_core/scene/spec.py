@@ -98,7 +98,9 @@ class Scene:
     frames: int
     frame_rate_hz: float
     start_s: float
-    record: dict = field(default_factory=dict)  # what the file said (+ trajectory files' hashes)
+    # what the file said (+ trajectory files' hashes, user types' mesh digests: the
+    # catalog's mesh_record)
+    record: dict = field(default_factory=dict)
     source: str = "scene"
 
     def __post_init__(self) -> None:
@@ -229,6 +231,10 @@ def scene_from_dict(doc: dict, source: str = "scene", base_dir: Path | None = No
     if lidar is None:  # the [lidar] table of the dataset configs and lidar files
         lidar = lidar_from_table(doc.get("lidar", {}), source=source)
     targets_doc = doc.get("target")
+    if isinstance(targets_doc, dict):  # `[target]`: one table, not an array of tables
+        raise InputError(f"{source}: found [target] (single brackets); targets are written "
+                         "[[target]] (double brackets), one [[target]] table per target "
+                         "(and [target.trajectory] under it)")
     if not isinstance(targets_doc, list) or not targets_doc:
         raise InputError(f"{source}: no [[target]] table; a scene needs at least one target "
                          "(type, range_m, elevation_deg, ...)")
@@ -377,6 +383,10 @@ def _target(t, i: int, source: str, base_dir, catalog, scan_t, record) -> SceneT
     trajectory.check_times(scan_t, where)
     entry = {k: v for k, v in t.items() if k != "trajectory"}
     entry["type"] = ty.name
+    # the geometry cast: a user type's mesh digest (`catalog add --force` may replace its
+    # mesh under the same name), so that a sequence of another mesh is another sequence;
+    # nothing for a built-in type (its record and digest as before)
+    entry.update(catalog.mesh_record(ty))
     if traj is not None:
         entry["trajectory"] = dict(traj)
         if csv:
