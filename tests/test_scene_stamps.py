@@ -194,3 +194,29 @@ def test_a_single_bracket_target_table_is_named(tmp_path, capsys, trajectory):
     (tmp_path / "none.toml").write_text("[sequence]\nframes = 1\n")
     rc, _, err = run(["scene", "scan", tmp_path / "none.toml", "-o", tmp_path / "x.npz"], capsys)
     one_error(rc, err, "no [[target]] table")
+
+
+def test_a_sequence_with_photons_is_another_when_a_user_types_reflectivity_changed(
+        tmp_path, capsys):
+    """`catalog add --force` may keep a user type's mesh and replace its reflectivity, which
+    a --sensor sequence's photons depend on: such a sequence is another, not resumed into a
+    mix of the two reflectivities' frames."""
+    f = tmp_path / "plane.stl"
+    _plane(28.0).export(f)
+
+    def add(reflectivity):
+        rc, _, err = run(["catalog", "add", f, "--name", NAME, "--kind", "aircraft", "--force",
+                          "--reflectivity", str(reflectivity)], capsys)
+        assert rc == 0, err
+    add(0.3)
+    scene, out = _user_scene(tmp_path), tmp_path / "seq"
+    cmd = ["scene", "sequence", scene, "-o", out, "--no-progress", "--sensor", "1550nm-night"]
+    rc, _, err = run(cmd, capsys)
+    assert rc == 0, err
+    assert load_scene(scene).record["targets"][0]["reflectivity"] == 0.3
+    frames = sorted((out / "frames").glob("*.npz"))
+    frames[-1].unlink()  # stopped before its last frame
+    add(0.6)
+    rc, _, err = run(cmd, capsys)
+    one_error(rc, err, "already holds a different sequence")
+    assert not (out / "frames" / frames[-1].name).exists()

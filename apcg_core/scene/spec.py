@@ -385,8 +385,12 @@ def _target(t, i: int, source: str, base_dir, catalog, scan_t, record) -> SceneT
     entry["type"] = ty.name
     # the geometry cast: a user type's mesh digest (`catalog add --force` may replace its
     # mesh under the same name), so that a sequence of another mesh is another sequence;
-    # nothing for a built-in type (its record and digest as before)
-    entry.update(catalog.mesh_record(ty))
+    # nothing for a built-in type (its record and digest as before). Its reflectivity too,
+    # which --force may replace with the mesh kept and which a --sensor scan's photons use
+    stamp = catalog.mesh_record(ty)
+    if stamp:
+        stamp["reflectivity"] = ty.effective_reflectivity
+    entry.update(stamp)
     if traj is not None:
         entry["trajectory"] = dict(traj)
         if csv:
