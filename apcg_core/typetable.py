@@ -116,7 +116,7 @@ def each_once(keys, resolve) -> list:
     """``[resolve(k) for k in keys]``, resolving each distinct key once (a 10^6-row request
     names a few types). Keys are told apart by type and value, so 1.0 is not taken for 1."""
     keys = keys if isinstance(keys, list) else list(keys)
-    if all(type(n) is str for n in keys):  # names (a CSV's): one lookup each, no key tuples
+    if set(map(type, keys)) <= {str}:  # names (a CSV's): one lookup each, no key tuples
         known = {n: resolve(n) for n in dict.fromkeys(keys)}  # in order of first appearance
         return list(map(known.__getitem__, keys))
     known: dict = {}
