@@ -19,8 +19,9 @@ import numpy as np
 from .errors import InputError
 
 # What a table records of each type (dataset.json and model.json "types" entries).
+# mesh_sha256: a user type's (Catalog.mesh_record)
 RECORD_KEYS = ("name", "catalog_index", "kind", "category", "range_band", "depth_length_m",
-               "bounding_radius_m", "mesh_sha256")  # mesh_sha256: a user type's (Catalog.mesh_record)
+               "bounding_radius_m", "mesh_sha256")
 
 
 # What each recorded value may be (the catalog's own rules: apcg_core/catalog/catalog.py).

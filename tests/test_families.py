@@ -226,7 +226,7 @@ def test_a_model_json_of_another_format_or_a_newer_version_is_refused(tmp_path, 
     ("default", {"tau": True}, "tau must be a number, got True"),
     ("default", {"lidar": None}, "it lacks 'lidar'"),
     ("cgan", {"norm": "true"}, "'norm' must be true or false"),
-    ("cgan", {"tau": "high"}, "tau = 'high' is out of range"),
+    ("cgan", {"tau": "high"}, "tau must be a number, got 'high'"),
     ("cgan", {"tau": 2.0}, "tau = 2.0 is out of range"),
 ])
 def test_a_model_json_setting_of_the_wrong_kind_is_refused_naming_the_file(tmp_path, model,

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from apcg_core.io.dataset import Shard, dataset_stamp, foreign_shard
 from apcg_core.catalog.catalog import mesh_digest
+from apcg_core.io.dataset import Shard, dataset_stamp, foreign_shard
 from tests.cli_run import one_error, run
 
 CONFIG = """description = "mesh stamp"

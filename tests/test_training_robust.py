@@ -388,7 +388,8 @@ def test_e_every_tau_is_checked_before_any_is_scored(tiny_training_data, tmp_pat
     cgan = load_model(ROOT / "apcg_core" / "models" / "cgan", runtime="onnx")
     # a dataset that does not exist: nothing is read (or scored) before the thresholds pass
     for taus, word in (((0.5, 2.0), "tau = 2.0 is out of range"),
-                       ((-0.5, float("nan")), "tau = nan"), ((), "no candidate thresholds")):
+                       ((-0.5, float("nan")), "tau must be finite, got nan"),
+                       ((), "no candidate thresholds")):
         with pytest.raises(InputError, match=re.escape(word)):
             choose_tau(cgan, tmp_path / "no-data", taus=taus, n_pairs=4)
     refused(apcg("choose-tau", "--model", ROOT / "apcg_core" / "models" / "cgan", "--data",
