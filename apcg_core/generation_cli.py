@@ -114,6 +114,9 @@ def _run_generate(args) -> int:
     check_request(args)
     sensor = sensor_of(args)
     model = model_at_lidar(load_model(args.model, runtime=args.runtime), args, "generate")
+    # a model of a sensor's photon clouds draws them already: no second photon stage on top
+    model.refuse_sensor(sensor, "--sensor" if args.sensor is not None
+                        else f"the [sensor] table of --lidar {args.lidar}")
     if args.tau is not None:
         if getattr(model, "tau", None) is None:
             raise InputError(f"--tau is an output threshold; {model.directory} is a "

@@ -67,16 +67,24 @@ def check_epochs(epochs) -> float:
     return float(epochs)
 
 
-def train_encoder(data_dir, out_dir, epochs: float = 4.0, batch: int = 64, seed: int = 0,
-                  lr: float = 1e-3, progress: bool = True) -> dict:
+BATCH = 64  # the encoder's batch; a train split smaller than this trains in one batch of all
+
+
+def train_encoder(data_dir, out_dir, epochs: float = 4.0, batch: int | None = None,
+                  seed: int = 0, lr: float = 1e-3, progress: bool = True) -> dict:
+    """Train the encoder on ``data_dir``'s train split in batches of ``batch`` (None: 64, or
+    the whole split when it is smaller, said on stderr); its accuracy on the test split and
+    the settings are written beside it (encoder.json)."""
     from apcg_core.errors import check_int
     epochs = check_epochs(epochs)
-    check_int("batch", batch, 2, 65536)
+    if batch is not None:
+        check_int("batch", batch, 2, 65536)
     check_int("seed", seed, 0, 2**32 - 1)
     if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
         raise InputError(f"lr must be a finite number > 0, got {lr!r}")
     torch.manual_seed(seed)
     train, test = DepthDataset(data_dir, "train"), DepthDataset(data_dir, "test")
+    batch = _fitting_batch(batch, len(train), data_dir)
     n_types = len(train.types)
     enc = DepthEncoder(n_types, train.height, train.width)
     opt = torch.optim.Adam(enc.parameters(), lr=lr)
@@ -111,7 +119,31 @@ def train_encoder(data_dir, out_dir, epochs: float = 4.0, batch: int = 64, seed:
     return meta
 
 
+def _fitting_batch(batch: int | None, n_train: int, data_dir) -> int:
+    """The batch the encoder trains in: ``batch`` as asked, or (None) :data:`BATCH`, or the
+    whole train split when it holds fewer samples than that (said once on stderr). A split of
+    fewer than 2 samples, or fewer than an asked ``batch``, is refused naming the dataset."""
+    if n_train < 2:
+        raise InputError(f"{data_dir}: its train split holds {n_train} sample(s); the FD-depth "
+                         "encoder trains on at least 2 (build the dataset with more samples "
+                         "per type)")
+    if batch is None:
+        if n_train >= BATCH:
+            return BATCH
+        print(f"fd-depth train: {data_dir}'s train split holds {n_train} samples, fewer than "
+              f"the batch of {BATCH}: training in batches of {n_train} (the whole split)",
+              file=sys.stderr, flush=True)
+        return n_train
+    if n_train < batch:
+        raise InputError(f"{data_dir}: its train split holds {n_train} samples, fewer than "
+                         f"one batch of {batch}: give a batch of at most {n_train}")
+    return batch
+
+
 MADE_BY = "`apcg fd-depth train`"
+# test pairs an FD-depth score needs: its floor splits the real images in two halves, each of
+# at least 2 (a Fréchet distance's covariance needs 2 a side)
+MIN_PAIRS = 4
 
 
 def load_encoder(path) -> DepthEncoder:
@@ -188,11 +220,12 @@ def _sqrt_psd(m: np.ndarray) -> np.ndarray:
     return (v * np.sqrt(np.clip(w, 0, None))) @ v.T
 
 
-def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
-    """||mu_a - mu_b||^2 + Tr(S_a + S_b - 2 (S_a^1/2 S_b S_a^1/2)^1/2) of two feature sets."""
+def frechet_distance(a: np.ndarray, b: np.ndarray, sides=("first", "second")) -> float:
+    """||mu_a - mu_b||^2 + Tr(S_a + S_b - 2 (S_a^1/2 S_b S_a^1/2)^1/2) of two feature sets
+    (``sides``: what ``a`` and ``b`` are, for a refusal)."""
     if len(a) < 2 or len(b) < 2:
         raise InputError(f"a Fréchet distance needs at least 2 samples a side, got "
-                         f"{len(a)} and {len(b)}")
+                         f"{len(a)} ({sides[0]}) and {len(b)} ({sides[1]})")
     mu_a, mu_b = a.mean(0), b.mean(0)
     s_a, s_b = np.cov(a, rowvar=False), np.cov(b, rowvar=False)
     root = _sqrt_psd(s_a)
@@ -223,6 +256,13 @@ def fd_depth(encoder, model, data_dir, n_pairs: int = 2000, seed: int = 0) -> di
     enc = encoder if isinstance(encoder, DepthEncoder) else load_encoder(encoder)
     pairs = draw_pairs(data_dir, n_pairs, seed, half="test")
     ds, idx = pairs.ds, pairs.idx
+    if len(idx) < MIN_PAIRS:  # before the model generates anything
+        raise InputError(f"FD-depth needs at least {MIN_PAIRS} test pairs (the distance "
+                         "between real and generated images takes 2 a side, and the floor "
+                         "beside it splits the real images in two halves of 2 or more); "
+                         f"{data_dir} gave {len(idx)}: use a dataset with more test samples"
+                         + ("" if not n_pairs or n_pairs >= MIN_PAIRS
+                            else f", and --pairs {MIN_PAIRS} or more (0: every one)"))
     rng = np.random.default_rng(seed)
     real = ds.images(idx)
     if tuple(enc.shape) != (ds.height, ds.width):
@@ -239,6 +279,8 @@ def fd_depth(encoder, model, data_dir, n_pairs: int = 2000, seed: int = 0) -> di
         fake = cloud_images(model, ds, idx, seed)
     fr, fg = features(enc, real), features(enc, fake)
     half = rng.permutation(len(idx))
-    floor = frechet_distance(fr[half[: len(idx) // 2]], fr[half[len(idx) // 2:]])
-    return {"fd_depth": frechet_distance(fr, fg), "fd_depth_real_halves": floor,
+    floor = frechet_distance(fr[half[: len(idx) // 2]], fr[half[len(idx) // 2:]],
+                             ("the real images' first half", "their second half"))
+    return {"fd_depth": frechet_distance(fr, fg, ("real images", "generated images")),
+            "fd_depth_real_halves": floor,
             "pairs": len(idx), "seed": seed}

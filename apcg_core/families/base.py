@@ -69,6 +69,46 @@ class ModelTypes:
             raise InputError(f"{self.directory / 'model.json'}: {exc}") from exc
         self.types = TypeTable.from_records(self.meta["types"],
                                             owner=f"model {self.directory}")
+        self._check_types_fill_space()
+        self._check_sensor_record()
+
+    def _check_types_fill_space(self) -> None:
+        """The condition space scales the type code over ``n_types`` codes and names its drone
+        types by code: a types table of another length (one cut by hand, say) would scale
+        every type's nu wrongly or leave a drone code with no type; refused naming the file."""
+        n, have = self.space.n_types, len(self.types)
+        if n != have:
+            past = [t for t in self.space.drone_types if t >= have]
+            extra = (f" (its drone_types {past} name codes past the table)" if past else "")
+            raise InputError(f"{self.directory / 'model.json'}: its condition_space has "
+                             f"n_types {n} but its types table lists {have}{extra}: the "
+                             f"model's files and model.json disagree; {_BROKEN}")
+
+    def _check_sensor_record(self) -> None:
+        value = self.meta.get("sensor")
+        if value is not None and not (isinstance(value, dict) and value):
+            raise InputError(f"{self.directory / 'model.json'}: 'sensor' must be the table of "
+                             f"the sensor whose photon clouds the model learned, got {value!r}")
+
+    @property
+    def sensor(self) -> dict | None:
+        """The sensor whose photon clouds the model was trained on (model.json ``sensor``,
+        the training dataset header's sensor table), or None: a model of standard (ideal)
+        clouds. A model with one already draws that sensor's photons."""
+        return self.meta.get("sensor")
+
+    def refuse_sensor(self, sensor, option: str = "--sensor") -> None:
+        """Refuse a photon stage (``sensor``, not None) on the clouds of a model trained on a
+        sensor's photon clouds: they would get a second sensor's photons on top of the
+        first's."""
+        if sensor is None or self.sensor is None:
+            return
+        ours = self.sensor.get("name") or "a sensor"
+        asked = getattr(sensor, "name", None) or "a sensor"
+        raise InputError(f"{option} ({asked}) not accepted with {self.directory}: that model "
+                         f"was trained on photon clouds of {ours!r} (its model.json 'sensor'), "
+                         "so its clouds already carry that sensor's photons; generate without "
+                         f"{option}, or with a model trained on standard clouds")
 
     def meta_flag(self, key: str, default: bool) -> bool:
         """A true/false setting of model.json (``default`` when absent): a JSON boolean, or
@@ -89,6 +129,21 @@ class ModelTypes:
             return self.check_tau(value)
         except InputError as exc:
             raise InputError(f"{self.directory / 'model.json'}: {exc}") from exc
+
+    # Whether `apcg teach` can add a type to a model of this family: True or False where the
+    # family's model knows; None: ask the family as registered (training's family object has
+    # a ``teach`` where it can, and the core alone teaches nothing).
+    TEACHABLE: bool | None = None
+
+    def can_be_taught(self) -> bool:
+        """Whether `apcg teach` takes this model (the test `apcg teach` itself makes)."""
+        if self.TEACHABLE is not None:
+            return self.TEACHABLE
+        try:
+            family = get_family(self.family)
+        except InputError:
+            return False
+        return callable(getattr(family, "teach", None))
 
     # Whether the family draws at any lidar's cells (APCG+ reads its sheet at them), or only
     # at the lidar it was trained on (the cGAN's fixed H x W image; the baselines' point counts).
@@ -186,6 +241,11 @@ class ModelTypes:
             name = default_catalog().get(key).name
         except InputError:
             return ""
+        if not self.can_be_taught():
+            return (f". {name!r} is in the catalog but not in this model ({self.directory}), "
+                    f"and a {self.family} model cannot be taught a type: train a model on a "
+                    f"dataset that has {name!r} (`apcg dataset build`, `apcg train`), or teach "
+                    "it to an apcg-plus model (the shipped default)")
         return (f". {name!r} is in the catalog but not in this model ({self.directory}): "
                 f"`apcg teach --model {self.directory} --type {name!r} -o NEW_MODEL` makes a "
                 "model that knows it (README, Bring your own aircraft)")

@@ -100,6 +100,10 @@ class BaselineModel(ModelTypes):
     runtime = "torch"
     norm = True
     tau = None
+    # Their networks take the type as one scaled number of nu: `apcg teach` cannot add one.
+    # (Their output is a point set in the canonical frame, snapped to any lidar's cells: no
+    # window size to check against model.json's lidar, as the cGAN's.)
+    TEACHABLE = False
 
     def __init__(self, directory, sampling_steps: int | None = None, family=None) -> None:
         self._read_model_json(directory)

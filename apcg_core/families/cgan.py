@@ -16,7 +16,15 @@ from ..condition import NOISE_DIM, scale_ratio
 from ..depth import TAU_DEFAULT, check_tau, denorm, im2pc
 from ..errors import InputError, check_int
 from ..typetable import Conditions
-from .base import RUNTIMES, GenerationResult, ModelTypes, onnx_session, onnx_weights, onnxruntime
+from .base import (
+    _BROKEN,
+    RUNTIMES,
+    GenerationResult,
+    ModelTypes,
+    onnx_session,
+    onnx_weights,
+    onnxruntime,
+)
 
 FAMILY = "cgan"
 
@@ -37,6 +45,7 @@ class APCGModel(ModelTypes):
             raise InputError(f"{self.directory} is not a cGAN model (no generator.onnx; "
                              "`apcg export` makes one from a training run)")
         self.onnx_path = onnx_path
+        self._check_image_size()
         self.tau = self.meta_tau()
         self.norm = self.meta_flag("norm", True)
         if runtime not in RUNTIMES:
@@ -44,6 +53,24 @@ class APCGModel(ModelTypes):
         self.runtime = self._pick(runtime)
         self._session = None
         self._torch_g = None
+
+    # Its network takes the type as one scaled number of nu: `apcg teach` cannot add one.
+    TEACHABLE = False
+
+    def _check_image_size(self) -> None:
+        """The generator draws net.height x net.width_px images (apcg_core.nn.cgan.NetConfig;
+        64 x 256 when model.json's net leaves them out), which Im2PC reads as the lidar's
+        window: a model.json whose lidar has another window (edited, or exported with another
+        lidar's dataset) is refused at load, naming the file, not by Im2PC mid-generation."""
+        net = self.meta.get("net")
+        net = net if isinstance(net, dict) else {}
+        h, w = net.get("height", 64), net.get("width_px", 256)
+        if (h, w) != (self.lidar.height, self.lidar.width):
+            raise InputError(f"{self.directory / 'model.json'}: its lidar's window is "
+                             f"{self.lidar.width} x {self.lidar.height} cells (width x height) "
+                             f"but its generator draws {w!r} x {h!r} images (net.width_px x "
+                             "net.height): the model's files and model.json disagree; "
+                             f"{_BROKEN}")
 
     # --- runtimes --------------------------------------------------------------------------------
     @staticmethod
