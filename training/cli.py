@@ -270,8 +270,9 @@ def register_export(sub) -> None:
     p.add_argument("--checkpoint", help="a kept checkpoint of the run (default: the latest)")
     p.add_argument("--data", default=None,
                    help="the dataset the run trained on, where it is now (default: the path "
-                        "its train_config.json records); its types must be the run's, code by "
-                        "code")
+                        "its train_config.json records); it must be the dataset the run "
+                        "learnt: its types (code by code), lidar, condition space, "
+                        "quantisation and sensor, as the run recorded them")
     p.add_argument("--raw", action="store_true",
                    help="export the generator's raw weights, not their moving average")
     p.add_argument("--log-every", type=int, default=1, metavar="N",
@@ -339,6 +340,15 @@ def warn_other_lidar(command: str, data_dir, model) -> None:
         print(f"apcg {command}: warning: {warning}", file=sys.stderr, flush=True)
 
 
+def warn_other_sensor(command: str, data_dir, model) -> None:
+    """One warning line when the dataset's clouds (a sensor's photon clouds: its dataset.json
+    ``sensor``) are not of the kind the model makes (its model.json ``sensor``, or none)."""
+    from .evaluate import sensor_mismatch_warning
+    warning = sensor_mismatch_warning(data_dir, model)
+    if warning:
+        print(f"apcg {command}: warning: {warning}", file=sys.stderr, flush=True)
+
+
 def register_evaluate(sub) -> None:
     import argparse
 
@@ -380,6 +390,7 @@ def _run_evaluate(args) -> int:
     from .evaluate import evaluate, jsd_bins_study, markdown, write_report
     model = model_at_lidar(load_model(args.model, runtime=args.runtime), args, "evaluate")
     warn_other_lidar("evaluate", args.data, model)
+    warn_other_sensor("evaluate", args.data, model)
     command = args.command_line
     if args.jsd_bins_study:
         study = jsd_bins_study(model, args.data, seed=args.seed)
@@ -650,6 +661,7 @@ def _run_compare(args) -> int:
               for name, path in method_names(args.model)]
     for _, model in models:
         warn_other_lidar("compare", args.data, model)
+        warn_other_sensor("compare", args.data, model)
     report = compare(models, args.data, n_pairs=_pairs(args), seed=args.seed,
                      memory_steps=args.memory_steps, with_untrained=not args.no_untrained,
                      progress=True, faithfulness=args.faithfulness)

@@ -36,6 +36,10 @@ def evaluate(model, data_dir, n_pairs: int | None = protocol.DEFAULT_PAIRS, seed
     pairs = draw_pairs(data_dir, n_pairs, seed, half="test")
     report = protocol.score(model, pairs, progress=progress, faithfulness=faithfulness)
     report["types"] = protocol.per_type(report)
+    # what the dataset's clouds are (a sensor's photon clouds, or None: standard clouds) and
+    # what the model learnt: the "standard" clouds and the floor below are the dataset's
+    report["dataset_sensor"] = dataset_sensor(data_dir)
+    report["model_sensor"] = model_sensor(model)
     if with_untrained:
         with tempfile.TemporaryDirectory() as tmp:
             fresh = protocol.score(protocol.untrained(model, Path(tmp), seed), pairs,
@@ -46,6 +50,59 @@ def evaluate(model, data_dir, n_pairs: int | None = protocol.DEFAULT_PAIRS, seed
                                                 "no_score")}
         report["mean"]["untrained"] = fresh["mean"]
     return report
+
+
+def dataset_sensor(data_dir) -> dict | None:
+    """The sensor a dataset was built with (its header's ``sensor``: its clouds are that
+    single-photon lidar's, noise included), or None: standard (ideal) clouds."""
+    from apcg_core.io.dataset import read_header
+    return read_header(data_dir).get("sensor")
+
+
+def model_sensor(model) -> dict | None:
+    """The sensor whose photon clouds ``model`` was trained on (model.json ``sensor``), or
+    None: a model of standard clouds."""
+    value = (getattr(model, "meta", None) or {}).get("sensor")
+    return value if isinstance(value, dict) else None
+
+
+def _sensor_name(sensor: dict | None) -> str:
+    return "none" if sensor is None else repr(sensor.get("name") or "unnamed")
+
+
+def sensor_mismatch_warning(data_dir, model) -> str | None:
+    """One line when the dataset's clouds (a sensor's photon clouds, or standard clouds) are
+    not of the kind the model makes (model.json ``sensor``): the scores and the floor would
+    compare a model's clouds against clouds of another kind. None when they agree."""
+    ours, theirs = dataset_sensor(data_dir), model_sensor(model)
+    if json.dumps(ours, sort_keys=True) == json.dumps(theirs, sort_keys=True):
+        return None
+    what = (f"holds photon clouds of the sensor {_sensor_name(ours)} (built with --sensor; "
+            "noise included)" if ours is not None else "holds standard (ideal) clouds")
+    made = (f"photon clouds of the sensor {_sensor_name(theirs)} (its model.json 'sensor')"
+            if theirs is not None else "standard (ideal) clouds")
+    return (f"the dataset {data_dir} {what} but the model {getattr(model, 'directory', model)} "
+            f"makes {made}: its clouds are scored against the dataset's as they are, and the "
+            "floor is computed from the dataset's clouds")
+
+
+def _kind(sensor: dict | None) -> str:
+    return ("standard (ideal) clouds" if sensor is None
+            else f"photon clouds of the sensor {_sensor_name(sensor)}")
+
+
+def _clouds_said(report: dict) -> str:
+    """The report's sentence on what the dataset's clouds (the reference) and the model's are."""
+    if "dataset_sensor" not in report:  # a report from before it said so
+        return ""
+    ds, mine = report.get("dataset_sensor"), report.get("model_sensor")
+    said = f"The dataset's clouds are {_kind(ds)}"
+    if ds is not None:
+        said += (" (built with --sensor, noise included): the standard clouds and the floor "
+                 "below are those")
+    if json.dumps(ds, sort_keys=True) == json.dumps(mine, sort_keys=True):
+        return said + "; the model makes the same kind."
+    return said + f"; the model makes {_kind(mine)}, not that kind."
 
 
 def _fmt(v, digits=3) -> str:
@@ -64,7 +121,8 @@ def markdown(report: dict) -> str:
              "Floor: the standard cloud against its own copy jittered inside each resolution "
              "cell, the best any generator can hope to score. Untrained: the same network "
              "freshly initialised (when asked for). 1-NNA-CD below 0.5 on these paired sets "
-             "means each generated cloud lies nearest its own condition's reference.", "",
+             "means each generated cloud lies nearest its own condition's reference."
+             + (" " + _clouds_said(report) if "dataset_sensor" in report else ""), "",
              "| band | pairs | low | empty | pts std | pts gen | MMD | MMD floor | MMD untrained "
              "| JSD | JSD floor | JSD untrained | Chamfer (m^2) | COV-CD | 1-NNA-CD |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -212,5 +270,5 @@ def jsd_bins_study(model, data_dir, bins=(4, 6, 8, 12, 16, 20, 28), per_band: in
                        for b in table}}
 
 
-__all__ = ["DepthDataset", "band_of", "evaluate", "jsd_bins_study", "markdown", "plot",
-           "write_report"]
+__all__ = ["DepthDataset", "band_of", "dataset_sensor", "evaluate", "jsd_bins_study",
+           "markdown", "model_sensor", "plot", "sensor_mismatch_warning", "write_report"]

@@ -114,8 +114,12 @@ def _read_run(run: Path, checkpoint=None, data_dir=None) -> dict:
         _check_own_checkpoint(run, ck, st, record)
     family = get_family(st["train"].get("family", "cgan"), need="export")
     reads = list(getattr(family, "export_reads", lambda state: [])(st))
+    data = data_dir or record["data"]
+    head = read_header(data)
+    if record is not None:  # before anything is written: the dataset the run learnt, or none
+        check_same_dataset(record, head, data, "export", run=run)
     return {"checkpoint": ck, "state": st, "record": record, "family": family,
-            "data": data_dir or record["data"], "reads": reads}
+            "data": data, "head": head, "reads": reads}
 
 
 def _check_own_checkpoint(run: Path, ck: Path, st: dict, record: dict | None) -> None:
@@ -157,9 +161,7 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
     run = Path(run_dir)
     job = job or _read_run(run, checkpoint, data_dir)
     st, record, family, data = job["state"], job["record"], job["family"], job["data"]
-    head = read_header(data)
-    if record is not None:
-        check_same_dataset(record, head, data, "export")
+    head = job["head"]  # checked against the run's record by _read_run
     averaged = st.get("G_ema") is not None and not raw
     if averaged:
         st["G"] = st["G_ema"]
@@ -173,6 +175,10 @@ def _export(run_dir, out_dir, tau: float | None = None, data_dir=None,
             "norm": bool(st["train"].get("norm", True)),
             "generator_weights": (f"moving average (decay {st['train']['ema']:g}) since step "
                                   f"{st.get('ema_since', 0)}" if averaged else "raw")}
+    if head.get("sensor") is not None:
+        # trained on a sensor's photon clouds (the dataset was built with --sensor): the
+        # model's clouds are that sensor's already; the header's sensor, as it recorded it
+        meta["sensor"] = head["sensor"]
     out = family.export(st, head, Path(out_dir), meta, data, sampling_steps=sampling_steps)
     # a family that writes beside a model's own files names its run's record apart
     prefix = getattr(family, "record_prefix", "")

@@ -156,10 +156,21 @@ class Trainer:
             torch.set_num_threads(cfg.threads)
         self.data = DepthDataset(data_dir, "train")
         self.data_dir = str(data_dir)
+        if resume:  # before the network is made from it: a dataset that is not the run's is
+            # named as such, not as a checkpoint of another network (another lidar's window)
+            rec = read_run_record(self.run)
+            if rec is not None:
+                check_same_dataset(rec, self.data.header, data_dir, "--resume", run=self.run)
         self.family = get_family(cfg.family, need="train_step")
         torch.manual_seed(cfg.seed)  # initial weights
-        net = self.net_config = self.family.net_config(cfg, self.data)
-        self.G, self.D = self.family.networks(net)  # (generator or denoiser, critic or None)
+        try:
+            net = self.net_config = self.family.net_config(cfg, self.data)
+            self.G, self.D = self.family.networks(net)  # (generator or denoiser, critic or None)
+        except ValueError as exc:  # a size the family's network cannot take (its image's)
+            raise InputError(f"the {cfg.family} family cannot train on the dataset {data_dir}: "
+                             f"{exc} (its lidar's window is {self.data.width} x "
+                             f"{self.data.height}); train another family, or on a dataset "
+                             "of another lidar") from exc
         if cfg.init is not None and not resume:  # a resumed run has its own weights
             if not callable(getattr(self.family, "init_from", None)):
                 raise InputError(f"--init: the {cfg.family} family cannot start from a "
@@ -210,7 +221,6 @@ class Trainer:
             record = self.run / "train_config.json"
             rec = read_run_record(self.run) if self.rank == 0 else None
             if rec is not None:
-                check_same_dataset(rec, self.data.header, data_dir, "--resume")
                 ran = rec["train"].get("family", "cgan")
                 if ran != self.cfg.family:
                     raise InputError(f"{ckpt} is a checkpoint of the {self.cfg.family} family "
@@ -226,7 +236,8 @@ class Trainer:
                 {"train": asdict(cfg), "net": net.to_dict(),
                  "data": str(Path(self.data_dir).resolve()),
                  "dataset": self.data.header.get("name"),
-                 "dataset_types": dataset_type_names(self.data.header), "world": self.world}
+                 "dataset_types": dataset_type_names(self.data.header),
+                 "dataset_defines": dataset_defines(self.data.header), "world": self.world}
                 | ({"preset": preset} if preset else {}),
                 indent=1).encode())
         if self.world > 1:
@@ -488,11 +499,27 @@ def read_checkpoint(path) -> dict:
         raise
     except Exception as exc:  # noqa: BLE001 - pickle and zip raise many types on bad files
         raise InputError(f"{path} is not a readable checkpoint ({type(exc).__name__}: {exc}); "
-                         f"the kept copies in {path.parent / 'checkpoints'} (--keep-every) "
-                         "can replace it") from exc
+                         + _checkpoint_way_on(path)) from exc
     if not isinstance(state, dict) or "step" not in state or "train" not in state:
         raise InputError(f"{path} is not an APCG training checkpoint (no step and settings)")
     return state
+
+
+def _checkpoint_way_on(path: Path) -> str:
+    """What can replace an unreadable checkpoint ``path`` (the run's checkpoint.pt or one of
+    its kept copies): the run's other kept copies where there are any, else nothing can, and
+    the run must start again."""
+    kept_dir = path.parent if path.parent.name == "checkpoints" else path.parent / "checkpoints"
+    run = kept_dir.parent
+    kept = [p for p in sorted(kept_dir.glob("step-*.pt")) if p.resolve() != path.resolve()]
+    if kept:
+        return (f"a kept copy in {kept_dir} (--keep-every; the latest is {kept[-1].name}) can "
+                f"replace it: cp {kept[-1]} {run / 'checkpoint.pt'} and resume (or export "
+                f"--checkpoint {kept[-1]})")
+    return (f"the run kept no other copy ({kept_dir} "
+            + ("holds none" if kept_dir.is_dir() else "does not exist")
+            + "; --keep-every keeps them), so nothing can replace it: train the run again "
+            f"without --resume, into another -o (or after removing {run})")
 
 
 def dataset_type_names(header: dict) -> list[str]:
@@ -502,16 +529,70 @@ def dataset_type_names(header: dict) -> list[str]:
     return TypeTable.from_records(header["types"]).names
 
 
-def check_same_dataset(record: dict, header: dict, data, what: str) -> None:
-    """Refuse (``what``: the step asking) a dataset whose types are not, code by code, those
-    the run trained on (its record's ``dataset_types``; a record before them is not checked):
-    a dataset rebuilt or replaced at the run's path would silently name every cloud wrong."""
-    ran = record.get("dataset_types")
-    now = dataset_type_names(header)
-    if ran is not None and list(ran) != now:
-        raise InputError(f"{what}: the dataset {data} holds the types {now}, code by code, but "
-                         f"the run trained on {list(ran)}: it is not the dataset the run "
-                         "learnt; give that one (or train a new run on this one)")
+# What of a dataset defines a run's network (train_config.json ``dataset_defines``), in the
+# order a refusal lists what differs: the types code by code, the lidar (its window is the
+# network's image), the condition space (nu is scaled over it), the range quantisation and the
+# sensor (photon clouds, or none: ideal standard clouds).
+DATASET_DEFINES = ("types", "lidar", "condition_space", "quantize", "sensor")
+
+
+def dataset_defines(header: dict) -> dict:
+    """What the dataset whose header is ``header`` defines for a network trained on it
+    (:data:`DATASET_DEFINES`), recorded with a run when it starts."""
+    cfg = header.get("config") if isinstance(header.get("config"), dict) else {}
+    return {"types": dataset_type_names(header), "lidar": header.get("lidar"),
+            "condition_space": header.get("condition_space"),
+            "quantize": bool(cfg.get("quantize", True)),  # the builder's default
+            "sensor": header.get("sensor")}
+
+
+def _said(key: str, value) -> str:
+    if key == "sensor":
+        if value is None:
+            return "none (ideal standard clouds)"
+        name = value.get("name") if isinstance(value, dict) else None
+        return f"{name or 'unnamed'} (photon clouds)"
+    if key == "types":
+        return repr(list(value)) + " code by code"
+    return json.dumps(value, sort_keys=True, separators=(", ", ": "))
+
+
+def _one_difference(key: str, now, ran) -> str:
+    """``key`` of the dataset against the run's record, only the parts that differ of a
+    table (a lidar, a condition space, a sensor of other values)."""
+    same_sensor_name = (key == "sensor" and isinstance(now, dict) and isinstance(ran, dict)
+                        and now.get("name") == ran.get("name"))
+    if isinstance(now, dict) and isinstance(ran, dict) and (key != "sensor" or same_sensor_name):
+        keys = [k for k in sorted(set(now) | set(ran)) if _canon(now.get(k)) != _canon(ran.get(k))]
+        show = lambda d: ", ".join(f"{k} {json.dumps(d.get(k))}" for k in keys)  # noqa: E731
+        return f"{key} {show(now)} (the run's: {show(ran)})"
+    return f"{key} {_said(key, now)} (the run's: {_said(key, ran)})"
+
+
+def _canon(value) -> str:
+    return json.dumps(value, sort_keys=True)
+
+
+def check_same_dataset(record: dict, header: dict, data, what: str, run=None) -> None:
+    """Refuse (``what``: the step asking; ``run``: the run) a dataset that is not the one the
+    run trained on: what its record's ``dataset_defines`` says of that dataset (types code by
+    code, lidar, condition space, quantisation, sensor) against ``header``. A run recorded
+    before that record is compared on what it records (``dataset_types``; one before those is
+    not checked). A dataset rebuilt or replaced at the run's path would otherwise silently
+    train on, or export a model of, clouds the network never learnt."""
+    ran = record.get("dataset_defines")
+    if not isinstance(ran, dict):
+        ran = ({"types": record["dataset_types"]} if record.get("dataset_types") is not None
+               else {})
+    now = dataset_defines(header)
+    differ = [_one_difference(k, now[k], ran[k]) for k in DATASET_DEFINES
+              if k in ran and _canon(now[k]) != _canon(list(ran[k]) if k == "types"
+                                                           else ran[k])]
+    if differ:
+        record_of = f"{run}'s train_config.json" if run is not None else "its record"
+        raise InputError(f"{what}: the dataset {data} is not the dataset the run learnt "
+                         f"({record_of} says another): its " + "; its ".join(differ)
+                         + ". Give the run's own dataset (or train a new run on this one)")
 
 
 def read_run_record(run) -> dict | None:
