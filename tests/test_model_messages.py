@@ -196,6 +196,15 @@ def test_a_sensor_model_refuses_a_second_sensor(tmp_path, capsys):
     assert rc == 0 and (tmp_path / "g.npz").is_file(), err
 
 
+def test_the_recognition_benchmark_puts_no_photons_on_a_sensor_models_clouds(tmp_path):
+    from apcg_core.sensor import load_sensor
+    from training.recognize import Source
+    model = copy_model(default_model_dir(), tmp_path / "m", lambda m: m.update(sensor=SENSOR))
+    with pytest.raises(InputError, match="already carry"):
+        Source(str(model), sensor=load_sensor("1550nm-night"))
+    assert Source(str(model)).model.sensor == SENSOR  # without a sensor: its own clouds
+
+
 def test_a_sensor_record_that_is_no_table_is_refused(tmp_path):
     model = copy_model(default_model_dir(), tmp_path / "m",
                        lambda m: m.update(sensor="1550nm-day"))

@@ -160,6 +160,7 @@ class Source:
         from apcg_core.families import load_model
         self.key = str(Path(self.name).resolve())
         self.model = load_model(self.name)
+        self.model.refuse_sensor(sensor, "--sensor")  # as generate: no photons on photons
         # as `apcg generate --lidar` (apcg_core.lidar_options.model_at_lidar): a family that
         # draws at its training lidar only is refused in one line; outside the lidars the
         # model was measured on, one warning
