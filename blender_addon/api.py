@@ -43,6 +43,7 @@ from .objects import (
     body_mesh,
     check_lidar_values,
     check_target_scale,
+    checked_body_mesh,
     checked_surface,
     depth_length_of,
     guess_axes,
@@ -52,6 +53,7 @@ from .objects import (
     lidar_of,
     lidar_params,
     make_target,
+    mesh_key,
     named,
     pose_of,
     require_lidar,
@@ -60,6 +62,7 @@ from .objects import (
     simulator_row,
     source_of,
     targets_of,
+    triangles_of,
     world_mesh,
 )
 
@@ -98,8 +101,12 @@ def _pose_meta(pose: dict) -> dict:
 def sensor_of(lidar):
     """The lidar object's sensor (its panel's Sensor: a preset or a TOML file), None for the
     ideal lidar."""
+    import bpy
+
     from apcg_core.sensor import load_sensor
     ref = getattr(getattr(lidar, "apcg_lidar", None), "sensor", "") or "ideal"
+    if ref.startswith("//"):  # a file beside the .blend, as Blender's file fields write it
+        ref = bpy.path.abspath(ref)
     return load_sensor(ref, lidar_file=True)  # Read Lidar sets a lidar file as the Sensor
 
 
@@ -255,8 +262,10 @@ def _unoccluded(lidar, target, xyz_obs: np.ndarray, azimuth: float) -> np.ndarra
     local = observation_to_lidar_local(xyz_obs, azimuth)
     pts = local @ world[:3, :3].T + world[:3, 3]
     origin = Vector(world[:3, 3].tolist())
-    # the object a made target was made from is the same aircraft: it hides nothing of it
-    own = {target, source_of(target)} - {None}
+    # the object a made target was made from is the same aircraft, present in the scan as that
+    # target: it hides nothing, of it or of any other target (a lidar that make_target added
+    # at the origin may sit inside it)
+    own = ({target} | {source_of(o) for o in scene.objects if is_target(o)}) - {None}
     keep = np.ones(len(pts), bool)
     for i, p in enumerate(pts):
         d = p - world[:3, 3]
@@ -307,8 +316,11 @@ def generate(target, model=None, count: int = 1, seed: int = 0, runtime: str = "
     pose = pose_of(target)
     name_of_type = check_model_knows(model, target)
     owner = lidar_of(target)
-    if owner is not None and model.ANY_LIDAR:  # at the lidar object's cells (issue 33)
-        model.use_lidar(lidar_params(owner))
+    if owner is not None:  # at the lidar object's cells (issue 33)
+        try:  # a family that draws at its training lidar only is refused at another, as
+            model.use_lidar(lidar_params(owner))  # `apcg generate --lidar` refuses it
+        except InputError as exc:
+            raise InputError(f"target {target.name!r} of lidar {owner.name!r}: {exc}") from None
     try:
         cond = model.condition(name_of_type, pose["range_m"], pose["elevation"],
                                pose["pitch"], pose["yaw"], pose["roll"])
@@ -407,7 +419,9 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     with instance and type labels, poses, track ids: docs/SCENES.md). Each target moves as
     Blender animates it (keyframes, parents, constraints: Follow Path...), its pose read at
     every frame and interpolated between frames for a scan that takes time (``scan``: a
-    ``[scan]`` table as a dict, default flash). The window looks where the first target is at
+    ``[scan]`` table as a dict, default flash). Its shape is Blender's at each frame too
+    (keyframed modifiers, shape keys, armatures): a target whose evaluated mesh changes is
+    cast as it is at that frame's start. The window looks where the first target is at
     the first frame. Returns the directory."""
     from pathlib import Path
 
@@ -440,15 +454,29 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     blender_frames = list(range(start, last + 1))
     now = scene.frame_current
     poses = [[] for _ in targets]  # by the object itself: names need not be unique
+    # each target's shape at each frame (a keyframed modifier, shape key, armature...): its
+    # first frame's mesh, then each frame's key and bounding radius; a frame's mesh is read
+    # again when it is scanned (_FrameShapes), so memory holds one shape per target
+    first_meshes, keys, radii = [None] * len(targets), [[] for _ in targets], \
+        [[] for _ in targets]
     try:
         for f in blender_frames:
             scene.frame_set(f)
             for k, t in enumerate(targets, start=1):
                 try:
                     poses[k - 1].append(_pose_in_lidar(lidar, t))
-                except ValueError as exc:  # on the lidar: no direction (an InputError)
+                    v, fc = triangles_of(t)
+                    key = mesh_key(t, v, fc)
+                    if not keys[k - 1] or key != keys[k - 1][-1]:  # a shape not yet checked
+                        mesh = checked_body_mesh(t, v, fc, key)
+                        radius = _bounding_radius(v)
+                except (ValueError, InputError) as exc:  # ValueError: on the lidar
                     raise InputError(f"Blender target {k} ({t.name}): at frame {f}: {exc}"
                                      ) from None
+                if first_meshes[k - 1] is None:
+                    first_meshes[k - 1] = mesh
+                keys[k - 1].append(key)
+                radii[k - 1].append(radius)
     finally:
         scene.frame_set(now)
     times = (np.array(blender_frames) - start) / fps
@@ -464,7 +492,7 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
             index, category = ty.index, ty.category
         except InputError:  # a made target of no catalog type
             index, category = -1, ""
-        mesh = body_mesh(t)
+        mesh = first_meshes[i - 1]
         scene_targets.append(SceneTarget(
             i, type_name, index, category, Sampled(times, pos, att),
             f"Blender target {i} ({t.name})", mesh=mesh,
@@ -480,12 +508,48 @@ def scan_animation(lidar, directory, targets=None, frame_start: int | None = Non
     elif not isinstance(sensor, SensorParams):
         sensor = load_sensor(sensor)
     k = supersample or (4 if sensor else 1)
-    scanner = SceneScanner(sc, backend, k, quantize, sensor, seed, catalog=cat)
+    scanner = _frame_shapes(SceneScanner)(sc, backend, k, quantize, sensor, seed, catalog=cat)
+    scanner.shapes = (targets, start, keys, radii)
+    # the checks made before any frame is written take each target at its largest
+    scanner.radii = [max(r) for r in radii]
     try:
         return write_sequence(scanner, Path(directory), {"blender": record["blender"]},
                               progress)
     finally:
         scanner.close()
+        if scene.frame_current != now:
+            scene.frame_set(now)
+
+
+def _bounding_radius(vertices) -> float:
+    from dataset_builder.rays import bounding_radius
+    return bounding_radius(vertices)
+
+
+def _frame_shapes(scanner_class):
+    """A SceneScanner that casts each target's shape at each frame: ``shapes`` = (the Blender
+    targets, the first Blender frame, each target's mesh key at each frame). Before a frame
+    is scanned, a target whose shape differs from the one it holds is read again, at that
+    frame (Blender's evaluated mesh); one that keeps its shape costs nothing more. (A frame
+    whose scan takes time casts the shape of the frame's start.)"""
+    class FrameShapes(scanner_class):
+        shapes = None
+
+        def scan(self, frame: int):
+            import bpy
+            targets, start, keys, radii = self.shapes
+            scene = bpy.context.scene
+            for i, t in enumerate(targets):
+                self.radii[i] = radii[i][frame]
+                if keys[i][frame] == self.keys[i]:
+                    continue
+                if scene.frame_current != start + frame:
+                    scene.frame_set(start + frame)
+                mesh = body_mesh(t)
+                self.meshes[i], self.keys[i] = mesh, mesh.key
+            return super().scan(frame)
+
+    return FrameShapes
 
 
 def _frame(name: str, value) -> int:

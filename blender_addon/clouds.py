@@ -418,9 +418,201 @@ def _add_file_attrs(me, attrs: dict) -> list[str]:
 
 
 def export_cloud(obj, path) -> str:
-    """Write a cloud object to PLY / NPZ / LAS / LAZ (by extension), observation frame, float64."""
+    """Write a cloud object to PLY / NPZ / LAS / LAZ (by extension), observation frame, float64.
+
+    An imported cloud's file attributes (another tool's intensity, classification, colours...:
+    the info's "attributes") are written too, as the format can carry them: PLY and NPZ as
+    columns of their own names; LAS / LAZ into the point format's own dimension of that name
+    (intensity, classification, red / green / blue...: point format 7 when there are colours)
+    where the values fit it, else as extra bytes. One that a format cannot carry is said in one
+    warning (``warnings.warn``, an :class:`ExportWarning`), never dropped silently."""
     cloud, info = cloud_from_object(obj)
     path = checked_path(path, "path", "a file path ending in .ply, .npz, .las or .laz")
     meta = dict(info.get("meta") or {})
     meta.update({"exported_from_blender": obj.name, "source": info["source"]})
-    return str(write_cloud(path, cloud, meta))
+    extras, lost = _file_attributes(obj, info, len(cloud))
+    if not extras:
+        out = write_cloud(path, cloud, meta)
+    else:
+        out = _write_with_attributes(path, cloud, meta, extras, lost)
+    if lost:
+        import warnings
+        warnings.warn(f"{path.name}: {'; '.join(lost)}", ExportWarning, stacklevel=2)
+    return str(out)
+
+
+class ExportWarning(UserWarning):
+    """A file attribute of the cloud that the exported format cannot carry (in one line)."""
+
+
+def _file_attributes(obj, info, n: int) -> tuple[dict, list]:
+    """The cloud object's file attributes (its info's "attributes", as imported) by name:
+    Blender's INT as int32, FLOAT as float32. The colour attribute (made from red / green /
+    blue, which go themselves) is not one. Returns (attributes, what cannot be taken, in
+    words)."""
+    out, lost = {}, []
+    gone = []
+    for name in info.get("attributes") or []:
+        a = obj.data.attributes.get(name)
+        if a is None:
+            gone.append(name)
+            continue
+        if a.data_type == "FLOAT_COLOR" or a.data_type == "BYTE_COLOR":
+            continue  # "Col": shown from red / green / blue
+        kind = _ATTR_KINDS_BY_TYPE.get(a.data_type)
+        if kind is None or a.domain != "POINT" or len(a.data) != n:
+            lost.append(f"attribute {name!r} ({a.data_type} on the {a.domain} domain) is not "
+                        "one number per point: not written")
+            continue
+        v = np.zeros(n, kind)
+        a.data.foreach_get("value", v)
+        out[name] = v
+    if gone:
+        lost.append(f"the attribute{'s' if len(gone) > 1 else ''} {', '.join(map(repr, gone))}"
+                    f" of the imported file {'are' if len(gone) > 1 else 'is'} no longer on "
+                    f"{obj.name!r}: not written")
+    return out, lost
+
+
+_ATTR_KINDS_BY_TYPE = {"FLOAT": np.float32, "INT": np.int32}
+
+
+def _write_with_attributes(path, cloud: PointCloud, meta: dict, extras: dict,
+                           lost: list):
+    """write_cloud's file of ``cloud`` with ``extras`` added (see :func:`export_cloud`),
+    written whole or not at all; what the format cannot carry is added to ``lost``."""
+    import tempfile
+    from pathlib import Path
+
+    from apcg_core.io.atomic import refuse_directory
+    from apcg_core.io.clouds import _fmt
+    from apcg_core.io.dataset import write_atomic
+    ext = _fmt(path)  # refused, naming the file, before any work
+    refuse_directory(path)
+    with tempfile.TemporaryDirectory(prefix="apcg-export-") as d:
+        base = Path(d) / f"base{ext}"
+        write_cloud(base, cloud, meta)
+        own = {"xyz", "x", "y", "z", "meta", "range_m", "cell_w", "cell_h", "sample",
+               *cloud.photon_fields}
+        taken = {}
+        for name, v in extras.items():
+            if ext in (".ply", ".npz") and name in own:
+                lost.append(f"attribute {name!r} has the name of one of the file's own "
+                            "columns: not written")
+            else:
+                taken[name] = v
+        if ext == ".npz":
+            data = _npz_with(base, taken)
+        elif ext == ".ply":
+            data = _ply_with(base, taken, lost)
+        else:
+            data = _las_with(base, taken, lost, cloud, compress=ext == ".laz")
+    write_atomic(path, data)
+    return path
+
+
+def _npz_with(base, extras: dict) -> bytes:
+    import io
+    with np.load(base, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays.update(extras)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+_PLY_OF = {"f8": "double", "f4": "float", "i4": "int", "u1": "uchar", "i1": "char",
+           "i2": "short", "u2": "ushort", "u4": "uint"}
+
+
+def _ply_with(base, extras: dict, lost: list) -> bytes:
+    """The binary PLY ``base`` (write_cloud's) with a property per attribute (a PLY name has
+    no spaces: they become "_")."""
+    from apcg_core.io.clouds import ply_header_end
+    data = base.read_bytes()
+    end = ply_header_end(data)
+    head = data[:end].decode()
+    body = data[data.index(b"\n", end) + 1:]
+    of_ply = {v: k for k, v in _PLY_OF.items()}
+    props = [line.split()[1:] for line in head.splitlines() if line.startswith("property ")]
+    dtype = [(n, "<" + of_ply[t]) for t, n in props]
+    rec = np.frombuffer(body, dtype=dtype)
+    names = {n for _, n in props}
+    add = []
+    for name, v in extras.items():
+        ply = re.sub(r"\s", "_", name)
+        if ply in names:
+            lost.append(f"attribute {name!r} has the name of one of the file's own columns "
+                        "in PLY: not written")
+            continue
+        names.add(ply)
+        add.append((ply, v))
+    out = np.empty(len(rec), dtype=dtype + [(n, "<" + v.dtype.str[1:]) for n, v in add])
+    for n, _t in dtype:
+        out[n] = rec[n]
+    for n, v in add:
+        out[n] = v
+    lines = [f"property {_PLY_OF[v.dtype.str[1:]]} {n}" for n, v in add]
+    return (head + "".join(line + "\n" for line in lines) + "end_header\n").encode() + \
+        out.tobytes()
+
+
+def _las_with(base, extras: dict, lost: list, cloud: PointCloud, compress: bool) -> bytes:
+    """The LAS / LAZ ``base`` (write_cloud's, point format 6) with each attribute in the
+    point format's own dimension of its name where its values fit it (colours: format 7),
+    else as extra bytes of its own name (32 characters at most)."""
+    import io
+
+    import laspy
+    las = laspy.read(base)
+    if {"red", "green", "blue"} <= extras.keys():
+        las = laspy.convert(las, point_format_id=8 if "nir" in extras else 7)
+    fmt = las.point_format
+    standard = {d.name: d for d in fmt.dimensions if d.is_standard}
+    for name, v in extras.items():
+        if name in ("X", "Y", "Z", "x", "y", "z") or name in ("range_m", "cell_w", "cell_h",
+                                                              "sample", "count", "pulse"):
+            lost.append(f"attribute {name!r} has the name of one of the file's own columns "
+                        "in LAS: not written")
+            continue
+        if name == "classification" and cloud.label is not None:
+            continue  # a photon cloud's classification is its label's (LAS_CLASS)
+        dim = standard.get(name)
+        if dim is not None:
+            if _fits(v, dim):
+                las[name] = v
+                continue
+            lost.append(f"attribute {name!r}: values from {v.min():g} to {v.max():g} do not "
+                        f"fit LAS's {name} ({_range_of(dim)}): not written")
+            continue
+        if len(name.encode()) > 32 or not name.isascii():
+            lost.append(f"attribute {name!r}: LAS names an extra dimension in 32 ASCII "
+                        "characters at most: not written")
+            continue
+        las.add_extra_dim(laspy.ExtraBytesParams(name, v.dtype))
+        las[name] = v
+    buf = io.BytesIO()
+    las.write(buf, do_compress=compress)
+    return buf.getvalue()
+
+
+def _dim_bounds(dim) -> tuple:
+    if dim.kind.name == "FloatingPoint":
+        return None
+    if dim.kind.name == "BitField":
+        return 0, 2 ** dim.num_bits - 1
+    info = np.iinfo(dim.dtype)
+    return int(info.min), int(info.max)
+
+
+def _fits(v: np.ndarray, dim) -> bool:
+    bounds = _dim_bounds(dim)
+    if bounds is None:
+        return True
+    whole = v.dtype.kind in "iu" or bool(np.all(np.isfinite(v)) and np.all(v == np.round(v)))
+    return whole and (not len(v) or (bounds[0] <= v.min() and v.max() <= bounds[1]))
+
+
+def _range_of(dim) -> str:
+    bounds = _dim_bounds(dim)
+    return "any number" if bounds is None else f"whole numbers {bounds[0]}..{bounds[1]}"

@@ -106,12 +106,26 @@ def cancelled_leaves_nothing(execute):
     return run
 
 
+def removed(obj) -> bool:
+    """Whether ``obj`` is a Blender object (or other ID) that was deleted since it was handed
+    out: every read of it raises Blender's ReferenceError."""
+    if not isinstance(obj, bpy.types.ID):
+        return False
+    try:
+        obj.name  # noqa: B018 - the read is the test
+    except ReferenceError:
+        return True
+    return False
+
+
 def is_lidar(obj) -> bool:
-    return isinstance(obj, bpy.types.Object) and obj.get(LIDAR_KEY) is not None
+    return isinstance(obj, bpy.types.Object) and not removed(obj) and \
+        obj.get(LIDAR_KEY) is not None
 
 
 def carries_pose(obj) -> bool:
-    return isinstance(obj, bpy.types.Object) and obj.get(POSE_KEY) is not None
+    return isinstance(obj, bpy.types.Object) and not removed(obj) and \
+        obj.get(POSE_KEY) is not None
 
 
 def is_target(obj) -> bool:
@@ -122,11 +136,16 @@ def is_target(obj) -> bool:
 
 def named(obj) -> str:
     """How a message names what it was given: an object's name, else the value itself."""
+    if removed(obj):
+        return f"a deleted Blender {type(obj).__name__.lower()} (no longer in the file)"
     return repr(obj.name) if isinstance(obj, bpy.types.ID) else repr(obj)
 
 
 def require_lidar(obj):
     """``obj`` if it is an APCG lidar; else an InputError naming what was given."""
+    if removed(obj):
+        raise InputError(f"the lidar given is {named(obj)}: give a lidar of the scene, or add "
+                         "one with apcg.add_lidar")
     if not is_lidar(obj):
         raise InputError(f"{named(obj)} is not an APCG lidar (add one with apcg.add_lidar)")
     return obj
@@ -231,13 +250,8 @@ def mesh_from_arrays(name: str, vertices: np.ndarray, faces: np.ndarray):
     return me
 
 
-def triangles_of(obj, depsgraph=None):
-    """(vertices float64 (V, 3), faces int (F, 3)) of an object's evaluated mesh, local frame."""
-    if not isinstance(obj, bpy.types.Object) or obj.type != "MESH":
-        what = f"a {obj.type.lower()}" if isinstance(obj, bpy.types.Object) else "not an object"
-        raise InputError(f"{named(obj)} is {what}, not a mesh object: it has no surface")
-    depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
-    ev = obj.evaluated_get(depsgraph)
+def _mesh_arrays(ev):
+    """(vertices float32 (V, 3), triangles int32 (F, 3)) of an evaluated object's mesh."""
     me = ev.to_mesh()
     try:
         me.calc_loop_triangles()
@@ -247,7 +261,50 @@ def triangles_of(obj, depsgraph=None):
         me.loop_triangles.foreach_get("vertices", tris)
     finally:
         ev.to_mesh_clear()
-    return verts.reshape(-1, 3).astype(np.float64), tris.reshape(-1, 3)
+    return verts.reshape(-1, 3), tris.reshape(-1, 3)
+
+
+# what an instance can be and still have a surface (blender_import.py's SURFACE_TYPES)
+_SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT"}
+
+
+def _may_instance(obj) -> bool:
+    """Whether an object can make instances (Geometry Nodes, particles, instancing by its
+    vertices or faces): only then are the depsgraph's instances looked through."""
+    return (getattr(obj, "instance_type", "NONE") not in ("NONE", "COLLECTION")
+            or any(m.type in ("NODES", "PARTICLE_SYSTEM") for m in obj.modifiers))
+
+
+def triangles_of(obj, depsgraph=None):
+    """(vertices float64 (V, 3), faces int (F, 3)) of an object's evaluated geometry, local
+    frame: its mesh and the instances it makes (Geometry Nodes' Instance on Points,
+    particles...), as Blender draws them and as `apcg catalog add x.blend` takes them."""
+    if not isinstance(obj, bpy.types.Object) or obj.type != "MESH":
+        what = f"a {obj.type.lower()}" if isinstance(obj, bpy.types.Object) else "not an object"
+        raise InputError(f"{named(obj)} is {what}, not a mesh object: it has no surface")
+    depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
+    ev = obj.evaluated_get(depsgraph)
+    verts, tris = _mesh_arrays(ev)
+    parts = [(verts.astype(np.float64), tris)]
+    if _may_instance(obj):
+        to_local = np.linalg.inv(_numpy_matrix(ev.matrix_world))
+        for inst in depsgraph.object_instances:
+            if not (inst.is_instance and inst.parent is not None
+                    and inst.parent.original == obj.original
+                    and inst.object.type in _SURFACE_TYPES):
+                continue
+            v, f = _mesh_arrays(inst.object)
+            if not len(f):
+                continue
+            m = to_local @ _numpy_matrix(inst.matrix_world)
+            if np.linalg.det(m[:3, :3]) < 0:  # a mirrored instance: keep faces outward
+                f = f[:, ::-1]
+            parts.append((v.astype(np.float64) @ m[:3, :3].T + m[:3, 3], f))
+    if len(parts) == 1:
+        return parts[0]
+    offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
+    return (np.concatenate([v for v, _ in parts]),
+            np.concatenate([f + o for (_, f), o in zip(parts, offsets, strict=True)]))
 
 
 @dataclass
@@ -274,12 +331,23 @@ def checked_surface(label: str, vertices, faces, flat_ok: bool = True) -> Mesh:
 def body_mesh(obj, depsgraph=None) -> _Mesh:
     """A target's evaluated mesh in its body frame, as Blender shows it, checked as the
     catalog importer checks a model's."""
-    import hashlib
     v, f = triangles_of(obj, depsgraph)
-    checked_surface(f"target {obj.name!r}", v, f)
-    digest = hashlib.blake2b(v.tobytes() + f.tobytes(), digest_size=16).hexdigest()
+    return checked_body_mesh(obj, v, f)
+
+
+def mesh_key(obj, vertices, faces) -> tuple:
+    """The simulator's cache key of a target's mesh: the object, and a digest of the mesh."""
+    import hashlib
+    digest = hashlib.blake2b(vertices.tobytes() + faces.tobytes(), digest_size=16).hexdigest()
     identity = getattr(obj, "session_uid", None) or obj.as_pointer()  # session_uid: 2.91+
-    return _Mesh(v, f, ("blender-object", identity, digest))
+    return ("blender-object", identity, digest)
+
+
+def checked_body_mesh(obj, vertices, faces, key=None) -> _Mesh:
+    """:func:`body_mesh` of the arrays :func:`triangles_of` gave (``key``: their mesh_key,
+    when known)."""
+    checked_surface(f"target {obj.name!r}", vertices, faces)
+    return _Mesh(vertices, faces, key or mesh_key(obj, vertices, faces))
 
 
 def pose_from_degrees(range_m, elevation_deg, pitch_deg=0.0, yaw_deg=0.0, roll_deg=0.0,
@@ -423,6 +491,9 @@ def pose_of(obj, lidar=None, depsgraph=None) -> dict:
     require_target(obj, lidar=False)
     m = placement(obj, lidar, depsgraph)
     check_unit_scale(obj.name, m[:3, :3])
+    owner = lidar if lidar is not None else lidar_of(obj)
+    if owner is not None:
+        check_lidar_scale(owner, depsgraph)
     if lidar is None or lidar == lidar_of(obj):
         try:
             pose = stored_pose(obj)
@@ -472,6 +543,29 @@ def check_unit_scale(name: str, m3) -> None:
             f"{', mirrored' if det < 0 else ''}: a target is scanned at its mesh's own size, "
             "so its scale must be 1. Set its scale to 1; for another size, scale the mesh "
             "object it was made from and make the target again (apcg.make_target)")
+
+
+def check_lidar_scale(lidar, depsgraph=None) -> None:
+    """Refuse a lidar whose world matrix scales or mirrors (its own scale, or a parent's):
+    Blender draws its targets scaled by it, but a scan casts them at their mesh's own size
+    from their pose, so the scan would not be what Blender shows."""
+    if depsgraph is AS_DRAWN:
+        m = lidar.matrix_world
+    else:
+        m = lidar.evaluated_get(depsgraph or bpy.context.evaluated_depsgraph_get()).matrix_world
+    m3 = _numpy_matrix(m)[:3, :3]
+    scale = np.linalg.norm(m3, axis=0)
+    det = float(np.linalg.det(m3))
+    if np.all(np.isfinite(scale)) and np.abs(scale - 1.0).max() <= _SCALE_TOL and det > 0:
+        return
+    own = np.asarray(lidar.scale, np.float64)
+    whose = ("its own" if np.abs(np.abs(own) - 1.0).max() > _SCALE_TOL or (own < 0).any()
+             else "its parents'")
+    raise InputError(
+        f"lidar {lidar.name!r} has scale ({', '.join(f'{v:.6g}' for v in scale)})"
+        f"{', mirrored' if det < 0 else ''} in the world ({whose}): Blender draws its targets "
+        "scaled by it, but a scan casts them at their mesh's own size, so a lidar's scale must "
+        "be 1. Set its scale to 1, or apply it (Object > Apply > Scale), and so for its parents")
 
 
 def check_clear_of_lidar(obj, pose, vertices) -> None:
@@ -555,8 +649,12 @@ def _degrees(radians):
 
 
 def world_mesh(obj, depsgraph=None) -> Mesh:
-    """An object's evaluated mesh (modifiers applied) with its world rotation and scale baked
-    in (its size and orientation as placed in the scene); its location is left out."""
+    """An object's evaluated mesh (modifiers applied, instances taken) with its world rotation
+    and scale baked in (its size and orientation as placed in the scene), in metres: the
+    scene's unit scale applied as `apcg catalog add x.blend` applies it (1 Blender unit is
+    ``unit_settings.scale_length`` m, unless the unit system is None); its location is left
+    out."""
+    from apcg_core.catalog.blender_import import _blend_scale
     if not isinstance(obj, bpy.types.Object) or obj.type != "MESH":
         what = f"a {obj.type}" if isinstance(obj, bpy.types.Object) else "not an object"
         raise InputError(f"{named(obj)} is {what}, not a mesh object")
@@ -564,7 +662,9 @@ def world_mesh(obj, depsgraph=None) -> Mesh:
     v, f = triangles_of(obj, depsgraph)
     checked_surface(repr(obj.name), v, f, flat_ok=False)  # what `apcg catalog add` takes
     m = obj.evaluated_get(depsgraph).matrix_world
-    rot_scale = np.array([list(row)[:3] for row in list(m)[:3]], dtype=np.float64)
+    # the scene's unit, by the importer's own rule (it reads the scene of a .blend)
+    unit = _blend_scale(".blend")
+    rot_scale = unit * np.array([list(row)[:3] for row in list(m)[:3]], dtype=np.float64)
     if abs(np.linalg.det(rot_scale)) < 1e-30:
         raise InputError(f"{obj.name!r} has a zero scale: it has no size")
     return Mesh(v, f).transformed(rot_scale)  # faces flip with a mirroring (negative) scale
@@ -652,7 +752,11 @@ def make_target(lidar, obj, range_m: float | None = None, elevation_deg: float =
     ``lidar`` (``None``: the scene's first lidar, or a new one) at the pose (``range_m`` None:
     4500 m, 300 m for an object under 5 m). Its type is ``type_name`` (default: the object's
     name); a catalog name lets Generate use a model that knows that type. How the axes were
-    found is kept under AXES_KEY."""
+    found is kept under AXES_KEY.
+
+    The object itself stays where it is and stands for the target from then on: it hides
+    nothing from any scan (of this target or of others), since the aircraft is in the scene as
+    its target already, so a new lidar added at the origin may sit inside it (SOURCE_KEY)."""
     if not isinstance(obj, bpy.types.Object) or obj.type != "MESH":
         raise InputError(f"{named(obj)} is not a mesh object: select the "
                          "mesh of your model")

@@ -456,10 +456,27 @@ class APCG_OT_generate(_ChunkedOperator, bpy.types.Operator):
         model = api.load_model(bpy.path.abspath(self.model_dir) or None, self.runtime)
         for t in ts:  # a type the model does not know is refused before any work
             api.check_model_knows(model, t)
+        if lidar is not None and not model.ANY_LIDAR:
+            # a family that draws at its training lidar only is refused at another, before any
+            # work, as `apcg generate --lidar` refuses it (api.generate refuses it too)
+            model.use_lidar(api.lidar_params(lidar))
         warning = api.lidar_fit_warning(model, lidar) if lidar is not None else None
-        if warning:  # generated all the same, as `apcg generate --lidar` does
-            self.report({"WARNING"}, warning)
+        if warning:  # a lidar the model was not measured on: generated all the same, with this
+            self.report({"WARNING"}, warning)  # one line, as `apcg generate --lidar` warns
         return [(lambda t=t: api.generate(t, model, self.count, self.seed)) for t in ts]
+
+
+# Blender 4.1+ warns when a file path without this flag is given "//" (a path beside the
+# .blend): these operators resolve it (bpy.path.abspath), so they say they take one
+_BLEND_RELATIVE = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 1, 0) else set()
+
+
+def _file_path(what: str, hidden: bool):
+    """ImportHelper's / ExportHelper's filepath, taking a blend-relative "//" path."""
+    return StringProperty(name="File Path", description=f"Filepath used for {what} the file",
+                          maxlen=1024, subtype="FILE_PATH",
+                          options=({"SKIP_PRESET", "HIDDEN"} if hidden else set())
+                          | _BLEND_RELATIVE)
 
 
 class APCG_OT_import_cloud(bpy.types.Operator, ImportHelper):
@@ -468,12 +485,14 @@ class APCG_OT_import_cloud(bpy.types.Operator, ImportHelper):
     bl_label = "Import APCG Cloud"
     bl_options = {"REGISTER", "UNDO"}
 
+    filepath: _file_path("importing", True)
     filter_glob: StringProperty(default="*.ply;*.npz;*.las;*.laz", options={"HIDDEN"})
 
     def execute(self, context):
         from .clouds import cloud_info
         try:
-            obj = api.import_cloud(self.filepath, lidar=_active_lidar(context))
+            obj = api.import_cloud(bpy.path.abspath(self.filepath),
+                                   lidar=_active_lidar(context))
         except Exception as exc:  # noqa: BLE001
             return _report_error(self, exc)
         _select_only(context, obj)
@@ -490,6 +509,7 @@ class APCG_OT_export_cloud(bpy.types.Operator, ExportHelper):
 
     filename_ext = ".ply"
     check_extension = False  # .npz and .las are accepted too
+    filepath: _file_path("exporting", False)
     filter_glob: StringProperty(default="*.ply;*.npz;*.las", options={"HIDDEN"})
 
     @classmethod
@@ -497,11 +517,17 @@ class APCG_OT_export_cloud(bpy.types.Operator, ExportHelper):
         return api.is_cloud(context.active_object)
 
     def execute(self, context):
+        import warnings
+        path = bpy.path.abspath(self.filepath)  # "//": beside the .blend, as Generate reads
         try:
-            api.export_cloud(context.active_object, self.filepath)
+            with warnings.catch_warnings(record=True) as said:
+                warnings.simplefilter("always")
+                api.export_cloud(context.active_object, path)
         except Exception as exc:  # noqa: BLE001
             return _report_error(self, exc)
-        self.report({"INFO"}, f"wrote {self.filepath}")
+        for w in said:  # a file attribute the format cannot carry
+            self.report({"WARNING"}, str(w.message))
+        self.report({"INFO"}, f"wrote {path}")
         return {"FINISHED"}
 
 
@@ -512,6 +538,7 @@ class APCG_OT_read_lidar(bpy.types.Operator, ImportHelper):
     bl_label = "Read Lidar File"
     bl_options = {"REGISTER", "UNDO"}
 
+    filepath: _file_path("importing", True)
     filter_glob: StringProperty(default="*.toml", options={"HIDDEN"})
 
     @classmethod
@@ -520,10 +547,10 @@ class APCG_OT_read_lidar(bpy.types.Operator, ImportHelper):
 
     def execute(self, context):
         try:
-            api.read_lidar_file(_active_lidar(context), self.filepath)
+            api.read_lidar_file(_active_lidar(context), bpy.path.abspath(self.filepath))
         except Exception as exc:  # noqa: BLE001
             return _report_error(self, exc)
-        self.report({"INFO"}, f"read {self.filepath}")
+        self.report({"INFO"}, f"read {bpy.path.abspath(self.filepath)}")
         return {"FINISHED"}
 
 
@@ -533,6 +560,7 @@ class APCG_OT_write_lidar(bpy.types.Operator, ExportHelper):
     bl_label = "Write Lidar File"
 
     filename_ext = ".toml"
+    filepath: _file_path("exporting", False)
     filter_glob: StringProperty(default="*.toml", options={"HIDDEN"})
 
     @classmethod
@@ -541,10 +569,10 @@ class APCG_OT_write_lidar(bpy.types.Operator, ExportHelper):
 
     def execute(self, context):
         try:
-            api.write_lidar_file(_active_lidar(context), self.filepath)
+            api.write_lidar_file(_active_lidar(context), bpy.path.abspath(self.filepath))
         except Exception as exc:  # noqa: BLE001
             return _report_error(self, exc)
-        self.report({"INFO"}, f"wrote {self.filepath}")
+        self.report({"INFO"}, f"wrote {bpy.path.abspath(self.filepath)}")
         return {"FINISHED"}
 
 
