@@ -89,7 +89,9 @@ def header_difference(old: bytes, new: bytes) -> str:
             for x, y in zip(a[k], b[k], strict=True):
                 if isinstance(x, dict) and x != y:
                     fields = sorted(f for f in set(x) | set(y) if x.get(f) != y.get(f))
-                    said.append(f"type {y.get('name')!r}: {', '.join(fields)}")
+                    said.append(f"type {y.get('name')!r}: " + ", ".join(
+                        f"{f} (its mesh changed in the catalog since)" if f == "mesh_sha256"
+                        else f for f in fields))
         else:
             said.append(k)
     return "; ".join(said) or "its bytes"
@@ -217,8 +219,7 @@ def _build_locked(plan: Plan, catalog, out: Path, runner, settings: RunSettings,
     if not fresh:
         if (old := head_path.read_bytes()) != header:
             raise InputError(f"{out} already holds a different dataset (its dataset.json differs "
-                             f"from this config's: {header_difference(old, header)}; a "
-                             "type's mesh_sha256: its mesh changed in the catalog since); "
+                             f"from this config's: {header_difference(old, header)}); "
                              "build into a new directory or delete it")
     elif stray := sorted((out / "shards").glob("*.npz")):
         # dataset.json is written before any shard: shards without it are of no known build
@@ -386,24 +387,28 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
         _check_header(out, head, plan)
         sums = {m.get("file"): m.get("sha256") for m in read_manifest(out)["shards"]
                 if isinstance(m, dict)}
-        bad = []
+        bad = []  # each "file (why)"
         if (out / "conditions.csv").exists() and (out / "conditions.csv").read_bytes() != \
                 conditions_csv(plan):
-            bad.append("conditions.csv")  # a pure function of the config: made again, compared
+            # a pure function of the config: made again, compared
+            bad.append("conditions.csv (not this config's plan)")
         index = read_condition_index(out, head) if not bad else None
         n_points = clipped = clamped = empty = signal = 0
         for s in present:
             p = out / s["file"]
-            if sums.get(s["file"]) not in (None, sha256_file(p)):
-                bad.append(s["file"])
-                continue
             try:
                 sh = load_shard(out, s, index, head) if index is not None else Shard.load(p)
-            except InputError:
-                bad.append(s["file"])
+            except InputError as exc:  # unreadable, or another dataset's (which, named)
+                bad.append(f"{s['file']} ({exc})")
+                continue
+            if sums.get(s["file"]) not in (None, sha256_file(p)):
+                bad.append(f"{s['file']} (its bytes are not those manifest.json records)")
                 continue
             if (sh.cos_incidence is None) == info["incidence"]:
-                bad.append(s["file"])
+                bad.append(f"{s['file']} (cos_incidence "
+                           f"{'missing' if info['incidence'] else 'present'} where the "
+                           "config says incidence = "
+                           f"{'true' if info['incidence'] else 'false'})")
                 continue
             n_points += len(sh.pixel)
             clipped += int(sh.clipped.sum())
@@ -411,8 +416,8 @@ def dataset_info(directory, verify: bool = False, require_complete: bool = False
             empty += int((np.diff(sh.offsets) == 0).sum())
             signal += int(sh.label.sum()) if sh.label is not None else 0
         if bad:
-            raise InputError(f"corrupt files in {out}: {bad}; delete them and run the same "
-                             "build again to remake them")
+            raise InputError(f"damaged or foreign files in {out}: {'; '.join(bad)}; delete "
+                             "them and run the same build again to remake them")
         info.update({"points": n_points, "mean_points_per_sample": n_points / max(n_done, 1),
                      "clipped_samples": clipped, "clamped_pixels": clamped,
                      "empty_samples": empty, "verified": True})

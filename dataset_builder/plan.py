@@ -284,11 +284,18 @@ def make_plan(cfg: dict, catalog, backend: str | None = None,
     if backend:
         cfg["backend"] = backend
     cfg.setdefault("backend", "embree")
+    if "fine_cloud_points" in cfg and cfg["backend"] != "points":  # it would be ignored
+        raise InputError(f"fine_cloud_points is used by backend = \"points\" only (the point "
+                         f"z-buffer's surface samples); this build casts rays "
+                         f"({cfg['backend']}): drop the key")
     sensor_params = resolve_sensor(cfg["sensor"]) if "sensor" in cfg else None
     if sensor_params is not None and cfg["backend"] == "points":
         raise InputError("a sensor needs a ray-casting backend (the photon stage takes every "
                          "sub-ray's range and incidence); accepted: embree, blender, "
                          "blender-bvh")
+    if sensor_params is not None and cfg.get("quantize") is False:  # as --no-quantize
+        raise InputError("quantize = false does not apply with a sensor: a sensor's points sit "
+                         "at their time bins' centres (SPEC section 8); drop one of the two")
     if sensor_params is not None:  # its pairing with the lidar, before anything is made
         from apcg_core.sensor.stage import check_sensor_at
         check_sensor_at(sensor_params, lidar)

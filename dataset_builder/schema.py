@@ -35,7 +35,7 @@ def _text(v) -> bool:
 
 
 def _pair(v) -> bool:
-    return isinstance(v, list) and len(v) == 2 and all(map(_number, v)) and v[0] <= v[1]
+    return isinstance(v, list) and len(v) == 2 and all(map(_number, v)) and v[0] < v[1]
 
 
 def _types(v) -> bool:
@@ -58,7 +58,8 @@ class Table:
 
 _POSITIVE = Key("a finite number > 0", lambda v: _number(v) and v > 0)
 _EVEN = Key("an even integer from 2 to 65536", lambda v: _int_in(2, 65536)(v) and v % 2 == 0)
-_PAIR = Key("[lo, hi], two finite numbers with lo <= hi", _pair)
+# lo < hi: each condition's nu is scaled over [lo, hi] (plan.check_ranges says the same)
+_PAIR = Key("[lo, hi], two finite numbers with lo < hi", _pair)
 _COUNT = Key("an integer from 1 to 10000", _int_in(1, 10**4))
 
 SCHEMA: dict = {
