@@ -232,3 +232,49 @@ def test_a_network_the_datasets_lidar_cannot_shape_is_refused_in_one_line(world,
     one_error(rc, err, "cgan family cannot train on the dataset", str(world["lidar"]),
               "32 x 8")
     assert not (tmp_path / "r" / "train_config.json").exists()
+
+
+def _scoring_commands():
+    """(command path, handler) of every command with a model option and --data: each scores
+    a model against a dataset (found by walking the installed parser, so a new one is
+    found too)."""
+    import argparse
+
+    from apcg_core.cli import build_parser
+    out = []
+
+    def walk(parser, path):
+        dests = {a.dest for a in parser._actions}
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sub in a.choices.items():
+                    walk(sub, path + [name])
+        if "data" in dests and dests & {"model", "models"} and parser.get_default("func"):
+            out.append((" ".join(path), parser.get_default("func")))
+    walk(build_parser(), [])
+    return out
+
+
+def test_every_command_scoring_a_model_on_a_dataset_checks_the_two_agree():
+    """evaluate and compare warned of another lidar and of photon clouds; choose-tau, figure
+    19 and fd-depth score did not (probe p3, stop 55): one check, warn_other_data, on every
+    such path."""
+    import inspect
+    found = _scoring_commands()
+    names = {path for path, _ in found}
+    assert {"evaluate", "compare", "choose-tau", "figure", "fd-depth score"} <= names, names
+    # teach's --data is where it builds its new type's own dataset, not one it scores on
+    missing = [path for path, func in found if path != "teach"
+               and "warn_other_data(" not in inspect.getsource(func)]
+    assert not missing, missing
+
+
+@pytest.mark.parametrize("argv", [["choose-tau", "--pairs", "4"],
+                                  ["figure", "19", "--pairs", "4"]])
+def test_scoring_on_a_photon_dataset_warns_once(world, tmp_path, capsys, argv):
+    out = ["-o", tmp_path / "out.png"] if argv[0] == "figure" else []
+    rc, _, err = run([*argv, "--model", world["model"], "--data", world["sensor"], *out],
+                     capsys)
+    warned = [ln for ln in err.splitlines() if "warning" in ln and SENSOR in ln]
+    # (the 2-step model draws little: choose-tau may then refuse every threshold, after it)
+    assert rc in (0, 2) and "Traceback" not in err and len(warned) == 1, err

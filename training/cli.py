@@ -340,6 +340,14 @@ def warn_other_lidar(command: str, data_dir, model) -> None:
         print(f"apcg {command}: warning: {warning}", file=sys.stderr, flush=True)
 
 
+def warn_other_data(command: str, data_dir, model) -> None:
+    """The one check of a dataset against the model scored on it, for every command that
+    scores a model against --data (evaluate, compare, choose-tau, figure 19, fd-depth score):
+    a warning line for another lidar and one for clouds of another kind (a sensor's)."""
+    warn_other_lidar(command, data_dir, model)
+    warn_other_sensor(command, data_dir, model)
+
+
 def warn_other_sensor(command: str, data_dir, model) -> None:
     """One warning line when the dataset's clouds (a sensor's photon clouds: its dataset.json
     ``sensor``) are not of the kind the model makes (its model.json ``sensor``, or none)."""
@@ -389,8 +397,7 @@ def _run_evaluate(args) -> int:
 
     from .evaluate import evaluate, jsd_bins_study, markdown, write_report
     model = model_at_lidar(load_model(args.model, runtime=args.runtime), args, "evaluate")
-    warn_other_lidar("evaluate", args.data, model)
-    warn_other_sensor("evaluate", args.data, model)
+    warn_other_data("evaluate", args.data, model)
     command = args.command_line
     if args.jsd_bins_study:
         study = jsd_bins_study(model, args.data, seed=args.seed)
@@ -450,6 +457,7 @@ def _run_choose_tau(args) -> int:
         except ValueError as exc:
             raise InputError(f"--taus takes comma-separated numbers, got {args.taus!r}") from exc
     model = load_model(args.model, runtime=args.runtime)
+    warn_other_data("choose-tau", args.data, model)
     rep = choose_tau(model, args.data, taus=taus, n_pairs=_pairs(args), seed=args.seed)
     rep["command"] = args.command_line
     text = json.dumps(rep, indent=1)
@@ -549,6 +557,7 @@ def _run_figure(args) -> int:
         elif args.number == 18:
             fig18(model, args.output)
         else:
+            warn_other_data("figure", args.data, model)
             fig19(model, args.data, args.output, n_pairs=_pairs(args))
     print(f"wrote {args.output} and its .json")
     return 0
@@ -589,8 +598,10 @@ def _run_fd_score(args) -> int:
     from apcg_core.families import load_model
 
     from .fd_depth import fd_depth
-    print(json.dumps(fd_depth(args.encoder, load_model(args.model), args.data,
-                              n_pairs=_pairs(args), seed=args.seed)))
+    model = load_model(args.model)
+    warn_other_data("fd-depth", args.data, model)
+    print(json.dumps(fd_depth(args.encoder, model, args.data, n_pairs=_pairs(args),
+                              seed=args.seed)))
     return 0
 
 
@@ -660,8 +671,7 @@ def _run_compare(args) -> int:
     models = [(name, model_at_lidar(load_model(path, runtime=args.runtime), args, "compare"))
               for name, path in method_names(args.model)]
     for _, model in models:
-        warn_other_lidar("compare", args.data, model)
-        warn_other_sensor("compare", args.data, model)
+        warn_other_data("compare", args.data, model)
     report = compare(models, args.data, n_pairs=_pairs(args), seed=args.seed,
                      memory_steps=args.memory_steps, with_untrained=not args.no_untrained,
                      progress=True, faithfulness=args.faithfulness)
