@@ -141,3 +141,15 @@ def addon_scene(tmp_path, monkeypatch):
     yield bpy.context.scene
     blender_addon.unregister()
     default_catalog.cache_clear()
+
+
+@pytest.fixture
+def own_catalog(tmp_path, monkeypatch):
+    """A user catalog of the test's own (APCG_DATA_DIR): the user types it adds do not stay in
+    this process's catalog for the tests after it (a shipped model's types are counted
+    against the catalog's)."""
+    from apcg_core.catalog import default_catalog
+    monkeypatch.setenv("APCG_DATA_DIR", str(tmp_path / "own-data"))
+    default_catalog.cache_clear()
+    yield
+    default_catalog.cache_clear()

@@ -13,6 +13,9 @@ from apcg_core.catalog.catalog import mesh_digest
 from apcg_core.io.dataset import Shard, dataset_stamp, foreign_shard
 from tests.cli_run import one_error, run
 
+# the user types these tests add stay out of the process's catalog (conftest.py)
+pytestmark = pytest.mark.usefixtures("own_catalog")
+
 CONFIG = """description = "mesh stamp"
 seed = 3
 backend = "embree"

@@ -12,6 +12,9 @@ import trimesh
 from dataset_builder.rays import _arc_top
 from tests.cli_run import run
 
+# the user types these tests add stay out of the process's catalog (conftest.py)
+pytestmark = pytest.mark.usefixtures("own_catalog")
+
 
 @pytest.fixture
 def slab(tmp_path, capsys):

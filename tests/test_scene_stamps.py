@@ -25,6 +25,9 @@ from apcg_core.errors import InputError
 from apcg_core.scene import load_scene, load_sequence, read_frame, scene_from_dict
 from tests.cli_run import one_error, run
 
+# the user types these tests add stay out of the process's catalog (conftest.py)
+pytestmark = pytest.mark.usefixtures("own_catalog")
+
 NAME = "scene stamp plane"
 # a small window (64 x 32 cells) at 3 km: every frame a few hundred rays
 LIDAR = {"width": 64, "height": 32}
