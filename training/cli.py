@@ -597,10 +597,11 @@ def _run_fd_train(args) -> int:
 def _run_fd_score(args) -> int:
     from apcg_core.families import load_model
 
-    from .fd_depth import fd_depth
+    from .fd_depth import fd_depth, load_encoder
+    encoder = load_encoder(args.encoder)  # its refusal first, then the dataset's
     model = load_model(args.model)
     warn_other_data("fd-depth", args.data, model)
-    print(json.dumps(fd_depth(args.encoder, model, args.data, n_pairs=_pairs(args),
+    print(json.dumps(fd_depth(encoder, model, args.data, n_pairs=_pairs(args),
                               seed=args.seed)))
     return 0
 
